@@ -1,0 +1,276 @@
+//! The `octstore` command line.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Args, Parser, Subcommand};
+use serde::Serialize;
+
+use crate::stages::{self, synthetic::SyntheticStage};
+use crate::store::{RunOptions, Store, StoreError};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "octstore",
+    version,
+    about = "Out-of-core surface reconstruction on a versioned octree store"
+)]
+pub struct Cli {
+    #[command(flatten)]
+    pub global: GlobalOptions,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct GlobalOptions {
+    /// Memory the whole process may use, e.g. 512MiB, 1GiB.
+    #[arg(long, global = true, default_value = "1GiB", value_parser = parse_size)]
+    pub memory_budget: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    pub threads: Option<usize>,
+    /// No progress bars.
+    #[arg(long, global = true)]
+    pub quiet: bool,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Summary of a store: version, inputs, cubes, leaves, segments, bytes, content digests.
+    Info {
+        store: PathBuf,
+        #[arg(long)]
+        json: bool,
+        /// Show this version instead of the latest.
+        #[arg(long)]
+        version: Option<u64>,
+    },
+    /// Check every segment byte and every catalog invariant; exits non-zero on any problem.
+    Verify { store: PathBuf },
+    /// The store's versions, oldest first.
+    Log {
+        store: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Remove segments that no kept version can see.
+    Gc {
+        store: PathBuf,
+        /// Versions to keep readable, counting the latest.
+        #[arg(long, default_value_t = 1)]
+        keep: u64,
+    },
+    /// Run the synthetic test stage (exercises the stage runner without input files).
+    #[command(hide = true)]
+    DebugSynthetic {
+        store: PathBuf,
+        #[arg(long, default_value_t = 8)]
+        units: u32,
+        #[arg(long, default_value_t = 2000)]
+        rows: u32,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[arg(long, default_value_t = 0)]
+        delay_ms: u64,
+        #[arg(long)]
+        resume: bool,
+    },
+}
+
+/// Parses sizes like `512MiB`, `1GiB`, `1.5G`, `4096`.
+pub fn parse_size(text: &str) -> Result<u64, String> {
+    let text = text.trim();
+    let split = text
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(text.len());
+    let (number, unit) = text.split_at(split);
+    let value: f64 = number
+        .parse()
+        .map_err(|_| format!("'{text}' is not a size (examples: 512MiB, 1GiB, 1000000)"))?;
+    let scale: f64 = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1.0,
+        "k" | "kb" => 1e3,
+        "kib" => 1024.0,
+        "m" | "mb" => 1e6,
+        "mib" => 1024.0 * 1024.0,
+        "g" | "gb" => 1e9,
+        "gib" => 1024.0 * 1024.0 * 1024.0,
+        other => {
+            return Err(format!(
+                "unknown size unit '{other}' (use B, KiB, MiB, GiB, KB, MB, GB)"
+            ));
+        }
+    };
+    Ok((value * scale) as u64)
+}
+
+#[derive(Serialize, Debug)]
+pub struct InfoJson {
+    pub store: String,
+    pub version: u64,
+    pub depth_maps: u64,
+    pub cubes: u64,
+    pub treetop_leaves: u64,
+    pub segments: u64,
+    pub bytes: u64,
+    /// Content digest per stage (hex), equal for equal content however it was produced.
+    pub digest: std::collections::BTreeMap<String, String>,
+}
+
+pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError> {
+    let snapshot = match version {
+        Some(v) => store.snapshot(v)?,
+        None => store.latest()?,
+    };
+    let digest = snapshot
+        .stages()
+        .map(|stage| {
+            (
+                stage.to_string(),
+                format!("{:016x}", snapshot.digest(stage)),
+            )
+        })
+        .collect();
+    Ok(InfoJson {
+        store: store.root().display().to_string(),
+        version: snapshot.version(),
+        depth_maps: snapshot.segments(stages::INGEST).len() as u64,
+        cubes: snapshot.rows(stages::OCTREE),
+        treetop_leaves: snapshot.segments(stages::OCTREE).len() as u64,
+        segments: snapshot.all_segments().count() as u64,
+        bytes: snapshot.all_segments().map(|(_, r)| r.bytes).sum(),
+        digest,
+    })
+}
+
+fn run_options(global: &GlobalOptions, resume: bool) -> RunOptions {
+    RunOptions {
+        resume,
+        threads: global.threads.unwrap_or_else(rayon::current_num_threads),
+        progress: !global.quiet,
+    }
+}
+
+fn open_or_create(path: &std::path::Path) -> Result<Store, StoreError> {
+    if path.join(crate::store::CATALOG_FILE).exists() {
+        Store::open(path)
+    } else {
+        Store::create(path)
+    }
+}
+
+pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
+    let global = cli.global;
+    if let Some(threads) = global.threads {
+        // Only the first call configures the global pool; later calls are harmless.
+        let _ = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build_global();
+    }
+    match cli.command {
+        Command::Info {
+            store,
+            json,
+            version,
+        } => {
+            let store = Store::open_for_reading(&store)?;
+            let info = info(&store, version)?;
+            if json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&info).unwrap_or_default()
+                );
+            } else {
+                println!("store          {}", info.store);
+                println!("version        {}", info.version);
+                println!("depth maps     {}", info.depth_maps);
+                println!("cubes          {}", info.cubes);
+                println!("treetop leaves {}", info.treetop_leaves);
+                println!("segments       {} ({} bytes)", info.segments, info.bytes);
+                for (stage, digest) in &info.digest {
+                    println!("digest         {stage:<12} {digest}");
+                }
+            }
+        }
+        Command::Verify { store } => {
+            // Writable: recovers the catalog after a crash and removes crash debris first.
+            let store = Store::open(&store)?;
+            let report = store.verify(&[])?;
+            for problem in &report.problems {
+                eprintln!("error: {problem}");
+            }
+            if !report.is_ok() {
+                eprintln!(
+                    "verify: {} problem(s) in {} segment(s) of {}",
+                    report.problems.len(),
+                    report.segments,
+                    store.root().display()
+                );
+                return Ok(ExitCode::FAILURE);
+            }
+            println!(
+                "verify: ok: {} segment(s), {} rows, {} bytes",
+                report.segments, report.rows, report.bytes
+            );
+        }
+        Command::Log { store, json } => {
+            let store = Store::open_for_reading(&store)?;
+            let log = store.log()?;
+            if json {
+                let rows: Vec<serde_json::Value> = log
+                    .iter()
+                    .map(|(v, r, t)| {
+                        serde_json::json!({"version": v, "parent": r.parent, "kind": r.kind, "summary": r.summary, "unix_ms": t})
+                    })
+                    .collect();
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(&rows).unwrap_or_default()
+                );
+            } else {
+                for (version, record, time) in log {
+                    let when = time
+                        .map(|t| format!("{:.3}s", t as f64 / 1000.0))
+                        .unwrap_or_default();
+                    println!(
+                        "{version:>6}  {:<12} {}  (unix {when})",
+                        record.kind, record.summary
+                    );
+                }
+            }
+        }
+        Command::Gc { store, keep } => {
+            let store = Store::open(&store)?;
+            let (files, bytes) = store.gc(keep)?;
+            println!("gc: removed {files} segment file(s), {bytes} bytes");
+        }
+        Command::DebugSynthetic {
+            store,
+            units,
+            rows,
+            seed,
+            delay_ms,
+            resume,
+        } => {
+            let store = open_or_create(&store)?;
+            let stage = SyntheticStage {
+                units,
+                rows_per_unit: rows,
+                seed,
+                delay_ms,
+            };
+            let report = store.run_stage(&stage, &run_options(&global, resume))?;
+            println!(
+                "{}: version {:?}, {} unit(s) ({} resumed), {} rows, {:.2}s",
+                report.stage,
+                report.version,
+                report.units,
+                report.resumed_units,
+                report.rows,
+                report.seconds
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

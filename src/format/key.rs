@@ -1,0 +1,257 @@
+//! Cube keys: the 96-bit Morton code of a cube's minimum corner at full resolution, plus depth.
+//!
+//! Invariant: the numeric order of [`CubeKey::raw`] is (morton, depth), so an ancestor sorts
+//! immediately before its descendants and every subtree is one contiguous key range.
+
+use std::cmp::Ordering;
+use std::fmt;
+
+/// Deepest level a cube can have: each axis is addressed with 32 bits.
+pub const MAX_DEPTH: u8 = 32;
+
+/// Width of a key's encoding, in bytes (big-endian `u128`).
+pub const KEY_BYTES: usize = size_of::<u128>();
+
+#[derive(
+    Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default, bytemuck::Pod, bytemuck::Zeroable,
+)]
+#[repr(transparent)]
+pub struct CubeKey(u128);
+
+/// Mask with blocks of `s` set bits every `3 s` bits, over 96 bits.
+const fn spread_mask(s: u32) -> u128 {
+    let mut mask = 0u128;
+    let mut base = 0;
+    while base < 96 {
+        let mut bit = 0;
+        while bit < s {
+            mask |= 1u128 << (base + bit);
+            bit += 1;
+        }
+        base += 3 * s;
+    }
+    mask
+}
+
+const SPREAD_MASKS: [(u32, u128); 5] = [
+    (16, spread_mask(16)),
+    (8, spread_mask(8)),
+    (4, spread_mask(4)),
+    (2, spread_mask(2)),
+    (1, spread_mask(1)),
+];
+
+/// Moves bit i of `v` to bit 3i.
+fn spread3(v: u32) -> u128 {
+    let mut x = u128::from(v);
+    for (s, mask) in SPREAD_MASKS {
+        x = (x | (x << (2 * s))) & mask;
+    }
+    x
+}
+
+/// Inverse of [`spread3`] for the bits at positions 3i.
+fn compact3(code: u128) -> u32 {
+    let mut x = code & spread_mask(1);
+    for s in [1u32, 2, 4, 8, 16] {
+        x = (x | (x >> (2 * s))) & spread_mask(2 * s);
+    }
+    (x & 0xFFFF_FFFF) as u32
+}
+
+impl CubeKey {
+    /// The key of the cube at `depth` with integer coordinates `(x, y, z)` in `[0, 2^depth)`.
+    ///
+    /// Panics in debug builds if a coordinate is out of range for the depth.
+    pub fn new(depth: u8, x: u32, y: u32, z: u32) -> CubeKey {
+        debug_assert!(depth <= MAX_DEPTH);
+        let shift = u32::from(MAX_DEPTH - depth);
+        let (fx, fy, fz) = if shift >= 32 {
+            (0, 0, 0)
+        } else {
+            (x << shift, y << shift, z << shift)
+        };
+        CubeKey::from_full_resolution(depth, fx, fy, fz)
+    }
+
+    /// Key from the full-resolution (32-bit) minimum corner; low bits below `depth` must be zero.
+    pub fn from_full_resolution(depth: u8, fx: u32, fy: u32, fz: u32) -> CubeKey {
+        let morton = spread3(fx) | (spread3(fy) << 1) | (spread3(fz) << 2);
+        CubeKey((morton << 8) | u128::from(depth))
+    }
+
+    pub const fn from_raw(raw: u128) -> CubeKey {
+        CubeKey(raw)
+    }
+
+    pub const fn raw(self) -> u128 {
+        self.0
+    }
+
+    pub fn depth(self) -> u8 {
+        (self.0 & 0xFF) as u8
+    }
+
+    /// The 96-bit Morton code of the minimum corner at full resolution.
+    pub fn morton(self) -> u128 {
+        self.0 >> 8
+    }
+
+    /// Full-resolution minimum corner.
+    pub fn corner_full_resolution(self) -> [u32; 3] {
+        let m = self.morton();
+        [compact3(m), compact3(m >> 1), compact3(m >> 2)]
+    }
+
+    /// Integer coordinates at the key's own depth.
+    pub fn coords(self) -> [u32; 3] {
+        let shift = u32::from(MAX_DEPTH - self.depth());
+        self.corner_full_resolution()
+            .map(|c| c.checked_shr(shift).unwrap_or(0))
+    }
+
+    /// Whether the depth is valid and the corner is aligned to the cube's size.
+    pub fn is_well_formed(self) -> bool {
+        let depth = self.depth();
+        if depth > MAX_DEPTH || (self.0 >> 104) != 0 {
+            return false;
+        }
+        let shift = u32::from(MAX_DEPTH - depth);
+        let low_mask: u32 = if shift >= 32 {
+            u32::MAX
+        } else {
+            (1u32 << shift) - 1
+        };
+        self.corner_full_resolution()
+            .iter()
+            .all(|c| c & low_mask == 0)
+    }
+
+    pub fn parent(self) -> Option<CubeKey> {
+        let depth = self.depth();
+        if depth == 0 {
+            return None;
+        }
+        let [x, y, z] = self.coords();
+        Some(CubeKey::new(depth - 1, x >> 1, y >> 1, z >> 1))
+    }
+
+    /// The key range `[self, end]` covering this cube and all its descendants.
+    pub fn subtree_last(self) -> CubeKey {
+        let shift = 3 * u32::from(MAX_DEPTH - self.depth());
+        let span: u128 = if shift >= 96 {
+            (1u128 << 96) - 1
+        } else {
+            (1u128 << shift) - 1
+        };
+        CubeKey(((self.morton() | span) << 8) | u128::from(MAX_DEPTH))
+    }
+
+    pub fn is_ancestor_or_self_of(self, other: CubeKey) -> bool {
+        other.depth() >= self.depth() && self <= other && other <= self.subtree_last()
+    }
+
+    pub fn to_be_bytes(self) -> [u8; KEY_BYTES] {
+        self.0.to_be_bytes()
+    }
+
+    pub fn from_be_bytes(bytes: [u8; KEY_BYTES]) -> CubeKey {
+        CubeKey(u128::from_be_bytes(bytes))
+    }
+}
+
+impl fmt::Debug for CubeKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let [x, y, z] = self.coords();
+        write!(f, "d{}:({},{},{})", self.depth(), x, y, z)
+    }
+}
+
+impl fmt::Display for CubeKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{:026x}", self.0)
+    }
+}
+
+/// redb key type that compares cube keys by their numeric order explicitly (DESIGN.md section 3).
+#[derive(Debug)]
+pub struct CubeKeyColumn;
+
+impl redb::Value for CubeKeyColumn {
+    type SelfType<'a> = CubeKey;
+    type AsBytes<'a> = [u8; KEY_BYTES];
+
+    fn fixed_width() -> Option<usize> {
+        Some(KEY_BYTES)
+    }
+
+    fn from_bytes<'a>(data: &'a [u8]) -> CubeKey
+    where
+        Self: 'a,
+    {
+        // redb only hands back bytes produced by `as_bytes`; a short slice would be a redb bug,
+        // and mapping it to the zero key keeps decoding panic-free.
+        let bytes: [u8; KEY_BYTES] = data.try_into().unwrap_or([0; KEY_BYTES]);
+        CubeKey::from_be_bytes(bytes)
+    }
+
+    fn as_bytes<'a, 'b: 'a>(value: &'a CubeKey) -> [u8; KEY_BYTES]
+    where
+        Self: 'b,
+    {
+        value.to_be_bytes()
+    }
+
+    fn type_name() -> redb::TypeName {
+        redb::TypeName::new("octstore::CubeKey")
+    }
+}
+
+impl redb::Key for CubeKeyColumn {
+    fn compare(data1: &[u8], data2: &[u8]) -> Ordering {
+        let a = <Self as redb::Value>::from_bytes(data1);
+        let b = <Self as redb::Value>::from_bytes(data2);
+        a.cmp(&b)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn ancestor_sorts_before_descendants() {
+        let root = CubeKey::new(0, 0, 0, 0);
+        let child = CubeKey::new(1, 0, 0, 0);
+        let grandchild = CubeKey::new(2, 1, 1, 1);
+        let other = CubeKey::new(1, 1, 0, 0);
+        assert!(root < child && child < grandchild && grandchild < other);
+        assert!(child.is_ancestor_or_self_of(grandchild));
+        assert!(!other.is_ancestor_or_self_of(grandchild));
+        assert!(root.is_ancestor_or_self_of(other));
+    }
+
+    proptest! {
+        #[test]
+        fn coordinates_round_trip(depth in 0u8..=32, x: u32, y: u32, z: u32) {
+            let mask = if depth == 0 { 0 } else { u32::MAX >> (32 - u32::from(depth)) };
+            let (x, y, z) = (x & mask, y & mask, z & mask);
+            let key = CubeKey::new(depth, x, y, z);
+            prop_assert_eq!(key.coords(), [x, y, z]);
+            prop_assert_eq!(key.depth(), depth);
+            prop_assert!(key.is_well_formed());
+            if let Some(parent) = key.parent() {
+                prop_assert!(parent < key);
+                prop_assert!(parent.is_ancestor_or_self_of(key));
+                prop_assert!(key <= parent.subtree_last());
+            }
+        }
+
+        #[test]
+        fn big_endian_bytes_order_like_keys(a: u128, b: u128) {
+            let (a, b) = (CubeKey::from_raw(a >> 24), CubeKey::from_raw(b >> 24));
+            prop_assert_eq!(a.to_be_bytes().cmp(&b.to_be_bytes()), a.cmp(&b));
+        }
+    }
+}

@@ -1,0 +1,851 @@
+//! Immutable column segments: one contiguous key range, many named columns, each split into
+//! zstd-compressed, checksummed blocks. The byte layout is specified in `format-spec.md`
+//! ("Segment files"); the constants below are that specification.
+//!
+//! Invariant of every valid segment: the header, the blocks, the directory and the footer tile
+//! the file exactly, and each of them is covered by a magic/version match or a checksum, so any
+//! single flipped byte and any truncation is detected.
+
+#![deny(clippy::unwrap_used, clippy::expect_used, clippy::indexing_slicing)]
+
+use std::io::Write;
+
+use xxhash_rust::xxh3::{Xxh3, xxh3_64};
+
+use super::bytes::ByteReader;
+use super::key::CubeKey;
+use super::{DecodeError, EncodeError, Region};
+
+/// First and last eight bytes of every segment file.
+pub const MAGIC: [u8; 8] = *b"OCTSEG\x00\x01";
+/// Version of the segment layout written by this build.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Header: magic, format version, flags (always 0 in version 1).
+pub const HEADER_LEN: usize = MAGIC.len() + size_of::<u32>() + size_of::<u32>();
+
+/// Footer fields before the footer checksum: directory offset, directory length, row count,
+/// directory checksum, nominal block rows, format version.
+pub const FOOTER_FIELDS_LEN: usize = 4 * size_of::<u64>() + 2 * size_of::<u32>();
+/// Footer: fields, xxh3 of the fields, magic.
+pub const FOOTER_LEN: usize = FOOTER_FIELDS_LEN + size_of::<u64>() + MAGIC.len();
+
+/// Per-block entry of the block table: row count, first key, last key.
+pub const BLOCK_ENTRY_LEN: usize = size_of::<u32>() + 2 * size_of::<u128>();
+/// Per-column, per-block entry: offset, compressed length, xxh3 of the compressed bytes.
+pub const CHUNK_ENTRY_LEN: usize = size_of::<u64>() + size_of::<u32>() + size_of::<u64>();
+
+/// Rows per block written by this build (readers accept any value recorded in the file).
+pub const DEFAULT_BLOCK_ROWS: u32 = 1 << 16;
+/// zstd level: fast enough to write at several hundred MB/s per core.
+pub const ZSTD_LEVEL: i32 = 1;
+/// Name of the mandatory first column.
+pub const KEY_COLUMN: &str = "key";
+
+const MAX_COLUMNS: usize = 255;
+const MAX_NAME_LEN: usize = 255;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
+pub enum ElementType {
+    /// `CubeKey` as a little-endian u128.
+    Key = 1,
+    F32 = 2,
+    U32 = 3,
+    U64 = 4,
+}
+
+impl ElementType {
+    pub fn size(self) -> usize {
+        match self {
+            ElementType::Key => size_of::<u128>(),
+            ElementType::F32 | ElementType::U32 => size_of::<u32>(),
+            ElementType::U64 => size_of::<u64>(),
+        }
+    }
+
+    fn from_code(code: u8) -> Option<ElementType> {
+        match code {
+            1 => Some(ElementType::Key),
+            2 => Some(ElementType::F32),
+            3 => Some(ElementType::U32),
+            4 => Some(ElementType::U64),
+            _ => None,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub enum ColumnValues {
+    Key(Vec<CubeKey>),
+    F32(Vec<f32>),
+    U32(Vec<u32>),
+    U64(Vec<u64>),
+}
+
+impl ColumnValues {
+    pub fn element_type(&self) -> ElementType {
+        match self {
+            ColumnValues::Key(_) => ElementType::Key,
+            ColumnValues::F32(_) => ElementType::F32,
+            ColumnValues::U32(_) => ElementType::U32,
+            ColumnValues::U64(_) => ElementType::U64,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        match self {
+            ColumnValues::Key(v) => v.len(),
+            ColumnValues::F32(v) => v.len(),
+            ColumnValues::U32(v) => v.len(),
+            ColumnValues::U64(v) => v.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    fn as_bytes(&self) -> &[u8] {
+        match self {
+            ColumnValues::Key(v) => bytemuck::cast_slice(v),
+            ColumnValues::F32(v) => bytemuck::cast_slice(v),
+            ColumnValues::U32(v) => bytemuck::cast_slice(v),
+            ColumnValues::U64(v) => bytemuck::cast_slice(v),
+        }
+    }
+}
+
+/// One named column: `width` elements per row, row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Column {
+    pub name: String,
+    pub width: u16,
+    pub values: ColumnValues,
+}
+
+impl Column {
+    pub fn new(name: &str, width: u16, values: ColumnValues) -> Column {
+        Column {
+            name: name.to_string(),
+            width,
+            values,
+        }
+    }
+
+    pub fn keys(keys: Vec<CubeKey>) -> Column {
+        Column::new(KEY_COLUMN, 1, ColumnValues::Key(keys))
+    }
+
+    pub fn rows(&self) -> usize {
+        self.values.len() / usize::from(self.width.max(1))
+    }
+}
+
+/// What the writer learned about the segment it wrote; recorded in the catalog.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SegmentSummary {
+    pub rows: u64,
+    pub bytes: u64,
+    /// xxh3 of the whole file.
+    pub file_checksum: u64,
+    /// xxh3 of the decoded content (column names, types, widths and raw values); independent of
+    /// compression and block size.
+    pub content_digest: u64,
+    pub first_key: CubeKey,
+    pub last_key: CubeKey,
+}
+
+/// Hashes decoded column content the same way on write and on verify.
+pub fn content_digest_update(
+    hasher: &mut Xxh3,
+    name: &str,
+    ty: ElementType,
+    width: u16,
+    raw: &[u8],
+) {
+    hasher.update(&(name.len() as u64).to_le_bytes());
+    hasher.update(name.as_bytes());
+    hasher.update(&[ty as u8]);
+    hasher.update(&width.to_le_bytes());
+    hasher.update(&(raw.len() as u64).to_le_bytes());
+    hasher.update(raw);
+}
+
+fn validate(columns: &[Column]) -> Result<&[CubeKey], EncodeError> {
+    let invalid = |msg: String| Err(EncodeError::Invalid(msg));
+    let Some(first) = columns.first() else {
+        return invalid("a segment needs at least the key column".into());
+    };
+    let ColumnValues::Key(keys) = &first.values else {
+        return invalid("the first column must hold cube keys".into());
+    };
+    if first.name != KEY_COLUMN || first.width != 1 {
+        return invalid(format!(
+            "the first column must be '{KEY_COLUMN}' of width 1"
+        ));
+    }
+    if keys.is_empty() {
+        return invalid("a segment holds at least one row".into());
+    }
+    if columns.len() > MAX_COLUMNS {
+        return invalid(format!("{} columns, at most {MAX_COLUMNS}", columns.len()));
+    }
+    if let Some(pair) = keys.windows(2).find(|w| w.first() >= w.get(1)) {
+        return invalid(format!("keys are not strictly increasing: {pair:?}"));
+    }
+    let mut names = std::collections::BTreeSet::new();
+    for column in columns {
+        if column.name.is_empty() || column.name.len() > MAX_NAME_LEN {
+            return invalid(format!(
+                "column name '{}' must be 1..=255 bytes",
+                column.name
+            ));
+        }
+        if !names.insert(column.name.as_str()) {
+            return invalid(format!("column '{}' appears twice", column.name));
+        }
+        if column.width == 0 {
+            return invalid(format!("column '{}' has width 0", column.name));
+        }
+        if column.values.len() != keys.len() * usize::from(column.width) {
+            return invalid(format!(
+                "column '{}' holds {} values, expected {} rows x width {}",
+                column.name,
+                column.values.len(),
+                keys.len(),
+                column.width
+            ));
+        }
+    }
+    Ok(keys)
+}
+
+/// Writes `columns` as one segment to `out`, streaming block by block.
+pub fn encode_segment<W: Write>(
+    columns: &[Column],
+    out: &mut W,
+) -> Result<SegmentSummary, EncodeError> {
+    encode_segment_with_block_rows(columns, DEFAULT_BLOCK_ROWS, out)
+}
+
+struct HashingWriter<'w, W: Write> {
+    inner: &'w mut W,
+    hasher: Xxh3,
+    written: u64,
+}
+
+impl<W: Write> HashingWriter<'_, W> {
+    fn put(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.inner.write_all(bytes)?;
+        self.hasher.update(bytes);
+        self.written += bytes.len() as u64;
+        Ok(())
+    }
+}
+
+pub fn encode_segment_with_block_rows<W: Write>(
+    columns: &[Column],
+    block_rows: u32,
+    out: &mut W,
+) -> Result<SegmentSummary, EncodeError> {
+    let keys = validate(columns)?;
+    let block_rows = block_rows.max(1) as usize;
+    let rows = keys.len();
+    let block_count = rows.div_ceil(block_rows);
+
+    let mut w = HashingWriter {
+        inner: out,
+        hasher: Xxh3::new(),
+        written: 0,
+    };
+    w.put(&MAGIC)?;
+    w.put(&FORMAT_VERSION.to_le_bytes())?;
+    w.put(&0u32.to_le_bytes())?;
+
+    let mut compressor =
+        zstd::bulk::Compressor::new(ZSTD_LEVEL).map_err(EncodeError::Compression)?;
+    let mut content = Xxh3::new();
+    // Per column, per block: (offset, compressed length, checksum).
+    let mut chunks: Vec<Vec<(u64, u32, u64)>> = Vec::with_capacity(columns.len());
+    for column in columns {
+        let raw = column.values.as_bytes();
+        content_digest_update(
+            &mut content,
+            &column.name,
+            column.values.element_type(),
+            column.width,
+            raw,
+        );
+        let row_bytes = usize::from(column.width) * column.values.element_type().size();
+        let mut entries = Vec::with_capacity(block_count);
+        for chunk in raw.chunks(block_rows * row_bytes) {
+            let compressed = compressor
+                .compress(chunk)
+                .map_err(EncodeError::Compression)?;
+            let len = u32::try_from(compressed.len())
+                .map_err(|_| EncodeError::Invalid("compressed block larger than 4 GiB".into()))?;
+            entries.push((w.written, len, xxh3_64(&compressed)));
+            w.put(&compressed)?;
+        }
+        chunks.push(entries);
+    }
+
+    let mut dir = Vec::new();
+    dir.extend_from_slice(&(block_count as u32).to_le_bytes());
+    for block in keys.chunks(block_rows) {
+        let (first, last) = match (block.first(), block.last()) {
+            (Some(f), Some(l)) => (*f, *l),
+            _ => return Err(EncodeError::Invalid("empty block".into())),
+        };
+        dir.extend_from_slice(&(block.len() as u32).to_le_bytes());
+        dir.extend_from_slice(&first.raw().to_le_bytes());
+        dir.extend_from_slice(&last.raw().to_le_bytes());
+    }
+    dir.extend_from_slice(&(columns.len() as u16).to_le_bytes());
+    for (column, entries) in columns.iter().zip(&chunks) {
+        dir.push(column.name.len() as u8);
+        dir.extend_from_slice(column.name.as_bytes());
+        dir.push(column.values.element_type() as u8);
+        dir.extend_from_slice(&column.width.to_le_bytes());
+        for (offset, len, checksum) in entries {
+            dir.extend_from_slice(&offset.to_le_bytes());
+            dir.extend_from_slice(&len.to_le_bytes());
+            dir.extend_from_slice(&checksum.to_le_bytes());
+        }
+    }
+    let dir_offset = w.written;
+    w.put(&dir)?;
+
+    let mut footer = Vec::with_capacity(FOOTER_LEN);
+    footer.extend_from_slice(&dir_offset.to_le_bytes());
+    footer.extend_from_slice(&(dir.len() as u64).to_le_bytes());
+    footer.extend_from_slice(&(rows as u64).to_le_bytes());
+    footer.extend_from_slice(&xxh3_64(&dir).to_le_bytes());
+    footer.extend_from_slice(&(block_rows as u32).to_le_bytes());
+    footer.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    let footer_checksum = xxh3_64(&footer);
+    footer.extend_from_slice(&footer_checksum.to_le_bytes());
+    footer.extend_from_slice(&MAGIC);
+    w.put(&footer)?;
+
+    let (first_key, last_key) = match (keys.first(), keys.last()) {
+        (Some(f), Some(l)) => (*f, *l),
+        _ => return Err(EncodeError::Invalid("empty segment".into())),
+    };
+    Ok(SegmentSummary {
+        rows: rows as u64,
+        bytes: w.written,
+        file_checksum: w.hasher.digest(),
+        content_digest: content.digest(),
+        first_key,
+        last_key,
+    })
+}
+
+#[derive(Clone, Copy, Debug)]
+struct BlockInfo {
+    rows: u32,
+    first_key: CubeKey,
+    last_key: CubeKey,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct ChunkInfo {
+    offset: u64,
+    len: u32,
+    checksum: u64,
+}
+
+#[derive(Clone, Debug)]
+pub struct ColumnInfo {
+    pub name: String,
+    pub element_type: ElementType,
+    pub width: u16,
+    chunks: Vec<ChunkInfo>,
+}
+
+/// A validated view of one segment's bytes. Parsing checks the header, footer and directory;
+/// each block is checked against its checksum when it is read.
+#[derive(Debug)]
+pub struct SegmentReader<'a> {
+    bytes: &'a [u8],
+    rows: u64,
+    blocks: Vec<BlockInfo>,
+    columns: Vec<ColumnInfo>,
+}
+
+fn corrupt(region: Region, reason: impl Into<String>) -> DecodeError {
+    DecodeError::Corrupt {
+        region,
+        reason: reason.into(),
+    }
+}
+
+impl<'a> SegmentReader<'a> {
+    pub fn parse(bytes: &'a [u8]) -> Result<SegmentReader<'a>, DecodeError> {
+        if bytes.len() < HEADER_LEN + FOOTER_LEN {
+            return Err(DecodeError::Truncated {
+                what: "segment",
+                needed: HEADER_LEN + FOOTER_LEN,
+                available: bytes.len(),
+            });
+        }
+        let mut header = ByteReader::new(bytes);
+        if header.array::<8>()? != MAGIC {
+            return Err(DecodeError::BadMagic {
+                region: Region::Header,
+            });
+        }
+        let version = header.u32()?;
+        if version != FORMAT_VERSION {
+            return Err(DecodeError::UnsupportedVersion {
+                found: version,
+                supported: FORMAT_VERSION,
+            });
+        }
+        if header.u32()? != 0 {
+            return Err(corrupt(Region::Header, "flags must be 0"));
+        }
+
+        let footer_start = bytes.len() - FOOTER_LEN;
+        let footer_bytes = bytes
+            .get(footer_start..)
+            .ok_or_else(|| corrupt(Region::Footer, "missing"))?;
+        let mut footer = ByteReader::new(footer_bytes);
+        let fields = footer.take(FOOTER_FIELDS_LEN)?;
+        let footer_checksum = footer.u64()?;
+        if footer.array::<8>()? != MAGIC {
+            return Err(DecodeError::BadMagic {
+                region: Region::Footer,
+            });
+        }
+        let got = xxh3_64(fields);
+        if got != footer_checksum {
+            return Err(DecodeError::ChecksumMismatch {
+                region: Region::Footer,
+                got,
+                expected: footer_checksum,
+            });
+        }
+        let mut f = ByteReader::new(fields);
+        let dir_offset = f.u64()?;
+        let dir_len = f.u64()?;
+        let rows = f.u64()?;
+        let dir_checksum = f.u64()?;
+        let _block_rows = f.u32()?;
+        let footer_version = f.u32()?;
+        if footer_version != FORMAT_VERSION {
+            return Err(DecodeError::UnsupportedVersion {
+                found: footer_version,
+                supported: FORMAT_VERSION,
+            });
+        }
+        let dir_end = dir_offset.checked_add(dir_len);
+        if dir_offset < HEADER_LEN as u64 || dir_end != Some(footer_start as u64) {
+            return Err(corrupt(
+                Region::Footer,
+                format!(
+                    "directory at {dir_offset}+{dir_len} does not end where the footer starts ({footer_start})"
+                ),
+            ));
+        }
+        let dir = bytes
+            .get(dir_offset as usize..footer_start)
+            .ok_or_else(|| corrupt(Region::Footer, "directory out of bounds"))?;
+        let got = xxh3_64(dir);
+        if got != dir_checksum {
+            return Err(DecodeError::ChecksumMismatch {
+                region: Region::Directory,
+                got,
+                expected: dir_checksum,
+            });
+        }
+
+        let mut d = ByteReader::new(dir);
+        let block_count = d.u32()? as usize;
+        if block_count.saturating_mul(BLOCK_ENTRY_LEN) > d.remaining() {
+            return Err(corrupt(
+                Region::Directory,
+                "block table longer than the directory",
+            ));
+        }
+        let mut blocks = Vec::with_capacity(block_count);
+        let mut row_sum = 0u64;
+        for _ in 0..block_count {
+            let block_rows = d.u32()?;
+            let first_key = CubeKey::from_raw(d.u128()?);
+            let last_key = CubeKey::from_raw(d.u128()?);
+            if block_rows == 0 || first_key > last_key {
+                return Err(corrupt(
+                    Region::Directory,
+                    "empty block or inverted key range",
+                ));
+            }
+            row_sum += u64::from(block_rows);
+            blocks.push(BlockInfo {
+                rows: block_rows,
+                first_key,
+                last_key,
+            });
+        }
+        if row_sum != rows || rows == 0 {
+            return Err(corrupt(
+                Region::Directory,
+                format!("blocks hold {row_sum} rows, footer says {rows}"),
+            ));
+        }
+        let column_count = usize::from(d.u16()?);
+        let mut columns: Vec<ColumnInfo> = Vec::with_capacity(column_count);
+        // Blocks must tile [HEADER_LEN, dir_offset) in write order so every byte is checksummed.
+        let mut expected_offset = HEADER_LEN as u64;
+        for _ in 0..column_count {
+            let name_len = usize::from(d.u8()?);
+            let name = std::str::from_utf8(d.take(name_len)?)
+                .map_err(|_| corrupt(Region::Directory, "column name is not UTF-8"))?
+                .to_string();
+            let element_type = ElementType::from_code(d.u8()?).ok_or_else(|| {
+                corrupt(
+                    Region::Directory,
+                    format!("column '{name}' has an unknown element type"),
+                )
+            })?;
+            let width = d.u16()?;
+            if width == 0 {
+                return Err(corrupt(
+                    Region::Directory,
+                    format!("column '{name}' has width 0"),
+                ));
+            }
+            let mut chunks = Vec::with_capacity(block_count);
+            for _ in 0..block_count {
+                let chunk = ChunkInfo {
+                    offset: d.u64()?,
+                    len: d.u32()?,
+                    checksum: d.u64()?,
+                };
+                if chunk.offset != expected_offset {
+                    return Err(corrupt(
+                        Region::Directory,
+                        format!(
+                            "column '{name}' block at {} where {expected_offset} was expected",
+                            chunk.offset
+                        ),
+                    ));
+                }
+                expected_offset += u64::from(chunk.len);
+                chunks.push(chunk);
+            }
+            if columns.iter().any(|c| c.name == name) {
+                return Err(corrupt(
+                    Region::Directory,
+                    format!("column '{name}' appears twice"),
+                ));
+            }
+            columns.push(ColumnInfo {
+                name,
+                element_type,
+                width,
+                chunks,
+            });
+        }
+        if d.remaining() != 0 {
+            return Err(corrupt(Region::Directory, "trailing bytes"));
+        }
+        if expected_offset != dir_offset {
+            return Err(corrupt(
+                Region::Directory,
+                format!("blocks end at {expected_offset}, directory starts at {dir_offset}"),
+            ));
+        }
+        match columns.first() {
+            Some(c)
+                if c.name == KEY_COLUMN && c.element_type == ElementType::Key && c.width == 1 => {}
+            _ => {
+                return Err(corrupt(
+                    Region::Directory,
+                    "first column is not the key column",
+                ));
+            }
+        }
+        Ok(SegmentReader {
+            bytes,
+            rows,
+            blocks,
+            columns,
+        })
+    }
+
+    pub fn rows(&self) -> u64 {
+        self.rows
+    }
+
+    pub fn columns(&self) -> &[ColumnInfo] {
+        &self.columns
+    }
+
+    pub fn first_key(&self) -> CubeKey {
+        self.blocks.first().map(|b| b.first_key).unwrap_or_default()
+    }
+
+    pub fn last_key(&self) -> CubeKey {
+        self.blocks.last().map(|b| b.last_key).unwrap_or_default()
+    }
+
+    pub fn column(&self, name: &str) -> Result<&ColumnInfo, DecodeError> {
+        self.columns
+            .iter()
+            .find(|c| c.name == name)
+            .ok_or_else(|| DecodeError::MissingColumn(name.to_string()))
+    }
+
+    fn block_region(&self, column: &ColumnInfo, block: usize) -> Region {
+        let info = self.blocks.get(block);
+        Region::Block {
+            column: column.name.clone(),
+            block: block as u32,
+            first_key: info.map(|b| b.first_key).unwrap_or_default(),
+            last_key: info.map(|b| b.last_key).unwrap_or_default(),
+        }
+    }
+
+    /// Decompresses one column into `out` (whose length must be rows x width elements) as raw
+    /// bytes, verifying every block checksum.
+    fn decode_into(&self, column: &ColumnInfo, out: &mut [u8]) -> Result<(), DecodeError> {
+        let row_bytes = usize::from(column.width) * column.element_type.size();
+        let mut decompressor = zstd::bulk::Decompressor::new()
+            .map_err(|e| corrupt(self.block_region(column, 0), format!("zstd: {e}")))?;
+        let mut pos = 0usize;
+        for (index, (chunk, block)) in column.chunks.iter().zip(&self.blocks).enumerate() {
+            let region = || self.block_region(column, index);
+            let start = chunk.offset as usize;
+            let compressed = self
+                .bytes
+                .get(start..start + chunk.len as usize)
+                .ok_or_else(|| corrupt(region(), "block out of bounds"))?;
+            let got = xxh3_64(compressed);
+            if got != chunk.checksum {
+                return Err(DecodeError::ChecksumMismatch {
+                    region: region(),
+                    got,
+                    expected: chunk.checksum,
+                });
+            }
+            let want = block.rows as usize * row_bytes;
+            let target = out
+                .get_mut(pos..pos + want)
+                .ok_or_else(|| corrupt(region(), "block larger than the column"))?;
+            let n = decompressor
+                .decompress_to_buffer(compressed, target)
+                .map_err(|e| corrupt(region(), format!("zstd: {e}")))?;
+            if n != want {
+                return Err(corrupt(
+                    region(),
+                    format!("decoded {n} bytes, expected {want}"),
+                ));
+            }
+            pos += want;
+        }
+        if pos != out.len() {
+            return Err(corrupt(
+                self.block_region(column, 0),
+                "column shorter than the segment",
+            ));
+        }
+        Ok(())
+    }
+
+    fn typed<T: bytemuck::Pod + bytemuck::Zeroable>(
+        &self,
+        name: &str,
+        wanted: ElementType,
+    ) -> Result<(u16, Vec<T>), DecodeError> {
+        let column = self.column(name)?;
+        if column.element_type != wanted {
+            return Err(DecodeError::TypeMismatch {
+                column: name.to_string(),
+                found: column.element_type,
+                wanted,
+            });
+        }
+        let len = usize::try_from(self.rows)
+            .ok()
+            .and_then(|r| r.checked_mul(usize::from(column.width)))
+            .ok_or_else(|| corrupt(Region::Directory, "row count overflows"))?;
+        let mut values = vec![T::zeroed(); len];
+        self.decode_into(column, bytemuck::cast_slice_mut(&mut values))?;
+        Ok((column.width, values))
+    }
+
+    pub fn read_keys(&self) -> Result<Vec<CubeKey>, DecodeError> {
+        let (_, keys) = self.typed::<CubeKey>(KEY_COLUMN, ElementType::Key)?;
+        Ok(keys)
+    }
+
+    pub fn read_f32(&self, name: &str) -> Result<(u16, Vec<f32>), DecodeError> {
+        self.typed(name, ElementType::F32)
+    }
+
+    pub fn read_u32(&self, name: &str) -> Result<(u16, Vec<u32>), DecodeError> {
+        self.typed(name, ElementType::U32)
+    }
+
+    pub fn read_u64(&self, name: &str) -> Result<(u16, Vec<u64>), DecodeError> {
+        self.typed(name, ElementType::U64)
+    }
+
+    /// Decodes a column whatever its type.
+    pub fn read_column(&self, name: &str) -> Result<Column, DecodeError> {
+        let column = self.column(name)?;
+        let values = match column.element_type {
+            ElementType::Key => ColumnValues::Key(self.read_keys()?),
+            ElementType::F32 => ColumnValues::F32(self.read_f32(name)?.1),
+            ElementType::U32 => ColumnValues::U32(self.read_u32(name)?.1),
+            ElementType::U64 => ColumnValues::U64(self.read_u64(name)?.1),
+        };
+        Ok(Column::new(name, column.width, values))
+    }
+
+    /// Decodes everything, checks key order and block key ranges, and returns the content
+    /// digest (see [`SegmentSummary::content_digest`]).
+    pub fn verify(&self) -> Result<u64, DecodeError> {
+        let keys = self.read_keys()?;
+        let mut start = 0usize;
+        for (index, block) in self.blocks.iter().enumerate() {
+            let region = || {
+                self.block_region(
+                    self.columns.first().unwrap_or(&self.columns_fallback()),
+                    index,
+                )
+            };
+            let slice = keys
+                .get(start..start + block.rows as usize)
+                .ok_or_else(|| corrupt(region(), "block beyond the key column"))?;
+            if slice.first() != Some(&block.first_key) || slice.last() != Some(&block.last_key) {
+                return Err(corrupt(
+                    region(),
+                    "keys disagree with the block's key range",
+                ));
+            }
+            start += block.rows as usize;
+        }
+        if let Some(pair) = keys.windows(2).find(|w| w.first() >= w.get(1)) {
+            return Err(corrupt(
+                Region::Directory,
+                format!("keys are not strictly increasing: {pair:?}"),
+            ));
+        }
+        if let Some(bad) = keys.iter().find(|k| !k.is_well_formed()) {
+            return Err(corrupt(Region::Directory, format!("malformed key {bad}")));
+        }
+        let mut content = Xxh3::new();
+        for column in &self.columns {
+            let decoded = self.read_column(&column.name)?;
+            content_digest_update(
+                &mut content,
+                &column.name,
+                column.element_type,
+                column.width,
+                decoded.values.as_bytes(),
+            );
+        }
+        Ok(content.digest())
+    }
+
+    fn columns_fallback(&self) -> ColumnInfo {
+        ColumnInfo {
+            name: KEY_COLUMN.to_string(),
+            element_type: ElementType::Key,
+            width: 1,
+            chunks: Vec::new(),
+        }
+    }
+}
+
+#[cfg(test)]
+#[expect(clippy::unwrap_used, clippy::indexing_slicing, reason = "tests")]
+mod tests {
+    use super::*;
+
+    fn sample(rows: usize) -> Vec<Column> {
+        let keys: Vec<CubeKey> = (0..rows as u32)
+            .map(|i| CubeKey::new(16, i, i / 3, 7))
+            .collect();
+        let mut sorted = keys.clone();
+        sorted.sort();
+        vec![
+            Column::keys(sorted),
+            Column::new(
+                "u",
+                1,
+                ColumnValues::F32((0..rows).map(|i| i as f32 * 0.5).collect()),
+            ),
+            Column::new(
+                "v",
+                3,
+                ColumnValues::F32((0..rows * 3).map(|i| -(i as f32)).collect()),
+            ),
+            Column::new("count", 1, ColumnValues::U32((0..rows as u32).collect())),
+        ]
+    }
+
+    fn encode(columns: &[Column], block_rows: u32) -> (Vec<u8>, SegmentSummary) {
+        let mut out = Vec::new();
+        let summary = encode_segment_with_block_rows(columns, block_rows, &mut out).unwrap();
+        (out, summary)
+    }
+
+    #[test]
+    fn round_trip_and_digest() {
+        let columns = sample(1000);
+        let (bytes, summary) = encode(&columns, 64);
+        assert_eq!(summary.bytes as usize, bytes.len());
+        assert_eq!(summary.file_checksum, xxh3_64(&bytes));
+        let reader = SegmentReader::parse(&bytes).unwrap();
+        for column in &columns {
+            assert_eq!(&reader.read_column(&column.name).unwrap(), column);
+        }
+        assert_eq!(reader.verify().unwrap(), summary.content_digest);
+        // The content digest does not depend on block size; the bytes do.
+        let (other, other_summary) = encode(&columns, 1000);
+        assert_ne!(other, bytes);
+        assert_eq!(other_summary.content_digest, summary.content_digest);
+    }
+
+    #[test]
+    fn every_flipped_byte_and_every_truncation_is_detected() {
+        let (bytes, _) = encode(&sample(40), 16);
+        for i in 0..bytes.len() {
+            let mut bad = bytes.clone();
+            bad[i] ^= 0x20;
+            let result = SegmentReader::parse(&bad).and_then(|r| r.verify());
+            assert!(
+                result.is_err(),
+                "flip at byte {i} of {} went unnoticed",
+                bytes.len()
+            );
+        }
+        for len in 0..bytes.len() {
+            let result = SegmentReader::parse(&bytes[..len]).and_then(|r| r.verify());
+            assert!(result.is_err(), "truncation to {len} went unnoticed");
+        }
+    }
+
+    #[test]
+    fn rejects_invalid_content() {
+        let mut columns = sample(10);
+        columns[1].values = ColumnValues::F32(vec![0.0; 3]);
+        assert!(encode_segment(&columns, &mut Vec::new()).is_err());
+        let unsorted = vec![Column::keys(vec![
+            CubeKey::new(3, 1, 0, 0),
+            CubeKey::new(3, 0, 0, 0),
+        ])];
+        assert!(encode_segment(&unsorted, &mut Vec::new()).is_err());
+    }
+
+    #[test]
+    fn encoding_is_deterministic() {
+        let columns = sample(5000);
+        assert_eq!(encode(&columns, 1024).0, encode(&columns, 1024).0);
+    }
+}

@@ -1,0 +1,180 @@
+//! The catalog: redb tables, their records and their encodings (format-spec.md, "Catalog").
+//!
+//! Values are bincode 2 with a fixed configuration (little-endian, fixed-width integers), so
+//! every byte is specified by the struct definitions below, in field order.
+
+use redb::{ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition};
+use serde::{Deserialize, Serialize, de::DeserializeOwned};
+
+use super::StoreError;
+use crate::format::key::CubeKeyColumn;
+
+/// Version of the catalog schema written by this build.
+pub const CATALOG_FORMAT_VERSION: u32 = 1;
+
+/// Scalar settings: `format_version` (u32 LE), `current_version` (u64 LE), `gc_horizon` (u64 LE),
+/// and stage-specific entries (`scene`, ...).
+pub const META: TableDefinition<&str, &[u8]> = TableDefinition::new("meta");
+/// Version number -> [`VersionRecord`].
+pub const VERSIONS: TableDefinition<u64, &[u8]> = TableDefinition::new("versions");
+/// Version number -> wall-clock commit time (ms since the Unix epoch). Not part of the
+/// canonical content: two runs at different times hold the same store otherwise.
+pub const VERSION_TIMES: TableDefinition<u64, u64> = TableDefinition::new("version_times");
+/// Segment file name -> [`SegmentRecord`].
+pub const SEGMENTS: TableDefinition<&str, &[u8]> = TableDefinition::new("segments");
+/// Stage name -> [`StageRun`] of the run in progress (absent when none is).
+pub const STAGE_RUNS: TableDefinition<&str, &[u8]> = TableDefinition::new("stage_runs");
+/// (stage name, unit id) -> [`UnitRecord`]: units of the run in progress that are committed.
+pub const UNITS_DONE: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("units_done");
+/// (stage name, first key of a unit) -> [`UnitState`]: per-unit state a stage keeps between
+/// runs (the treetop index, dirty marks).
+pub const UNIT_STATE: TableDefinition<(&str, CubeKeyColumn), &[u8]> =
+    TableDefinition::new("unit_state");
+
+pub(crate) const META_FORMAT_VERSION: &str = "format_version";
+pub(crate) const META_CURRENT_VERSION: &str = "current_version";
+pub(crate) const META_GC_HORIZON: &str = "gc_horizon";
+
+fn bincode_config() -> impl bincode::config::Config {
+    bincode::config::standard()
+        .with_little_endian()
+        .with_fixed_int_encoding()
+}
+
+pub fn encode<T: Serialize>(value: &T) -> Vec<u8> {
+    // Encoding plain structs into a Vec cannot fail: no size limit is configured.
+    bincode::serde::encode_to_vec(value, bincode_config()).unwrap_or_default()
+}
+
+pub fn decode<T: DeserializeOwned>(table: &'static str, bytes: &[u8]) -> Result<T, StoreError> {
+    let (value, used) =
+        bincode::serde::decode_from_slice(bytes, bincode_config()).map_err(|e| {
+            StoreError::CatalogCorruption {
+                table,
+                reason: e.to_string(),
+            }
+        })?;
+    if used != bytes.len() {
+        return Err(StoreError::CatalogCorruption {
+            table,
+            reason: format!("{} trailing bytes after a record", bytes.len() - used),
+        });
+    }
+    Ok(value)
+}
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Eq)]
+pub struct VersionRecord {
+    pub parent: u64,
+    /// What made it: `create`, `ingest`, or a stage name.
+    pub kind: String,
+    /// One human-readable line.
+    pub summary: String,
+}
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Eq)]
+pub struct SegmentRecord {
+    pub stage: String,
+    pub unit: u64,
+    pub part: u32,
+    pub rows: u64,
+    pub bytes: u64,
+    pub file_checksum: u64,
+    pub content_digest: u64,
+    pub first_key: u128,
+    pub last_key: u128,
+    /// First version that sees the segment.
+    pub created: u64,
+    /// First version that no longer sees it.
+    pub dropped: Option<u64>,
+}
+
+impl SegmentRecord {
+    pub fn visible_at(&self, version: u64) -> bool {
+        self.created <= version && self.dropped.is_none_or(|d| version < d)
+    }
+}
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Eq)]
+pub struct StageRun {
+    /// The version this run will create when it finishes.
+    pub target_version: u64,
+    /// The stage's parameters, encoded by the stage; a resume with other parameters is refused.
+    pub params: Vec<u8>,
+    /// Number of units in the run.
+    pub units: u64,
+}
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Eq)]
+pub struct UnitRecord {
+    pub segments: Vec<String>,
+    /// Stage-specific result of the unit (counts, a leaf's statistics).
+    pub extra: Vec<u8>,
+}
+
+/// Reads a little-endian u64 scalar from META.
+pub fn meta_u64(
+    table: &impl ReadableTable<&'static str, &'static [u8]>,
+    key: &str,
+) -> Result<Option<u64>, StoreError> {
+    match table.get(key)? {
+        None => Ok(None),
+        Some(guard) => {
+            let bytes: [u8; 8] =
+                guard
+                    .value()
+                    .try_into()
+                    .map_err(|_| StoreError::CatalogCorruption {
+                        table: "meta",
+                        reason: format!("'{key}' is not 8 bytes"),
+                    })?;
+            Ok(Some(u64::from_le_bytes(bytes)))
+        }
+    }
+}
+
+/// A canonical byte dump of every table but `version_times`, in table then key order. Two stores
+/// with equal dumps hold the same content; `--resume` tests compare these.
+pub fn canonical_dump(db: &impl ReadableDatabase) -> Result<Vec<u8>, StoreError> {
+    let txn = db.begin_read()?;
+    let mut out = Vec::new();
+    let mut put = |bytes: &[u8]| {
+        out.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+        out.extend_from_slice(bytes);
+    };
+    macro_rules! dump {
+        ($def:expr, $key:expr) => {{
+            put(redb::TableHandle::name(&$def).as_bytes());
+            match txn.open_table($def) {
+                Ok(table) => {
+                    put(&table.len()?.to_le_bytes());
+                    for entry in table.iter()? {
+                        let (k, v) = entry?;
+                        let key_bytes: Vec<u8> = $key(k.value());
+                        put(&key_bytes);
+                        put(v.value());
+                    }
+                }
+                Err(redb::TableError::TableDoesNotExist(_)) => put(&0u64.to_le_bytes()),
+                Err(e) => return Err(e.into()),
+            }
+        }};
+    }
+    dump!(META, |k: &str| k.as_bytes().to_vec());
+    dump!(VERSIONS, |k: u64| k.to_be_bytes().to_vec());
+    dump!(SEGMENTS, |k: &str| k.as_bytes().to_vec());
+    dump!(STAGE_RUNS, |k: &str| k.as_bytes().to_vec());
+    dump!(UNITS_DONE, |k: (&str, u64)| {
+        let mut v = k.0.as_bytes().to_vec();
+        v.push(0);
+        v.extend_from_slice(&k.1.to_be_bytes());
+        v
+    });
+    dump!(UNIT_STATE, |k: (&str, crate::format::CubeKey)| {
+        let mut v = k.0.as_bytes().to_vec();
+        v.push(0);
+        v.extend_from_slice(&k.1.to_be_bytes());
+        v
+    });
+    Ok(out)
+}

@@ -1,0 +1,560 @@
+//! The store: a directory holding a redb catalog and immutable column segments.
+//!
+//! Layout: `STORE/catalog.redb` and `STORE/segments/NAME.seg`. The catalog is the single source
+//! of truth; a segment file exists on its own only as crash debris (removed on the next writable
+//! open) or while its unit of work is being committed.
+//!
+//! Commit protocol of a unit of work (each step is a failpoint, see [`failpoint::FAILPOINTS`]):
+//! write `NAME.seg.tmp`, fsync it, rename it to `NAME.seg`, fsync the directory, then one catalog
+//! write transaction that records the unit and its segments.
+
+pub mod catalog;
+pub mod failpoint;
+pub mod runner;
+pub mod snapshot;
+pub mod verify;
+
+use std::fs::{self, File};
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use redb::{ReadableDatabase, ReadableTable};
+
+use crate::format::segment::encode_segment;
+use crate::format::{Column, DecodeError, SegmentSummary};
+use catalog::{
+    CATALOG_FORMAT_VERSION, META, META_CURRENT_VERSION, META_FORMAT_VERSION, META_GC_HORIZON,
+    SEGMENTS, STAGE_RUNS, UNIT_STATE, UNITS_DONE, VERSION_TIMES, VERSIONS, VersionRecord,
+};
+pub use failpoint::IoFaults;
+pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSpec};
+pub use snapshot::{SegmentFile, Snapshot};
+
+pub const CATALOG_FILE: &str = "catalog.redb";
+pub const SEGMENTS_DIR: &str = "segments";
+const SEGMENT_SUFFIX: &str = ".seg";
+const TEMP_SUFFIX: &str = ".tmp";
+
+/// Errors of the store layer.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("{action} {path}: {source}")]
+    Io {
+        action: &'static str,
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error(
+        "{path} is in use by another octstore process (only one writer at a time; readers must wait for it to finish)"
+    )]
+    InUse { path: PathBuf },
+    #[error("{path} is not an octstore store: {reason}")]
+    NotAStore { path: PathBuf, reason: String },
+    #[error("{path} already holds a store")]
+    AlreadyExists { path: PathBuf },
+    #[error(
+        "{path}: the catalog was not closed cleanly; open it for writing once (for example `octstore verify`) to recover it"
+    )]
+    NeedsRecovery { path: PathBuf },
+    #[error(
+        "catalog format version {found} is not supported by this build (it reads version {supported})"
+    )]
+    UnsupportedFormat { found: u32, supported: u32 },
+    #[error("catalog error: {0}")]
+    Catalog(#[from] redb::Error),
+    #[error("corrupt catalog table '{table}': {reason}")]
+    CatalogCorruption { table: &'static str, reason: String },
+    #[error("corrupt segment {file}: {detail}")]
+    Corruption { file: PathBuf, detail: DecodeError },
+    #[error("segment {file}: checksum mismatch: got {got:016x}, expected {expected:016x}")]
+    ChecksumMismatch {
+        file: PathBuf,
+        got: u64,
+        expected: u64,
+    },
+    #[error(
+        "the store refuses writes after a failed fsync: data may not be durable; reopen it to continue from the last commit"
+    )]
+    Poisoned,
+    #[error("the store is open read-only")]
+    ReadOnly,
+    #[error("version {version} does not exist (the latest is {latest})")]
+    NoSuchVersion { version: u64, latest: u64 },
+    #[error("version {version} was garbage-collected (the oldest kept version is {horizon})")]
+    VersionGone { version: u64, horizon: u64 },
+    #[error("stage '{stage}', {unit}: {message}")]
+    Stage {
+        stage: String,
+        unit: String,
+        message: String,
+    },
+    #[error("invalid segment content: {0}")]
+    Encode(#[from] crate::format::EncodeError),
+}
+
+macro_rules! redb_error {
+    ($($t:ty),*) => {$(
+        impl From<$t> for StoreError {
+            fn from(e: $t) -> Self {
+                StoreError::Catalog(e.into())
+            }
+        }
+    )*};
+}
+redb_error!(
+    redb::TransactionError,
+    redb::TableError,
+    redb::StorageError,
+    redb::CommitError
+);
+
+pub type Result<T, E = StoreError> = std::result::Result<T, E>;
+
+fn io_error(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> StoreError {
+    let path = path.to_path_buf();
+    move |source| StoreError::Io {
+        action,
+        path,
+        source,
+    }
+}
+
+pub(crate) enum Catalog {
+    Writable(redb::Database),
+    ReadOnly(redb::ReadOnlyDatabase),
+}
+
+impl Catalog {
+    pub(crate) fn begin_read(&self) -> Result<redb::ReadTransaction> {
+        Ok(match self {
+            Catalog::Writable(db) => db.begin_read()?,
+            Catalog::ReadOnly(db) => db.begin_read()?,
+        })
+    }
+}
+
+/// An open store. Writable stores hold redb's exclusive lock on the catalog.
+pub struct Store {
+    root: PathBuf,
+    catalog: Catalog,
+    faults: IoFaults,
+    poisoned: AtomicBool,
+}
+
+fn unix_millis() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0)
+}
+
+fn sync_dir(path: &Path) -> Result<()> {
+    File::open(path)
+        .and_then(|dir| dir.sync_all())
+        .map_err(io_error("fsync directory", path))
+}
+
+fn map_open_error(path: &Path, e: redb::DatabaseError) -> StoreError {
+    match e {
+        redb::DatabaseError::DatabaseAlreadyOpen => StoreError::InUse {
+            path: path.to_path_buf(),
+        },
+        redb::DatabaseError::RepairAborted => StoreError::NeedsRecovery {
+            path: path.to_path_buf(),
+        },
+        other => StoreError::Catalog(other.into()),
+    }
+}
+
+impl Store {
+    /// Creates an empty store (version 0) in `path`, which must not hold one already.
+    pub fn create(path: impl AsRef<Path>) -> Result<Store> {
+        Store::create_with_faults(path, IoFaults::from_env())
+    }
+
+    pub fn create_with_faults(path: impl AsRef<Path>, faults: IoFaults) -> Result<Store> {
+        let root = path.as_ref().to_path_buf();
+        let catalog_path = root.join(CATALOG_FILE);
+        if catalog_path.exists() {
+            return Err(StoreError::AlreadyExists { path: root });
+        }
+        fs::create_dir_all(root.join(SEGMENTS_DIR)).map_err(io_error("create directory", &root))?;
+        // The catalog is built under a temporary name and renamed only once it is complete, so
+        // a crash during creation never leaves a catalog without its tables.
+        let temp_path = root.join(format!("{CATALOG_FILE}{TEMP_SUFFIX}"));
+        match fs::remove_file(&temp_path) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(io_error("remove", &temp_path)(e));
+            }
+            _ => {}
+        }
+        {
+            let db = redb::Database::create(&temp_path).map_err(|e| map_open_error(&root, e))?;
+            let txn = db.begin_write()?;
+            {
+                let mut meta = txn.open_table(META)?;
+                meta.insert(
+                    META_FORMAT_VERSION,
+                    CATALOG_FORMAT_VERSION.to_le_bytes().as_slice(),
+                )?;
+                meta.insert(META_CURRENT_VERSION, 0u64.to_le_bytes().as_slice())?;
+                meta.insert(META_GC_HORIZON, 0u64.to_le_bytes().as_slice())?;
+                let record = VersionRecord {
+                    parent: 0,
+                    kind: "create".into(),
+                    summary: "empty store".into(),
+                };
+                txn.open_table(VERSIONS)?
+                    .insert(0, catalog::encode(&record).as_slice())?;
+                txn.open_table(VERSION_TIMES)?.insert(0, unix_millis())?;
+                // Create every table so read-only opens find them.
+                txn.open_table(SEGMENTS)?;
+                txn.open_table(STAGE_RUNS)?;
+                txn.open_table(UNITS_DONE)?;
+                txn.open_table(UNIT_STATE)?;
+            }
+            txn.commit()?;
+        }
+        fs::rename(&temp_path, &catalog_path).map_err(io_error("rename", &temp_path))?;
+        sync_dir(&root)?;
+        let db = redb::Database::open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        Ok(Store {
+            root,
+            catalog: Catalog::Writable(db),
+            faults,
+            poisoned: AtomicBool::new(false),
+        })
+    }
+
+    /// Opens a store for writing (exclusive), recovering the catalog if needed and removing
+    /// segment files that no commit references.
+    pub fn open(path: impl AsRef<Path>) -> Result<Store> {
+        Store::open_with_faults(path, IoFaults::from_env())
+    }
+
+    pub fn open_with_faults(path: impl AsRef<Path>, faults: IoFaults) -> Result<Store> {
+        let root = path.as_ref().to_path_buf();
+        let catalog_path = Store::catalog_path_checked(&root)?;
+        let db = redb::Database::open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        let store = Store {
+            root,
+            catalog: Catalog::Writable(db),
+            faults,
+            poisoned: AtomicBool::new(false),
+        };
+        store.check_format()?;
+        store.remove_debris()?;
+        Ok(store)
+    }
+
+    /// Opens a store for reading only. Several readers may share it; a writer excludes them.
+    pub fn open_read_only(path: impl AsRef<Path>) -> Result<Store> {
+        let root = path.as_ref().to_path_buf();
+        let catalog_path = Store::catalog_path_checked(&root)?;
+        let db =
+            redb::ReadOnlyDatabase::open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        let store = Store {
+            root,
+            catalog: Catalog::ReadOnly(db),
+            faults: IoFaults::none(),
+            poisoned: AtomicBool::new(false),
+        };
+        store.check_format()?;
+        Ok(store)
+    }
+
+    /// Opens read-only, or for writing when the catalog first needs recovery after a crash.
+    pub fn open_for_reading(path: impl AsRef<Path>) -> Result<Store> {
+        match Store::open_read_only(path.as_ref()) {
+            Err(StoreError::NeedsRecovery { .. }) => Store::open(path),
+            other => other,
+        }
+    }
+
+    fn catalog_path_checked(root: &Path) -> Result<PathBuf> {
+        let catalog_path = root.join(CATALOG_FILE);
+        if !catalog_path.is_file() {
+            return Err(StoreError::NotAStore {
+                path: root.to_path_buf(),
+                reason: format!(
+                    "no {CATALOG_FILE} (create one with `octstore ingest` or `octstore demo`)"
+                ),
+            });
+        }
+        Ok(catalog_path)
+    }
+
+    fn check_format(&self) -> Result<()> {
+        let txn = self.catalog.begin_read()?;
+        let meta = txn.open_table(META).map_err(|e| StoreError::NotAStore {
+            path: self.root.clone(),
+            reason: format!("catalog has no meta table ({e})"),
+        })?;
+        let found = match meta.get(META_FORMAT_VERSION)? {
+            Some(v) => v.value().try_into().map(u32::from_le_bytes).map_err(|_| {
+                StoreError::CatalogCorruption {
+                    table: "meta",
+                    reason: "format_version is not 4 bytes".into(),
+                }
+            })?,
+            None => {
+                return Err(StoreError::NotAStore {
+                    path: self.root.clone(),
+                    reason: "catalog has no format_version".into(),
+                });
+            }
+        };
+        if found != CATALOG_FORMAT_VERSION {
+            return Err(StoreError::UnsupportedFormat {
+                found,
+                supported: CATALOG_FORMAT_VERSION,
+            });
+        }
+        Ok(())
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    pub fn segments_dir(&self) -> PathBuf {
+        self.root.join(SEGMENTS_DIR)
+    }
+
+    pub fn segment_path(&self, name: &str) -> PathBuf {
+        self.segments_dir().join(name)
+    }
+
+    pub fn is_read_only(&self) -> bool {
+        matches!(self.catalog, Catalog::ReadOnly(_))
+    }
+
+    pub(crate) fn catalog(&self) -> &Catalog {
+        &self.catalog
+    }
+
+    pub(crate) fn writable(&self) -> Result<&redb::Database> {
+        if self.poisoned.load(Ordering::SeqCst) {
+            return Err(StoreError::Poisoned);
+        }
+        match &self.catalog {
+            Catalog::Writable(db) => Ok(db),
+            Catalog::ReadOnly(_) => Err(StoreError::ReadOnly),
+        }
+    }
+
+    pub fn is_poisoned(&self) -> bool {
+        self.poisoned.load(Ordering::SeqCst)
+    }
+
+    /// The latest committed version.
+    pub fn current_version(&self) -> Result<u64> {
+        let txn = self.catalog.begin_read()?;
+        let meta = txn.open_table(META)?;
+        catalog::meta_u64(&meta, META_CURRENT_VERSION)?.ok_or(StoreError::CatalogCorruption {
+            table: "meta",
+            reason: "no current_version".into(),
+        })
+    }
+
+    /// A consistent view of the latest committed version.
+    pub fn latest(&self) -> Result<Snapshot<'_>> {
+        Snapshot::load(self, None)
+    }
+
+    /// A consistent view pinned to `version`.
+    pub fn snapshot(&self, version: u64) -> Result<Snapshot<'_>> {
+        Snapshot::load(self, Some(version))
+    }
+
+    /// Every version record, oldest first, with its commit time (ms since the epoch).
+    pub fn log(&self) -> Result<Vec<(u64, VersionRecord, Option<u64>)>> {
+        let txn = self.catalog.begin_read()?;
+        let versions = txn.open_table(VERSIONS)?;
+        let times = txn.open_table(VERSION_TIMES)?;
+        let mut out = Vec::new();
+        for entry in versions.iter()? {
+            let (k, v) = entry?;
+            let record: VersionRecord = catalog::decode("versions", v.value())?;
+            let time = times.get(k.value())?.map(|t| t.value());
+            out.push((k.value(), record, time));
+        }
+        Ok(out)
+    }
+
+    /// The catalog's canonical content (see [`catalog::canonical_dump`]).
+    pub fn canonical_dump(&self) -> Result<Vec<u8>> {
+        match &self.catalog {
+            Catalog::Writable(db) => catalog::canonical_dump(db),
+            Catalog::ReadOnly(db) => catalog::canonical_dump(db),
+        }
+    }
+
+    /// Writes one segment through the commit protocol's file steps: temporary name, fsync,
+    /// rename, directory fsync. The caller then records it in a catalog transaction.
+    pub(crate) fn write_segment_file(
+        &self,
+        name: &str,
+        columns: &[Column],
+    ) -> Result<SegmentSummary> {
+        self.writable()?;
+        let final_path = self.segment_path(name);
+        let temp_path = self.segment_path(&format!("{name}{TEMP_SUFFIX}"));
+        let result = self.write_segment_steps(&temp_path, &final_path, columns);
+        if result.is_err() {
+            // Best effort: debris left here is also removed on the next open.
+            let _ = fs::remove_file(&temp_path);
+        }
+        result
+    }
+
+    fn write_segment_steps(
+        &self,
+        temp_path: &Path,
+        final_path: &Path,
+        columns: &[Column],
+    ) -> Result<SegmentSummary> {
+        let file = File::create(temp_path).map_err(io_error("create", temp_path))?;
+        let mut writer = BufWriter::with_capacity(
+            1 << 20,
+            FaultyWriter {
+                inner: &file,
+                faults: &self.faults,
+            },
+        );
+        let summary = encode_segment(columns, &mut writer).map_err(|e| match e {
+            crate::format::EncodeError::Io(source) => StoreError::Io {
+                action: "write",
+                path: temp_path.to_path_buf(),
+                source,
+            },
+            other => StoreError::Encode(other),
+        })?;
+        writer.flush().map_err(io_error("write", temp_path))?;
+        drop(writer);
+        failpoint::hit("segment.after_write");
+        let synced = self.faults.before_fsync().and_then(|()| file.sync_all());
+        if let Err(source) = synced {
+            // After a failed fsync the kernel may have dropped dirty pages: nothing written since
+            // the last successful sync can be trusted, so the store refuses further writes.
+            self.poisoned.store(true, Ordering::SeqCst);
+            return Err(StoreError::Io {
+                action: "fsync",
+                path: temp_path.to_path_buf(),
+                source,
+            });
+        }
+        drop(file);
+        failpoint::hit("segment.after_fsync");
+        fs::rename(temp_path, final_path).map_err(io_error("rename", temp_path))?;
+        failpoint::hit("segment.after_rename");
+        if let Err(e) = sync_dir(&self.segments_dir()) {
+            self.poisoned.store(true, Ordering::SeqCst);
+            return Err(e);
+        }
+        failpoint::hit("segment.after_dir_fsync");
+        Ok(summary)
+    }
+
+    /// Removes segment files that no catalog record references: debris of a crash between a
+    /// segment's rename and its unit's commit, and temporary files.
+    fn remove_debris(&self) -> Result<Vec<String>> {
+        let referenced: std::collections::BTreeSet<String> = {
+            let txn = self.catalog.begin_read()?;
+            let segments = txn.open_table(SEGMENTS)?;
+            let mut names = std::collections::BTreeSet::new();
+            for entry in segments.iter()? {
+                names.insert(entry?.0.value().to_string());
+            }
+            names
+        };
+        let dir = self.segments_dir();
+        let mut removed = Vec::new();
+        let entries = fs::read_dir(&dir).map_err(io_error("list", &dir))?;
+        for entry in entries {
+            let entry = entry.map_err(io_error("list", &dir))?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if !referenced.contains(&name)
+                && (name.ends_with(SEGMENT_SUFFIX) || name.ends_with(TEMP_SUFFIX))
+            {
+                fs::remove_file(entry.path()).map_err(io_error("remove debris", &entry.path()))?;
+                removed.push(name);
+            }
+        }
+        if !removed.is_empty() {
+            tracing::info!(
+                "removed {} unreferenced segment file(s) left by an interrupted run",
+                removed.len()
+            );
+            sync_dir(&dir)?;
+        }
+        Ok(removed)
+    }
+
+    /// Drops catalog records and files of segments that no version from `current - keep + 1`
+    /// on can see, and of abandoned runs. Returns (files removed, bytes freed).
+    pub fn gc(&self, keep: u64) -> Result<(usize, u64)> {
+        let db = self.writable()?;
+        let current = self.current_version()?;
+        let horizon = current.saturating_sub(keep.max(1) - 1);
+        let txn = db.begin_write()?;
+        let mut doomed = Vec::new();
+        {
+            let runs = txn.open_table(STAGE_RUNS)?;
+            let mut pending_targets = Vec::new();
+            for entry in runs.iter()? {
+                let run: catalog::StageRun = catalog::decode("stage_runs", entry?.1.value())?;
+                pending_targets.push(run.target_version);
+            }
+            let mut segments = txn.open_table(SEGMENTS)?;
+            for entry in segments.iter()? {
+                let (name, value) = entry?;
+                let record: catalog::SegmentRecord = catalog::decode("segments", value.value())?;
+                let dead = record.dropped.is_some_and(|d| d <= horizon);
+                let abandoned =
+                    record.created > current && !pending_targets.contains(&record.created);
+                if dead || abandoned {
+                    doomed.push((name.value().to_string(), record.bytes));
+                }
+            }
+            for (name, _) in &doomed {
+                segments.remove(name.as_str())?;
+            }
+            let mut meta = txn.open_table(META)?;
+            meta.insert(META_GC_HORIZON, horizon.to_le_bytes().as_slice())?;
+        }
+        txn.commit()?;
+        // Files go only after the commit: a crash in between leaves debris, removed on open.
+        let mut freed = 0;
+        for (name, bytes) in &doomed {
+            let path = self.segment_path(name);
+            match fs::remove_file(&path) {
+                Ok(()) => freed += bytes,
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => return Err(io_error("remove", &path)(e)),
+            }
+        }
+        sync_dir(&self.segments_dir())?;
+        Ok((doomed.len(), freed))
+    }
+}
+
+/// Routes segment writes through the injected storage faults.
+struct FaultyWriter<'a> {
+    inner: &'a File,
+    faults: &'a IoFaults,
+}
+
+impl Write for FaultyWriter<'_> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.faults.before_write(buf.len())?;
+        let mut file = self.inner;
+        file.write(buf)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        let mut file = self.inner;
+        file.flush()
+    }
+}

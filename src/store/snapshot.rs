@@ -1,0 +1,179 @@
+//! Snapshots: a version's manifest of segments, loaded in one read transaction.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::path::PathBuf;
+
+use memmap2::Mmap;
+use redb::ReadableTable;
+use xxhash_rust::xxh3::Xxh3;
+
+use super::catalog::{
+    self, META, META_CURRENT_VERSION, META_GC_HORIZON, SEGMENTS, SegmentRecord, VERSIONS,
+    VersionRecord,
+};
+use super::{Result, Store, StoreError};
+use crate::format::SegmentReader;
+
+/// A consistent, immutable view of one committed version.
+pub struct Snapshot<'s> {
+    store: &'s Store,
+    version: u64,
+    record: VersionRecord,
+    /// Visible segments per stage, ordered by (first key, unit, part).
+    stages: BTreeMap<String, Vec<(String, SegmentRecord)>>,
+}
+
+impl<'s> Snapshot<'s> {
+    pub(crate) fn load(store: &'s Store, version: Option<u64>) -> Result<Snapshot<'s>> {
+        let txn = store.catalog().begin_read()?;
+        let meta = txn.open_table(META)?;
+        let latest = catalog::meta_u64(&meta, META_CURRENT_VERSION)?.unwrap_or(0);
+        let horizon = catalog::meta_u64(&meta, META_GC_HORIZON)?.unwrap_or(0);
+        let version = version.unwrap_or(latest);
+        if version > latest {
+            return Err(StoreError::NoSuchVersion { version, latest });
+        }
+        if version < horizon {
+            return Err(StoreError::VersionGone { version, horizon });
+        }
+        let versions = txn.open_table(VERSIONS)?;
+        let record = match versions.get(version)? {
+            Some(bytes) => catalog::decode("versions", bytes.value())?,
+            None => return Err(StoreError::NoSuchVersion { version, latest }),
+        };
+        let mut stages: BTreeMap<String, Vec<(String, SegmentRecord)>> = BTreeMap::new();
+        for entry in txn.open_table(SEGMENTS)?.iter()? {
+            let (name, value) = entry?;
+            let record: SegmentRecord = catalog::decode("segments", value.value())?;
+            if record.visible_at(version) {
+                stages
+                    .entry(record.stage.clone())
+                    .or_default()
+                    .push((name.value().to_string(), record));
+            }
+        }
+        for segments in stages.values_mut() {
+            segments.sort_by_key(|a| (a.1.first_key, a.1.unit, a.1.part));
+        }
+        Ok(Snapshot {
+            store,
+            version,
+            record,
+            stages,
+        })
+    }
+
+    pub fn store(&self) -> &'s Store {
+        self.store
+    }
+
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+
+    pub fn record(&self) -> &VersionRecord {
+        &self.record
+    }
+
+    /// Names of the stages that have visible segments.
+    pub fn stages(&self) -> impl Iterator<Item = &str> {
+        self.stages.keys().map(String::as_str)
+    }
+
+    /// Visible segments of a stage, ordered by first key.
+    pub fn segments(&self, stage: &str) -> &[(String, SegmentRecord)] {
+        self.stages.get(stage).map(Vec::as_slice).unwrap_or(&[])
+    }
+
+    pub fn all_segments(&self) -> impl Iterator<Item = &(String, SegmentRecord)> {
+        self.stages.values().flatten()
+    }
+
+    /// Rows in all visible segments of a stage.
+    pub fn rows(&self, stage: &str) -> u64 {
+        self.segments(stage).iter().map(|(_, r)| r.rows).sum()
+    }
+
+    /// A checksum of a stage's content at this version: equal for equal content, however it was
+    /// produced (segment content digests in key order; names and compression do not enter).
+    pub fn digest(&self, stage: &str) -> u64 {
+        let mut digests: Vec<(u128, u64)> = self
+            .segments(stage)
+            .iter()
+            .map(|(_, r)| (r.first_key, r.content_digest))
+            .collect();
+        digests.sort_unstable();
+        let mut hasher = Xxh3::new();
+        hasher.update(stage.as_bytes());
+        for (_, digest) in digests {
+            hasher.update(&digest.to_le_bytes());
+        }
+        hasher.digest()
+    }
+
+    /// Maps a visible segment after checking its size against the catalog.
+    pub fn open_segment(&self, name: &str) -> Result<SegmentFile> {
+        let record = self
+            .all_segments()
+            .find(|(n, _)| n == name)
+            .map(|(_, r)| r.clone())
+            .ok_or_else(|| StoreError::CatalogCorruption {
+                table: "segments",
+                reason: format!("segment {name} is not visible at version {}", self.version),
+            })?;
+        SegmentFile::open(self.store.segment_path(name), &record)
+    }
+}
+
+/// A mapped segment file whose length matched its catalog record.
+pub struct SegmentFile {
+    path: PathBuf,
+    map: Mmap,
+}
+
+impl SegmentFile {
+    pub(crate) fn open(path: PathBuf, record: &SegmentRecord) -> Result<SegmentFile> {
+        let file = File::open(&path).map_err(|source| StoreError::Io {
+            action: "open segment",
+            path: path.clone(),
+            source,
+        })?;
+        let map = crate::sys::map_segment(&file).map_err(|source| StoreError::Io {
+            action: "map segment",
+            path: path.clone(),
+            source,
+        })?;
+        if map.len() as u64 != record.bytes {
+            return Err(StoreError::Corruption {
+                file: path,
+                detail: crate::format::DecodeError::Truncated {
+                    what: "segment file",
+                    needed: record.bytes as usize,
+                    available: map.len(),
+                },
+            });
+        }
+        Ok(SegmentFile { path, map })
+    }
+
+    pub fn path(&self) -> &std::path::Path {
+        &self.path
+    }
+
+    pub fn bytes(&self) -> &[u8] {
+        &self.map
+    }
+
+    /// Parses the segment; each column block is checksummed when read.
+    pub fn reader(&self) -> Result<SegmentReader<'_>> {
+        SegmentReader::parse(&self.map).map_err(|detail| self.corruption(detail))
+    }
+
+    pub fn corruption(&self, detail: crate::format::DecodeError) -> StoreError {
+        StoreError::Corruption {
+            file: self.path.clone(),
+            detail,
+        }
+    }
+}

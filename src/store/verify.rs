@@ -1,0 +1,166 @@
+//! `verify`: every byte of every segment the catalog references, and catalog invariants.
+
+use rayon::prelude::*;
+use redb::ReadableTable;
+use xxhash_rust::xxh3::xxh3_64;
+
+use super::catalog::{self, SEGMENTS, SegmentRecord};
+use super::snapshot::SegmentFile;
+use super::{Result, Snapshot, Store, StoreError};
+use crate::format::{CubeKey, DecodeError, Region, SegmentReader};
+
+#[derive(Debug, Default, Clone)]
+pub struct VerifyReport {
+    pub segments: usize,
+    pub bytes: u64,
+    pub rows: u64,
+    /// One line per problem, naming the file and where in it.
+    pub problems: Vec<String>,
+}
+
+impl VerifyReport {
+    pub fn is_ok(&self) -> bool {
+        self.problems.is_empty()
+    }
+}
+
+/// A stage-specific invariant over a snapshot (key order, 2:1 balance, ...): returns problems.
+pub type StageCheck = fn(&Snapshot<'_>) -> Result<Vec<String>>;
+
+fn describe_range(record: &SegmentRecord) -> String {
+    let (first, last) = (
+        CubeKey::from_raw(record.first_key),
+        CubeKey::from_raw(record.last_key),
+    );
+    format!("keys {first}..={last} ({first:?}..={last:?})")
+}
+
+/// Describes damage found by the decoder; block damage carries its own column and key range,
+/// anything else gets the segment's range from the catalog.
+fn damage(shown: &std::path::Display<'_>, record: &SegmentRecord, detail: &DecodeError) -> String {
+    let block_level = matches!(
+        detail,
+        DecodeError::Corrupt {
+            region: Region::Block { .. },
+            ..
+        } | DecodeError::ChecksumMismatch {
+            region: Region::Block { .. },
+            ..
+        }
+    );
+    if block_level {
+        format!("corrupt segment {shown}: {detail}")
+    } else {
+        format!(
+            "corrupt segment {shown}: {detail} (segment {})",
+            describe_range(record)
+        )
+    }
+}
+
+fn check_segment(
+    store: &Store,
+    name: &str,
+    record: &SegmentRecord,
+) -> std::result::Result<(), String> {
+    let path = store.segment_path(name);
+    let shown = path.display();
+    let file = SegmentFile::open(path.clone(), record)
+        .map_err(|e| format!("{e} (segment {})", describe_range(record)))?;
+    // Locate the damage first, so the message names the column and key range.
+    let located = (|| -> std::result::Result<(), String> {
+        let reader =
+            SegmentReader::parse(file.bytes()).map_err(|detail| damage(&shown, record, &detail))?;
+        let digest = reader
+            .verify()
+            .map_err(|detail| damage(&shown, record, &detail))?;
+        if digest != record.content_digest {
+            return Err(format!(
+                "segment {shown}: content digest {digest:016x} differs from the catalog's {:016x} (segment {})",
+                record.content_digest,
+                describe_range(record)
+            ));
+        }
+        if reader.rows() != record.rows
+            || reader.first_key().raw() != record.first_key
+            || reader.last_key().raw() != record.last_key
+        {
+            return Err(format!(
+                "segment {shown}: rows or key range differ from the catalog ({} rows, {})",
+                record.rows,
+                describe_range(record)
+            ));
+        }
+        Ok(())
+    })();
+    located?;
+    let got = xxh3_64(file.bytes());
+    if got != record.file_checksum {
+        return Err(StoreError::ChecksumMismatch {
+            file: path,
+            got,
+            expected: record.file_checksum,
+        }
+        .to_string());
+    }
+    Ok(())
+}
+
+impl Store {
+    /// Checks every segment the catalog references (all kept versions and runs in progress),
+    /// then the stage checks on the latest version.
+    pub fn verify(&self, checks: &[StageCheck]) -> Result<VerifyReport> {
+        let records: Vec<(String, SegmentRecord)> = {
+            let txn = self.catalog().begin_read()?;
+            let table = txn.open_table(SEGMENTS)?;
+            table
+                .iter()?
+                .map(|e| {
+                    let (k, v) = e?;
+                    Ok((
+                        k.value().to_string(),
+                        catalog::decode("segments", v.value())?,
+                    ))
+                })
+                .collect::<Result<_>>()?
+        };
+        let mut problems: Vec<String> = records
+            .par_iter()
+            .filter_map(|(name, record)| check_segment(self, name, record).err())
+            .collect();
+        problems.sort();
+        let snapshot = self.latest()?;
+        for stage in snapshot.stages().map(str::to_string).collect::<Vec<_>>() {
+            let segments = snapshot.segments(&stage);
+            if segments.iter().any(|(_, r)| r.created > snapshot.version()) {
+                problems.push(format!(
+                    "stage '{stage}': a segment is newer than the version that sees it"
+                ));
+            }
+        }
+        for check in checks {
+            problems.extend(check(&snapshot)?);
+        }
+        Ok(VerifyReport {
+            segments: records.len(),
+            bytes: records.iter().map(|(_, r)| r.bytes).sum(),
+            rows: records.iter().map(|(_, r)| r.rows).sum(),
+            problems,
+        })
+    }
+}
+
+/// A stage check: the stage's visible segments cover disjoint, increasing key ranges.
+pub fn disjoint_ranges(snapshot: &Snapshot<'_>, stage: &str) -> Vec<String> {
+    let mut problems = Vec::new();
+    for pair in snapshot.segments(stage).windows(2) {
+        if let [(a_name, a), (b_name, b)] = pair
+            && a.last_key >= b.first_key
+        {
+            problems.push(format!(
+                    "stage '{stage}': segments {a_name} and {b_name} overlap in key range or are out of order"
+                ));
+        }
+    }
+    problems
+}

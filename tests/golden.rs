@@ -1,0 +1,140 @@
+//! Golden files: the store checked in under tests/data/golden-v1 was written by format version 1.
+//! Every later build must decode it to the same values, and encoding the same content again must
+//! give the same bytes.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::*;
+use octstore::Store;
+use octstore::format::segment::{self, SegmentReader};
+use octstore::format::{ColumnValues, CubeKey};
+use octstore::stages::synthetic::{self, SyntheticStage};
+use octstore::store::RunOptions;
+
+fn golden() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/golden-v1")
+}
+
+fn golden_stage() -> SyntheticStage {
+    SyntheticStage {
+        units: 2,
+        rows_per_unit: 20,
+        seed: 42,
+        delay_ms: 0,
+    }
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to.join("segments")).unwrap();
+    std::fs::copy(from.join("catalog.redb"), to.join("catalog.redb")).unwrap();
+    for entry in std::fs::read_dir(from.join("segments")).unwrap() {
+        let entry = entry.unwrap();
+        std::fs::copy(entry.path(), to.join("segments").join(entry.file_name())).unwrap();
+    }
+}
+
+#[test]
+fn golden_v1_decodes_to_known_values() {
+    let dir = tempfile::tempdir().unwrap();
+    copy_dir(&golden(), dir.path());
+    let store = Store::open_read_only(dir.path()).unwrap();
+    assert_eq!(store.current_version().unwrap(), 1);
+    let log = store.log().unwrap();
+    assert_eq!(log.len(), 2);
+    assert_eq!(
+        (log[1].1.kind.as_str(), log[1].1.summary.as_str()),
+        ("synthetic", "2 unit(s)")
+    );
+    let snap = store.latest().unwrap();
+    assert_eq!(
+        format!("{:016x}", snap.digest(synthetic::NAME)),
+        "4b58d934915774dd"
+    );
+    let segments = snap.segments(synthetic::NAME);
+    let names: Vec<&str> = segments.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "synthetic-v00000001-u0000000000-p000.seg",
+            "synthetic-v00000001-u0000000001-p000.seg"
+        ]
+    );
+    let (name, record) = &segments[0];
+    assert_eq!(
+        (record.rows, record.bytes, record.created, record.dropped),
+        (20, 2349, 1, None)
+    );
+
+    let file = snap.open_segment(name).unwrap();
+    let bytes = file.bytes();
+    // Header and footer bytes, as format-spec.md lays them out.
+    assert_eq!(&bytes[..8], b"OCTSEG\x00\x01");
+    assert_eq!(&bytes[8..16], &[1, 0, 0, 0, 0, 0, 0, 0]);
+    assert_eq!(&bytes[bytes.len() - 8..], b"OCTSEG\x00\x01");
+    let reader = SegmentReader::parse(bytes).unwrap();
+    assert_eq!(reader.rows(), 20);
+    let names: Vec<&str> = reader.columns().iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "key",
+            "radius_sum",
+            "radius_count",
+            "hist",
+            "u",
+            "v",
+            "p",
+            "q"
+        ]
+    );
+    let keys = reader.read_keys().unwrap();
+    assert_eq!(keys.len(), 20);
+    assert!(keys.iter().all(|k| k.depth() == 14));
+    assert!(keys.windows(2).all(|w| w[0] < w[1]));
+    assert_eq!(reader.first_key(), keys[0]);
+    let (_, counts) = reader.read_u32("radius_count").unwrap();
+    assert_eq!(counts[..8], [1, 2, 3, 4, 5, 6, 7, 1]);
+    let (width, hist) = reader.read_f32("hist").unwrap();
+    assert_eq!(width, 8);
+    assert!(hist.iter().all(|h| (-1.0..=1.0).contains(h)));
+    assert_eq!(reader.verify().unwrap(), record.content_digest);
+    // The values are those of the generator that wrote them.
+    for column in golden_stage().unit_columns(0) {
+        assert_eq!(
+            reader.read_column(&column.name).unwrap(),
+            column,
+            "column {}",
+            column.name
+        );
+    }
+    assert!(matches!(
+        reader.read_column("u").unwrap().values,
+        ColumnValues::F32(_)
+    ));
+    assert_eq!(keys[0], CubeKey::from_raw(keys[0].raw()));
+    assert_eq!(
+        segment::FORMAT_VERSION,
+        1,
+        "a new format version needs golden-v2"
+    );
+}
+
+#[test]
+fn encoding_the_same_content_again_gives_the_same_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::create(dir.path()).unwrap();
+    let options = RunOptions {
+        resume: false,
+        threads: 2,
+        progress: false,
+    };
+    store.run_stage(&golden_stage(), &options).unwrap();
+    drop(store);
+    let fresh = fingerprint(dir.path());
+    let copy = tempfile::tempdir().unwrap();
+    copy_dir(&golden(), copy.path());
+    let golden = fingerprint(copy.path());
+    assert_same_store(&golden, &fresh, "golden-v1 re-encoded");
+}

@@ -1,0 +1,381 @@
+//! The versioned store: snapshots, gc, determinism, corruption, disk-full and fsync failures.
+
+mod common;
+
+use common::*;
+use octstore::Store;
+use octstore::format::{ColumnValues, CubeKey};
+use octstore::stages::synthetic::{self, SyntheticStage};
+use octstore::store::{IoFaults, RunOptions, StoreError};
+
+fn stage(units: u32, seed: u64) -> SyntheticStage {
+    SyntheticStage {
+        units,
+        rows_per_unit: 300,
+        seed,
+        delay_ms: 0,
+    }
+}
+
+fn options(threads: usize) -> RunOptions {
+    RunOptions {
+        resume: false,
+        threads,
+        progress: false,
+    }
+}
+
+#[test]
+fn stage_output_is_readable_through_a_snapshot() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::create(dir.path()).unwrap();
+    let s = stage(5, 7);
+    let report = store.run_stage(&s, &options(2)).unwrap();
+    assert_eq!(report.version, Some(1));
+    assert_eq!(report.units, 5);
+    let snap = store.latest().unwrap();
+    let segments = snap.segments(synthetic::NAME);
+    assert_eq!(segments.len(), 5);
+    for (unit, (name, record)) in segments.iter().enumerate() {
+        let expected = s.unit_columns(unit as u64);
+        let file = snap.open_segment(name).unwrap();
+        let reader = file.reader().unwrap();
+        assert_eq!(reader.rows(), record.rows);
+        for column in &expected {
+            assert_eq!(
+                &reader.read_column(&column.name).unwrap(),
+                column,
+                "{name}: {}",
+                column.name
+            );
+        }
+    }
+    // Key ranges of units are disjoint and increasing.
+    for pair in segments.windows(2) {
+        assert!(pair[0].1.last_key < pair[1].1.first_key);
+    }
+}
+
+#[test]
+fn pinned_versions_gc_and_version_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::create(dir.path()).unwrap();
+    store.run_stage(&stage(3, 1), &options(2)).unwrap();
+    let old_digest = store.snapshot(1).unwrap().digest(synthetic::NAME);
+    store.run_stage(&stage(2, 2), &options(2)).unwrap();
+    assert_eq!(store.current_version().unwrap(), 2);
+    {
+        let v1 = store.snapshot(1).unwrap();
+        let v2 = store.snapshot(2).unwrap();
+        assert_eq!(v1.segments(synthetic::NAME).len(), 3);
+        assert_eq!(v2.segments(synthetic::NAME).len(), 2);
+        assert_eq!(v1.digest(synthetic::NAME), old_digest);
+        assert_ne!(v2.digest(synthetic::NAME), old_digest);
+        // The old version is still fully readable.
+        for (name, _) in v1.segments(synthetic::NAME) {
+            v1.open_segment(name)
+                .unwrap()
+                .reader()
+                .unwrap()
+                .verify()
+                .unwrap();
+        }
+    }
+    assert!(matches!(
+        store.snapshot(9),
+        Err(StoreError::NoSuchVersion {
+            version: 9,
+            latest: 2
+        })
+    ));
+    let (files, bytes) = store.gc(1).unwrap();
+    assert_eq!(files, 3);
+    assert!(bytes > 0);
+    assert!(matches!(
+        store.snapshot(1),
+        Err(StoreError::VersionGone {
+            version: 1,
+            horizon: 2
+        })
+    ));
+    assert_eq!(
+        std::fs::read_dir(dir.path().join("segments"))
+            .unwrap()
+            .count(),
+        2
+    );
+    assert!(store.verify(&[]).unwrap().is_ok());
+    assert_eq!(store.log().unwrap().len(), 3);
+}
+
+#[test]
+fn results_do_not_depend_on_thread_count() {
+    let a = tempfile::tempdir().unwrap();
+    let b = tempfile::tempdir().unwrap();
+    Store::create(a.path())
+        .unwrap()
+        .run_stage(&stage(9, 3), &options(1))
+        .unwrap();
+    Store::create(b.path())
+        .unwrap()
+        .run_stage(&stage(9, 3), &options(4))
+        .unwrap();
+    assert_same_store(
+        &fingerprint(a.path()),
+        &fingerprint(b.path()),
+        "1 vs 4 threads",
+    );
+}
+
+#[test]
+fn a_second_writer_is_refused_with_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let _writer = Store::create(dir.path()).unwrap();
+    let err = Store::open(dir.path())
+        .err()
+        .expect("second open must fail");
+    assert!(matches!(err, StoreError::InUse { .. }), "{err}");
+    assert!(
+        err.to_string()
+            .contains("in use by another octstore process")
+    );
+    // Another process too.
+    let out = octstore(&["debug-synthetic", dir.path().to_str().unwrap()], &[]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("in use by another octstore process"),
+        "{}",
+        stderr(&out)
+    );
+}
+
+#[test]
+fn disk_full_mid_unit_leaves_the_last_commit_intact_and_resume_completes() {
+    let reference = tempfile::tempdir().unwrap();
+    Store::create(reference.path())
+        .unwrap()
+        .run_stage(&stage(6, 5), &options(2))
+        .unwrap();
+
+    let dir = tempfile::tempdir().unwrap();
+    Store::create(dir.path())
+        .unwrap()
+        .run_stage(&stage(2, 9), &options(2))
+        .unwrap();
+    let before = fingerprint(dir.path());
+    {
+        let faults = IoFaults::disk_full_after(40_000);
+        let store = Store::open_with_faults(dir.path(), faults).unwrap();
+        let err = store.run_stage(&stage(6, 5), &options(2)).unwrap_err();
+        assert!(
+            matches!(&err, StoreError::Io { source, .. } if source.kind() == std::io::ErrorKind::StorageFull),
+            "{err}"
+        );
+        assert!(
+            err.to_string().contains("segments/synthetic-"),
+            "error names the file: {err}"
+        );
+        // Still version 1, still valid.
+        assert_eq!(store.current_version().unwrap(), 1);
+        assert!(store.verify(&[]).unwrap().is_ok());
+        assert_eq!(store.latest().unwrap().digest(synthetic::NAME), {
+            let other = Store::open_read_only(reference.path());
+            drop(other);
+            store.snapshot(1).unwrap().digest(synthetic::NAME)
+        });
+    }
+    // The committed content of version 1 is untouched (a run in progress is recorded, though).
+    {
+        let store = Store::open(dir.path()).unwrap();
+        let snap = store.snapshot(1).unwrap();
+        assert_eq!(snap.segments(synthetic::NAME).len(), 2);
+        for (name, _) in snap.segments(synthetic::NAME) {
+            assert_eq!(
+                std::fs::read(dir.path().join("segments").join(name)).unwrap(),
+                before.segments[name]
+            );
+        }
+        let mut resume = options(2);
+        resume.resume = true;
+        store.run_stage(&stage(6, 5), &resume).unwrap();
+        assert!(store.verify(&[]).unwrap().is_ok());
+        let latest = store.latest().unwrap();
+        let reference_store = Store::open_read_only(reference.path()).unwrap();
+        assert_eq!(
+            latest.digest(synthetic::NAME),
+            reference_store.latest().unwrap().digest(synthetic::NAME)
+        );
+    }
+}
+
+#[test]
+fn a_failed_fsync_poisons_the_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let faults = IoFaults::failing_fsync();
+    let store = Store::create_with_faults(dir.path(), faults).unwrap();
+    let err = store.run_stage(&stage(2, 1), &options(1)).unwrap_err();
+    assert!(err.to_string().contains("fsync"), "{err}");
+    assert!(store.is_poisoned());
+    assert!(matches!(
+        store.run_stage(&stage(2, 1), &options(1)),
+        Err(StoreError::Poisoned)
+    ));
+    drop(store);
+    // Reopened, the store is at its last commit and works again.
+    let store = Store::open(dir.path()).unwrap();
+    assert_eq!(store.current_version().unwrap(), 0);
+    store.run_stage(&stage(2, 1), &options(1)).unwrap();
+    assert!(store.verify(&[]).unwrap().is_ok());
+}
+
+#[test]
+fn every_flipped_byte_and_truncation_of_a_segment_is_caught() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = SyntheticStage {
+        units: 1,
+        rows_per_unit: 40,
+        seed: 4,
+        delay_ms: 0,
+    };
+    let store = Store::create(dir.path()).unwrap();
+    store.run_stage(&s, &options(1)).unwrap();
+    let name = store.latest().unwrap().segments(synthetic::NAME)[0]
+        .0
+        .clone();
+    let path = dir.path().join("segments").join(&name);
+    let good = std::fs::read(&path).unwrap();
+    for i in 0..good.len() {
+        let mut bad = good.clone();
+        bad[i] ^= 0x01;
+        std::fs::write(&path, &bad).unwrap();
+        let report = store.verify(&[]).unwrap();
+        assert_eq!(report.problems.len(), 1, "flip at {i} went unnoticed");
+        assert!(report.problems[0].contains(&name), "{}", report.problems[0]);
+        assert!(
+            report.problems[0].contains("keys "),
+            "no key range: {}",
+            report.problems[0]
+        );
+        // Reads fail with a corruption error, never a panic, never wrong data.
+        let snap = store.latest().unwrap();
+        let file = snap.open_segment(&name).unwrap();
+        let read = file.reader().map_err(|e| e.to_string()).and_then(|r| {
+            let mut all = Vec::new();
+            for c in s.unit_columns(0) {
+                all.push(
+                    r.read_column(&c.name)
+                        .map_err(|e| file.corruption(e).to_string())?,
+                );
+            }
+            Ok(all)
+        });
+        if let Ok(columns) = read {
+            // A flip outside any column block (the footer's reserved block-rows field is still
+            // checksummed) must then have been caught by parse; reaching here means the decoded
+            // content must be exactly right.
+            assert_eq!(
+                columns,
+                s.unit_columns(0),
+                "flip at {i} returned wrong data"
+            );
+            panic!("flip at {i} read back without error");
+        }
+    }
+    for len in [0, 1, good.len() / 2, good.len() - 1] {
+        std::fs::write(&path, &good[..len]).unwrap();
+        let report = store.verify(&[]).unwrap();
+        assert_eq!(
+            report.problems.len(),
+            1,
+            "truncation to {len} went unnoticed"
+        );
+        assert!(report.problems[0].contains(&name));
+    }
+    std::fs::write(&path, &good).unwrap();
+    assert!(store.verify(&[]).unwrap().is_ok());
+}
+
+#[test]
+fn verify_cli_names_file_column_and_key_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let store_path = dir.path().join("s");
+    let out = octstore(
+        &[
+            "debug-synthetic",
+            store_path.to_str().unwrap(),
+            "--units",
+            "2",
+            "--rows",
+            "500",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let ok = octstore(&["verify", store_path.to_str().unwrap()], &[]);
+    assert!(ok.status.success(), "{}", stderr(&ok));
+    let (name, first_key, last_key) = {
+        let store = Store::open(&store_path).unwrap();
+        let snap = store.latest().unwrap();
+        let (name, record) = snap.segments(synthetic::NAME)[1].clone();
+        (
+            name,
+            CubeKey::from_raw(record.first_key),
+            CubeKey::from_raw(record.last_key),
+        )
+    };
+    let path = store_path.join("segments").join(&name);
+    let mut bytes = std::fs::read(&path).unwrap();
+    // A byte inside the first column block after the key column ('radius_sum').
+    let store = Store::open(&store_path).unwrap();
+    let snap = store.latest().unwrap();
+    let file = snap.open_segment(&name).unwrap();
+    let reader = file.reader().unwrap();
+    let keys_len = {
+        let (_, k) = (0, reader.read_keys().unwrap());
+        k.len()
+    };
+    assert!(keys_len > 0);
+    drop(reader);
+    drop(file);
+    drop(snap);
+    drop(store);
+    let target = 16 + 20; // in the key column's first block, right after the header
+    bytes[target] ^= 0xff;
+    std::fs::write(&path, &bytes).unwrap();
+    let out = octstore(&["verify", store_path.to_str().unwrap()], &[]);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(err.contains(&name), "{err}");
+    assert!(err.contains("column 'key'"), "{err}");
+    assert!(
+        err.contains(&first_key.to_string()) && err.contains(&last_key.to_string()),
+        "{err}"
+    );
+}
+
+#[test]
+fn read_only_snapshot_sees_typed_columns() {
+    let dir = tempfile::tempdir().unwrap();
+    Store::create(dir.path())
+        .unwrap()
+        .run_stage(&stage(1, 11), &options(1))
+        .unwrap();
+    let store = Store::open_read_only(dir.path()).unwrap();
+    assert!(store.is_read_only());
+    let snap = store.latest().unwrap();
+    let (name, _) = &snap.segments(synthetic::NAME)[0];
+    let file = snap.open_segment(name).unwrap();
+    let reader = file.reader().unwrap();
+    let (width, hist) = reader.read_f32("hist").unwrap();
+    assert_eq!(width, 8);
+    assert_eq!(hist.len(), reader.rows() as usize * 8);
+    assert!(matches!(
+        reader.read_column("q").unwrap().values,
+        ColumnValues::F32(_)
+    ));
+    assert!(reader.read_u32("hist").is_err());
+    assert!(matches!(
+        store.run_stage(&stage(1, 1), &options(1)),
+        Err(StoreError::ReadOnly)
+    ));
+}
