@@ -26,21 +26,11 @@ fn columns(segment: usize, cubes: usize) -> Vec<Column> {
         .collect();
     let n = keys.len();
     let smooth = |w: usize, phase: f32| -> ColumnValues {
-        ColumnValues::F32(
-            (0..n * w)
-                .map(|i| ((i as f32) * 0.001 + phase).sin() * 0.8)
-                .collect(),
-        )
+        ColumnValues::F32((0..n * w).map(|i| ((i as f32) * 0.001 + phase).sin() * 0.8).collect())
     };
     let hist = ColumnValues::F32(
         (0..n * 8)
-            .map(|i| {
-                if i % 8 == (i / 64) % 8 {
-                    (i % 5) as f32
-                } else {
-                    0.0
-                }
-            })
+            .map(|i| if i % 8 == (i / 64) % 8 { (i % 5) as f32 } else { 0.0 })
             .collect(),
     );
     vec![
@@ -93,10 +83,7 @@ fn main() {
         file_bytes += summary.bytes;
         paths.push(path);
     }
-    let files: Vec<Vec<u8>> = paths
-        .iter()
-        .map(|p| std::fs::read(p).expect("read"))
-        .collect();
+    let files: Vec<Vec<u8>> = paths.iter().map(|p| std::fs::read(p).expect("read")).collect();
     let read_all = |bytes: &Vec<u8>| -> u64 {
         let reader = SegmentReader::parse(bytes).expect("parse");
         let mut decoded = 0u64;

@@ -6,10 +6,7 @@ fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_target(false)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_env("OCTSTORE_LOG")
-                .unwrap_or_else(|_| "info".into()),
-        )
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("OCTSTORE_LOG").unwrap_or_else(|_| "info".into()))
         .without_time()
         .init();
     let cli = octstore::cli::Cli::parse();

@@ -73,15 +73,8 @@ fn every_failpoint_then_resume_equals_an_uninterrupted_run() {
             );
             assert!(out.status.success(), "{}", stderr(&out));
             let crashed = run(&store, false, Some(&spec));
-            assert!(
-                !crashed.status.success(),
-                "{spec}: the failpoint did not fire"
-            );
-            assert!(
-                stderr(&crashed).contains("failpoint"),
-                "{spec}: {}",
-                stderr(&crashed)
-            );
+            assert!(!crashed.status.success(), "{spec}: the failpoint did not fire");
+            assert!(stderr(&crashed).contains("failpoint"), "{spec}: {}", stderr(&crashed));
 
             let verify = octstore(&["verify", store.to_str().unwrap()], &[]);
             assert!(
@@ -91,11 +84,7 @@ fn every_failpoint_then_resume_equals_an_uninterrupted_run() {
             );
 
             let resumed = run(&store, true, None);
-            assert!(
-                resumed.status.success(),
-                "{spec}: resume failed: {}",
-                stderr(&resumed)
-            );
+            assert!(resumed.status.success(), "{spec}: resume failed: {}", stderr(&resumed));
             let got = fingerprint(&store);
             // After stage.after_finish the run is complete; a resume finds nothing to do.
             assert_same_store(&expected, &got, &spec);

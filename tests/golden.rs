@@ -48,10 +48,7 @@ fn golden_v1_decodes_to_known_values() {
         ("synthetic", "2 unit(s)")
     );
     let snap = store.latest().unwrap();
-    assert_eq!(
-        format!("{:016x}", snap.digest(synthetic::NAME)),
-        "4b58d934915774dd"
-    );
+    assert_eq!(format!("{:016x}", snap.digest(synthetic::NAME)), "4b58d934915774dd");
     let segments = snap.segments(synthetic::NAME);
     let names: Vec<&str> = segments.iter().map(|(n, _)| n.as_str()).collect();
     assert_eq!(
@@ -76,19 +73,7 @@ fn golden_v1_decodes_to_known_values() {
     let reader = SegmentReader::parse(bytes).unwrap();
     assert_eq!(reader.rows(), 20);
     let names: Vec<&str> = reader.columns().iter().map(|c| c.name.as_str()).collect();
-    assert_eq!(
-        names,
-        [
-            "key",
-            "radius_sum",
-            "radius_count",
-            "hist",
-            "u",
-            "v",
-            "p",
-            "q"
-        ]
-    );
+    assert_eq!(names, ["key", "radius_sum", "radius_count", "hist", "u", "v", "p", "q"]);
     let keys = reader.read_keys().unwrap();
     assert_eq!(keys.len(), 20);
     assert!(keys.iter().all(|k| k.depth() == 14));
@@ -109,16 +94,9 @@ fn golden_v1_decodes_to_known_values() {
             column.name
         );
     }
-    assert!(matches!(
-        reader.read_column("u").unwrap().values,
-        ColumnValues::F32(_)
-    ));
+    assert!(matches!(reader.read_column("u").unwrap().values, ColumnValues::F32(_)));
     assert_eq!(keys[0], CubeKey::from_raw(keys[0].raw()));
-    assert_eq!(
-        segment::FORMAT_VERSION,
-        1,
-        "a new format version needs golden-v2"
-    );
+    assert_eq!(segment::FORMAT_VERSION, 1, "a new format version needs golden-v2");
 }
 
 #[test]

@@ -59,8 +59,7 @@ fn sigkill_at_random_moments_then_resume() {
     for trial in 0..TRIALS {
         let store = root.path().join(format!("trial-{trial}"));
         // Kill anywhere from process start to a little past the expected end.
-        let delay =
-            Duration::from_micros(next(&mut state) % (full_run.as_micros() as u64 * 11 / 10 + 1));
+        let delay = Duration::from_micros(next(&mut state) % (full_run.as_micros() as u64 * 11 / 10 + 1));
         let mut child = Command::new(octstore_bin())
             .args(args(&store, false))
             .env("OCTSTORE_LOG", "warn")
@@ -82,15 +81,8 @@ fn sigkill_at_random_moments_then_resume() {
                 stderr(&verify)
             );
         }
-        let resumed = Command::new(octstore_bin())
-            .args(args(&store, true))
-            .output()
-            .unwrap();
-        assert!(
-            resumed.status.success(),
-            "trial {trial}: resume: {}",
-            stderr(&resumed)
-        );
+        let resumed = Command::new(octstore_bin()).args(args(&store, true)).output().unwrap();
+        assert!(resumed.status.success(), "trial {trial}: resume: {}", stderr(&resumed));
         assert_same_store(
             &expected,
             &fingerprint(&store),

@@ -73,37 +73,21 @@ fn pinned_versions_gc_and_version_errors() {
         assert_ne!(v2.digest(synthetic::NAME), old_digest);
         // The old version is still fully readable.
         for (name, _) in v1.segments(synthetic::NAME) {
-            v1.open_segment(name)
-                .unwrap()
-                .reader()
-                .unwrap()
-                .verify()
-                .unwrap();
+            v1.open_segment(name).unwrap().reader().unwrap().verify().unwrap();
         }
     }
     assert!(matches!(
         store.snapshot(9),
-        Err(StoreError::NoSuchVersion {
-            version: 9,
-            latest: 2
-        })
+        Err(StoreError::NoSuchVersion { version: 9, latest: 2 })
     ));
     let (files, bytes) = store.gc(1).unwrap();
     assert_eq!(files, 3);
     assert!(bytes > 0);
     assert!(matches!(
         store.snapshot(1),
-        Err(StoreError::VersionGone {
-            version: 1,
-            horizon: 2
-        })
+        Err(StoreError::VersionGone { version: 1, horizon: 2 })
     ));
-    assert_eq!(
-        std::fs::read_dir(dir.path().join("segments"))
-            .unwrap()
-            .count(),
-        2
-    );
+    assert_eq!(std::fs::read_dir(dir.path().join("segments")).unwrap().count(), 2);
     assert!(store.verify(&[]).unwrap().is_ok());
     assert_eq!(store.log().unwrap().len(), 3);
 }
@@ -120,25 +104,16 @@ fn results_do_not_depend_on_thread_count() {
         .unwrap()
         .run_stage(&stage(9, 3), &options(4))
         .unwrap();
-    assert_same_store(
-        &fingerprint(a.path()),
-        &fingerprint(b.path()),
-        "1 vs 4 threads",
-    );
+    assert_same_store(&fingerprint(a.path()), &fingerprint(b.path()), "1 vs 4 threads");
 }
 
 #[test]
 fn a_second_writer_is_refused_with_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let _writer = Store::create(dir.path()).unwrap();
-    let err = Store::open(dir.path())
-        .err()
-        .expect("second open must fail");
+    let err = Store::open(dir.path()).err().expect("second open must fail");
     assert!(matches!(err, StoreError::InUse { .. }), "{err}");
-    assert!(
-        err.to_string()
-            .contains("in use by another octstore process")
-    );
+    assert!(err.to_string().contains("in use by another octstore process"));
     // Another process too.
     let out = octstore(&["debug-synthetic", dir.path().to_str().unwrap()], &[]);
     assert!(!out.status.success());
@@ -239,9 +214,7 @@ fn every_flipped_byte_and_truncation_of_a_segment_is_caught() {
     };
     let store = Store::create(dir.path()).unwrap();
     store.run_stage(&s, &options(1)).unwrap();
-    let name = store.latest().unwrap().segments(synthetic::NAME)[0]
-        .0
-        .clone();
+    let name = store.latest().unwrap().segments(synthetic::NAME)[0].0.clone();
     let path = dir.path().join("segments").join(&name);
     let good = std::fs::read(&path).unwrap();
     for i in 0..good.len() {
@@ -262,10 +235,7 @@ fn every_flipped_byte_and_truncation_of_a_segment_is_caught() {
         let read = file.reader().map_err(|e| e.to_string()).and_then(|r| {
             let mut all = Vec::new();
             for c in s.unit_columns(0) {
-                all.push(
-                    r.read_column(&c.name)
-                        .map_err(|e| file.corruption(e).to_string())?,
-                );
+                all.push(r.read_column(&c.name).map_err(|e| file.corruption(e).to_string())?);
             }
             Ok(all)
         });
@@ -273,22 +243,14 @@ fn every_flipped_byte_and_truncation_of_a_segment_is_caught() {
             // A flip outside any column block (the footer's reserved block-rows field is still
             // checksummed) must then have been caught by parse; reaching here means the decoded
             // content must be exactly right.
-            assert_eq!(
-                columns,
-                s.unit_columns(0),
-                "flip at {i} returned wrong data"
-            );
+            assert_eq!(columns, s.unit_columns(0), "flip at {i} returned wrong data");
             panic!("flip at {i} read back without error");
         }
     }
     for len in [0, 1, good.len() / 2, good.len() - 1] {
         std::fs::write(&path, &good[..len]).unwrap();
         let report = store.verify(&[]).unwrap();
-        assert_eq!(
-            report.problems.len(),
-            1,
-            "truncation to {len} went unnoticed"
-        );
+        assert_eq!(report.problems.len(), 1, "truncation to {len} went unnoticed");
         assert!(report.problems[0].contains(&name));
     }
     std::fs::write(&path, &good).unwrap();
@@ -369,10 +331,7 @@ fn read_only_snapshot_sees_typed_columns() {
     let (width, hist) = reader.read_f32("hist").unwrap();
     assert_eq!(width, 8);
     assert_eq!(hist.len(), reader.rows() as usize * 8);
-    assert!(matches!(
-        reader.read_column("q").unwrap().values,
-        ColumnValues::F32(_)
-    ));
+    assert!(matches!(reader.read_column("q").unwrap().values, ColumnValues::F32(_)));
     assert!(reader.read_u32("hist").is_err());
     assert!(matches!(
         store.run_stage(&stage(1, 1), &options(1)),

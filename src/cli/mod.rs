@@ -6,6 +6,9 @@ use std::process::ExitCode;
 use clap::{Args, Parser, Subcommand};
 use serde::Serialize;
 
+use crate::stages::ingest::{IngestOptions, IngestStage};
+use crate::stages::inputs::{DiscoverOptions, InputFormat};
+use crate::stages::octree::{self, OctreeStage};
 use crate::stages::{self, synthetic::SyntheticStage};
 use crate::store::{RunOptions, Store, StoreError};
 
@@ -35,8 +38,53 @@ pub struct GlobalOptions {
     pub quiet: bool,
 }
 
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
+pub enum SolveStage {
+    Octree,
+}
+
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Register depth maps and write their cubes (one sorted run per depth map). Run it again
+    /// with more depth maps later: the store grows incrementally.
+    Ingest {
+        store: PathBuf,
+        #[arg(required = true)]
+        inputs: Vec<PathBuf>,
+        #[arg(long, value_enum, default_value = "auto")]
+        format: InputFormat,
+        /// Take every n-th frame of a folder.
+        #[arg(long, default_value_t = 1)]
+        stride: usize,
+        /// Take at most this many frames of a folder.
+        #[arg(long)]
+        limit: Option<usize>,
+        /// Root cube as minx,miny,minz,side (first ingest only; default: the samples' bounding
+        /// box grown by --root-margin).
+        #[arg(long, value_parser = parse_root)]
+        root: Option<([f64; 3], f64)>,
+        #[arg(long, default_value_t = 0.1)]
+        root_margin: f64,
+        /// Deepest octree level a sample may create (first ingest only).
+        #[arg(long, default_value_t = 24)]
+        max_depth: u8,
+        #[arg(long)]
+        resume: bool,
+    },
+    /// Bring everything derived up to date: octree, treetop (and, later, histograms and the
+    /// TGV solution).
+    Solve {
+        store: PathBuf,
+        /// Continue an interrupted run from its last committed unit.
+        #[arg(long)]
+        resume: bool,
+        /// Run the pending stages up to and including this one.
+        #[arg(long, value_enum, default_value = "octree")]
+        until: SolveStage,
+        /// Treetop leaves hold fewer cubes than this.
+        #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
+        leaf_cubes: u64,
+    },
     /// Summary of a store: version, inputs, cubes, leaves, segments, bytes, content digests.
     Info {
         store: PathBuf,
@@ -76,6 +124,45 @@ pub enum Command {
         #[arg(long)]
         resume: bool,
     },
+}
+
+fn parse_root(text: &str) -> Result<([f64; 3], f64), String> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|t| t.trim().parse::<f64>().map_err(|_| format!("'{t}' is not a number")))
+        .collect::<Result<_, _>>()?;
+    match v[..] {
+        [x, y, z, side] if side > 0.0 && side.is_finite() => Ok(([x, y, z], side)),
+        _ => Err("expected minx,miny,minz,side with side > 0".into()),
+    }
+}
+
+/// Peak resident memory of this process so far, in bytes (Linux; 0 elsewhere).
+pub fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<u64>().ok()))
+        })
+        .map_or(0, |kb| kb * 1024)
+}
+
+fn summary(report: &crate::store::RunReport) {
+    println!(
+        "{:<10} {} | units {} ({} resumed) | rows {} | {:.2}s | peak memory {:.0} MB",
+        report.stage,
+        match report.version {
+            Some(v) => format!("version {v}: {}", report.summary),
+            None => report.summary.clone(),
+        },
+        report.units,
+        report.resumed_units,
+        report.rows,
+        report.seconds,
+        peak_rss_bytes() as f64 / 1e6
+    );
 }
 
 /// Parses sizes like `512MiB`, `1GiB`, `1.5G`, `4096`.
@@ -125,19 +212,22 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
     };
     let digest = snapshot
         .stages()
-        .map(|stage| {
-            (
-                stage.to_string(),
-                format!("{:016x}", snapshot.digest(stage)),
-            )
-        })
+        .map(|stage| (stage.to_string(), format!("{:016x}", snapshot.digest(stage))))
         .collect();
     Ok(InfoJson {
         store: store.root().display().to_string(),
         version: snapshot.version(),
-        depth_maps: snapshot.segments(stages::INGEST).len() as u64,
+        depth_maps: stages::ingest::registered_depth_maps(store)?
+            .iter()
+            .filter(|(_, r)| r.added_in <= snapshot.version())
+            .count() as u64,
         cubes: snapshot.rows(stages::OCTREE),
-        treetop_leaves: snapshot.segments(stages::OCTREE).len() as u64,
+        treetop_leaves: {
+            // One segment per treetop leaf, plus one for the treetop's internal nodes when the
+            // root is not itself the only leaf.
+            let n = snapshot.segments(stages::OCTREE).len() as u64;
+            if n > 1 { n - 1 } else { n }
+        },
         segments: snapshot.all_segments().count() as u64,
         bytes: snapshot.all_segments().map(|(_, r)| r.bytes).sum(),
         digest,
@@ -164,23 +254,63 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
     let global = cli.global;
     if let Some(threads) = global.threads {
         // Only the first call configures the global pool; later calls are harmless.
-        let _ = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build_global();
+        let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
     }
     match cli.command {
-        Command::Info {
+        Command::Ingest {
             store,
-            json,
-            version,
+            inputs,
+            format,
+            stride,
+            limit,
+            root,
+            root_margin,
+            max_depth,
+            resume,
         } => {
+            let discover = DiscoverOptions { format, stride, limit };
+            let sources = stages::inputs::discover(&inputs, &discover).map_err(|e| StoreError::Stage {
+                stage: stages::INGEST.into(),
+                unit: "inputs".into(),
+                message: e.to_string(),
+            })?;
+            let store = open_or_create(&store)?;
+            let options = IngestOptions {
+                root,
+                root_margin,
+                max_depth,
+            };
+            let stage = IngestStage::prepare(&store, sources, &options)?;
+            let report = store.run_stage(&stage, &run_options(&global, resume))?;
+            summary(&report);
+        }
+        Command::Solve {
+            store,
+            resume,
+            until,
+            leaf_cubes,
+        } => {
+            let store = Store::open(&store)?;
+            let scene = stages::ingest::read_scene(&store)?.ok_or_else(|| StoreError::Stage {
+                stage: stages::OCTREE.into(),
+                unit: "-".into(),
+                message: "the store has no depth maps yet: run `octstore ingest` first".into(),
+            })?;
+            if until >= SolveStage::Octree {
+                let scratch = store.scratch_dir(stages::OCTREE)?;
+                let options = run_options(&global, resume);
+                let leaf_cubes = octree::effective_leaf_cubes(leaf_cubes, global.memory_budget, options.threads);
+                let stage = OctreeStage::new(scene, leaf_cubes, global.memory_budget / 4, scratch.clone());
+                let report = store.run_stage(&stage, &options)?;
+                summary(&report);
+                let _ = std::fs::remove_dir_all(scratch);
+            }
+        }
+        Command::Info { store, json, version } => {
             let store = Store::open_for_reading(&store)?;
             let info = info(&store, version)?;
             if json {
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&info).unwrap_or_default()
-                );
+                println!("{}", serde_json::to_string_pretty(&info).unwrap_or_default());
             } else {
                 println!("store          {}", info.store);
                 println!("version        {}", info.version);
@@ -196,7 +326,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
         Command::Verify { store } => {
             // Writable: recovers the catalog after a crash and removes crash debris first.
             let store = Store::open(&store)?;
-            let report = store.verify(&[])?;
+            let report = store.verify(&[stages::octree::verify_octree])?;
             for problem in &report.problems {
                 eprintln!("error: {problem}");
             }
@@ -224,19 +354,11 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                         serde_json::json!({"version": v, "parent": r.parent, "kind": r.kind, "summary": r.summary, "unix_ms": t})
                     })
                     .collect();
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(&rows).unwrap_or_default()
-                );
+                println!("{}", serde_json::to_string_pretty(&rows).unwrap_or_default());
             } else {
                 for (version, record, time) in log {
-                    let when = time
-                        .map(|t| format!("{:.3}s", t as f64 / 1000.0))
-                        .unwrap_or_default();
-                    println!(
-                        "{version:>6}  {:<12} {}  (unix {when})",
-                        record.kind, record.summary
-                    );
+                    let when = time.map(|t| format!("{:.3}s", t as f64 / 1000.0)).unwrap_or_default();
+                    println!("{version:>6}  {:<12} {}  (unix {when})", record.kind, record.summary);
                 }
             }
         }
@@ -263,12 +385,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             let report = store.run_stage(&stage, &run_options(&global, resume))?;
             println!(
                 "{}: version {:?}, {} unit(s) ({} resumed), {} rows, {:.2}s",
-                report.stage,
-                report.version,
-                report.units,
-                report.resumed_units,
-                report.rows,
-                report.seconds
+                report.stage, report.version, report.units, report.resumed_units, report.rows, report.seconds
             );
         }
     }

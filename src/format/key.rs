@@ -13,7 +13,18 @@ pub const MAX_DEPTH: u8 = 32;
 pub const KEY_BYTES: usize = size_of::<u128>();
 
 #[derive(
-    Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default, bytemuck::Pod, bytemuck::Zeroable,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    PartialOrd,
+    Ord,
+    Hash,
+    Default,
+    bytemuck::Pod,
+    bytemuck::Zeroable,
+    serde::Serialize,
+    serde::Deserialize,
 )]
 #[repr(transparent)]
 pub struct CubeKey(u128);
@@ -106,8 +117,7 @@ impl CubeKey {
     /// Integer coordinates at the key's own depth.
     pub fn coords(self) -> [u32; 3] {
         let shift = u32::from(MAX_DEPTH - self.depth());
-        self.corner_full_resolution()
-            .map(|c| c.checked_shr(shift).unwrap_or(0))
+        self.corner_full_resolution().map(|c| c.checked_shr(shift).unwrap_or(0))
     }
 
     /// Whether the depth is valid and the corner is aligned to the cube's size.
@@ -117,14 +127,8 @@ impl CubeKey {
             return false;
         }
         let shift = u32::from(MAX_DEPTH - depth);
-        let low_mask: u32 = if shift >= 32 {
-            u32::MAX
-        } else {
-            (1u32 << shift) - 1
-        };
-        self.corner_full_resolution()
-            .iter()
-            .all(|c| c & low_mask == 0)
+        let low_mask: u32 = if shift >= 32 { u32::MAX } else { (1u32 << shift) - 1 };
+        self.corner_full_resolution().iter().all(|c| c & low_mask == 0)
     }
 
     pub fn parent(self) -> Option<CubeKey> {

@@ -59,11 +59,7 @@ pub enum DecodeError {
     #[error("unsupported segment format version {found} (this build reads version {supported})")]
     UnsupportedVersion { found: u32, supported: u32 },
     #[error("checksum mismatch in {region}: got {got:016x}, expected {expected:016x}")]
-    ChecksumMismatch {
-        region: Region,
-        got: u64,
-        expected: u64,
-    },
+    ChecksumMismatch { region: Region, got: u64, expected: u64 },
     #[error("corrupt {region}: {reason}")]
     Corrupt { region: Region, reason: String },
     #[error("segment has no column '{0}'")]

@@ -157,19 +157,28 @@ pub struct SegmentSummary {
 }
 
 /// Hashes decoded column content the same way on write and on verify.
-pub fn content_digest_update(
-    hasher: &mut Xxh3,
-    name: &str,
-    ty: ElementType,
-    width: u16,
-    raw: &[u8],
-) {
+pub fn content_digest_update(hasher: &mut Xxh3, name: &str, ty: ElementType, width: u16, raw: &[u8]) {
     hasher.update(&(name.len() as u64).to_le_bytes());
     hasher.update(name.as_bytes());
     hasher.update(&[ty as u8]);
     hasher.update(&width.to_le_bytes());
     hasher.update(&(raw.len() as u64).to_le_bytes());
     hasher.update(raw);
+}
+
+/// The content digest of columns, exactly as [`encode_segment`] records it.
+pub fn content_digest(columns: &[Column]) -> u64 {
+    let mut hasher = Xxh3::new();
+    for column in columns {
+        content_digest_update(
+            &mut hasher,
+            &column.name,
+            column.values.element_type(),
+            column.width,
+            column.values.as_bytes(),
+        );
+    }
+    hasher.digest()
 }
 
 fn validate(columns: &[Column]) -> Result<&[CubeKey], EncodeError> {
@@ -181,9 +190,7 @@ fn validate(columns: &[Column]) -> Result<&[CubeKey], EncodeError> {
         return invalid("the first column must hold cube keys".into());
     };
     if first.name != KEY_COLUMN || first.width != 1 {
-        return invalid(format!(
-            "the first column must be '{KEY_COLUMN}' of width 1"
-        ));
+        return invalid(format!("the first column must be '{KEY_COLUMN}' of width 1"));
     }
     if keys.is_empty() {
         return invalid("a segment holds at least one row".into());
@@ -197,10 +204,7 @@ fn validate(columns: &[Column]) -> Result<&[CubeKey], EncodeError> {
     let mut names = std::collections::BTreeSet::new();
     for column in columns {
         if column.name.is_empty() || column.name.len() > MAX_NAME_LEN {
-            return invalid(format!(
-                "column name '{}' must be 1..=255 bytes",
-                column.name
-            ));
+            return invalid(format!("column name '{}' must be 1..=255 bytes", column.name));
         }
         if !names.insert(column.name.as_str()) {
             return invalid(format!("column '{}' appears twice", column.name));
@@ -222,10 +226,7 @@ fn validate(columns: &[Column]) -> Result<&[CubeKey], EncodeError> {
 }
 
 /// Writes `columns` as one segment to `out`, streaming block by block.
-pub fn encode_segment<W: Write>(
-    columns: &[Column],
-    out: &mut W,
-) -> Result<SegmentSummary, EncodeError> {
+pub fn encode_segment<W: Write>(columns: &[Column], out: &mut W) -> Result<SegmentSummary, EncodeError> {
     encode_segment_with_block_rows(columns, DEFAULT_BLOCK_ROWS, out)
 }
 
@@ -263,8 +264,7 @@ pub fn encode_segment_with_block_rows<W: Write>(
     w.put(&FORMAT_VERSION.to_le_bytes())?;
     w.put(&0u32.to_le_bytes())?;
 
-    let mut compressor =
-        zstd::bulk::Compressor::new(ZSTD_LEVEL).map_err(EncodeError::Compression)?;
+    let mut compressor = zstd::bulk::Compressor::new(ZSTD_LEVEL).map_err(EncodeError::Compression)?;
     let mut content = Xxh3::new();
     // Per column, per block: (offset, compressed length, checksum).
     let mut chunks: Vec<Vec<(u64, u32, u64)>> = Vec::with_capacity(columns.len());
@@ -280,9 +280,7 @@ pub fn encode_segment_with_block_rows<W: Write>(
         let row_bytes = usize::from(column.width) * column.values.element_type().size();
         let mut entries = Vec::with_capacity(block_count);
         for chunk in raw.chunks(block_rows * row_bytes) {
-            let compressed = compressor
-                .compress(chunk)
-                .map_err(EncodeError::Compression)?;
+            let compressed = compressor.compress(chunk).map_err(EncodeError::Compression)?;
             let len = u32::try_from(compressed.len())
                 .map_err(|_| EncodeError::Invalid("compressed block larger than 4 GiB".into()))?;
             entries.push((w.written, len, xxh3_64(&compressed)));
@@ -393,9 +391,7 @@ impl<'a> SegmentReader<'a> {
         }
         let mut header = ByteReader::new(bytes);
         if header.array::<8>()? != MAGIC {
-            return Err(DecodeError::BadMagic {
-                region: Region::Header,
-            });
+            return Err(DecodeError::BadMagic { region: Region::Header });
         }
         let version = header.u32()?;
         if version != FORMAT_VERSION {
@@ -416,9 +412,7 @@ impl<'a> SegmentReader<'a> {
         let fields = footer.take(FOOTER_FIELDS_LEN)?;
         let footer_checksum = footer.u64()?;
         if footer.array::<8>()? != MAGIC {
-            return Err(DecodeError::BadMagic {
-                region: Region::Footer,
-            });
+            return Err(DecodeError::BadMagic { region: Region::Footer });
         }
         let got = xxh3_64(fields);
         if got != footer_checksum {
@@ -445,9 +439,7 @@ impl<'a> SegmentReader<'a> {
         if dir_offset < HEADER_LEN as u64 || dir_end != Some(footer_start as u64) {
             return Err(corrupt(
                 Region::Footer,
-                format!(
-                    "directory at {dir_offset}+{dir_len} does not end where the footer starts ({footer_start})"
-                ),
+                format!("directory at {dir_offset}+{dir_len} does not end where the footer starts ({footer_start})"),
             ));
         }
         let dir = bytes
@@ -465,10 +457,7 @@ impl<'a> SegmentReader<'a> {
         let mut d = ByteReader::new(dir);
         let block_count = d.u32()? as usize;
         if block_count.saturating_mul(BLOCK_ENTRY_LEN) > d.remaining() {
-            return Err(corrupt(
-                Region::Directory,
-                "block table longer than the directory",
-            ));
+            return Err(corrupt(Region::Directory, "block table longer than the directory"));
         }
         let mut blocks = Vec::with_capacity(block_count);
         let mut row_sum = 0u64;
@@ -477,10 +466,7 @@ impl<'a> SegmentReader<'a> {
             let first_key = CubeKey::from_raw(d.u128()?);
             let last_key = CubeKey::from_raw(d.u128()?);
             if block_rows == 0 || first_key > last_key {
-                return Err(corrupt(
-                    Region::Directory,
-                    "empty block or inverted key range",
-                ));
+                return Err(corrupt(Region::Directory, "empty block or inverted key range"));
             }
             row_sum += u64::from(block_rows);
             blocks.push(BlockInfo {
@@ -512,10 +498,7 @@ impl<'a> SegmentReader<'a> {
             })?;
             let width = d.u16()?;
             if width == 0 {
-                return Err(corrupt(
-                    Region::Directory,
-                    format!("column '{name}' has width 0"),
-                ));
+                return Err(corrupt(Region::Directory, format!("column '{name}' has width 0")));
             }
             let mut chunks = Vec::with_capacity(block_count);
             for _ in 0..block_count {
@@ -537,10 +520,7 @@ impl<'a> SegmentReader<'a> {
                 chunks.push(chunk);
             }
             if columns.iter().any(|c| c.name == name) {
-                return Err(corrupt(
-                    Region::Directory,
-                    format!("column '{name}' appears twice"),
-                ));
+                return Err(corrupt(Region::Directory, format!("column '{name}' appears twice")));
             }
             columns.push(ColumnInfo {
                 name,
@@ -559,13 +539,9 @@ impl<'a> SegmentReader<'a> {
             ));
         }
         match columns.first() {
-            Some(c)
-                if c.name == KEY_COLUMN && c.element_type == ElementType::Key && c.width == 1 => {}
+            Some(c) if c.name == KEY_COLUMN && c.element_type == ElementType::Key && c.width == 1 => {}
             _ => {
-                return Err(corrupt(
-                    Region::Directory,
-                    "first column is not the key column",
-                ));
+                return Err(corrupt(Region::Directory, "first column is not the key column"));
             }
         }
         Ok(SegmentReader {
@@ -613,8 +589,8 @@ impl<'a> SegmentReader<'a> {
     /// bytes, verifying every block checksum.
     fn decode_into(&self, column: &ColumnInfo, out: &mut [u8]) -> Result<(), DecodeError> {
         let row_bytes = usize::from(column.width) * column.element_type.size();
-        let mut decompressor = zstd::bulk::Decompressor::new()
-            .map_err(|e| corrupt(self.block_region(column, 0), format!("zstd: {e}")))?;
+        let mut decompressor =
+            zstd::bulk::Decompressor::new().map_err(|e| corrupt(self.block_region(column, 0), format!("zstd: {e}")))?;
         let mut pos = 0usize;
         for (index, (chunk, block)) in column.chunks.iter().zip(&self.blocks).enumerate() {
             let region = || self.block_region(column, index);
@@ -639,18 +615,12 @@ impl<'a> SegmentReader<'a> {
                 .decompress_to_buffer(compressed, target)
                 .map_err(|e| corrupt(region(), format!("zstd: {e}")))?;
             if n != want {
-                return Err(corrupt(
-                    region(),
-                    format!("decoded {n} bytes, expected {want}"),
-                ));
+                return Err(corrupt(region(), format!("decoded {n} bytes, expected {want}")));
             }
             pos += want;
         }
         if pos != out.len() {
-            return Err(corrupt(
-                self.block_region(column, 0),
-                "column shorter than the segment",
-            ));
+            return Err(corrupt(self.block_region(column, 0), "column shorter than the segment"));
         }
         Ok(())
     }
@@ -675,6 +645,76 @@ impl<'a> SegmentReader<'a> {
         let mut values = vec![T::zeroed(); len];
         self.decode_into(column, bytemuck::cast_slice_mut(&mut values))?;
         Ok((column.width, values))
+    }
+
+    pub fn block_count(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// Rows in block `block` (0 past the end).
+    pub fn block_rows(&self, block: usize) -> usize {
+        self.blocks.get(block).map_or(0, |b| b.rows as usize)
+    }
+
+    /// Decodes one block of one column: bounded memory for streaming merges.
+    pub fn read_block(&self, name: &str, block: usize) -> Result<ColumnValues, DecodeError> {
+        let column = self.column(name)?;
+        let (chunk, info) = match (column.chunks.get(block), self.blocks.get(block)) {
+            (Some(c), Some(b)) => (*c, *b),
+            _ => return Err(corrupt(self.block_region(column, block), "no such block")),
+        };
+        let len = info.rows as usize * usize::from(column.width);
+        Ok(match column.element_type {
+            ElementType::Key => {
+                let mut v = vec![CubeKey::default(); len];
+                self.decode_chunk(column, block, chunk, bytemuck::cast_slice_mut(&mut v))?;
+                ColumnValues::Key(v)
+            }
+            ElementType::F32 => {
+                let mut v = vec![0f32; len];
+                self.decode_chunk(column, block, chunk, bytemuck::cast_slice_mut(&mut v))?;
+                ColumnValues::F32(v)
+            }
+            ElementType::U32 => {
+                let mut v = vec![0u32; len];
+                self.decode_chunk(column, block, chunk, bytemuck::cast_slice_mut(&mut v))?;
+                ColumnValues::U32(v)
+            }
+            ElementType::U64 => {
+                let mut v = vec![0u64; len];
+                self.decode_chunk(column, block, chunk, bytemuck::cast_slice_mut(&mut v))?;
+                ColumnValues::U64(v)
+            }
+        })
+    }
+
+    fn decode_chunk(
+        &self,
+        column: &ColumnInfo,
+        block: usize,
+        chunk: ChunkInfo,
+        out: &mut [u8],
+    ) -> Result<(), DecodeError> {
+        let region = || self.block_region(column, block);
+        let start = chunk.offset as usize;
+        let compressed = self
+            .bytes
+            .get(start..start + chunk.len as usize)
+            .ok_or_else(|| corrupt(region(), "block out of bounds"))?;
+        let got = xxh3_64(compressed);
+        if got != chunk.checksum {
+            return Err(DecodeError::ChecksumMismatch {
+                region: region(),
+                got,
+                expected: chunk.checksum,
+            });
+        }
+        let n =
+            zstd::bulk::decompress_to_buffer(compressed, out).map_err(|e| corrupt(region(), format!("zstd: {e}")))?;
+        if n != out.len() {
+            return Err(corrupt(region(), format!("decoded {n} bytes, expected {}", out.len())));
+        }
+        Ok(())
     }
 
     pub fn read_keys(&self) -> Result<Vec<CubeKey>, DecodeError> {
@@ -712,20 +752,12 @@ impl<'a> SegmentReader<'a> {
         let keys = self.read_keys()?;
         let mut start = 0usize;
         for (index, block) in self.blocks.iter().enumerate() {
-            let region = || {
-                self.block_region(
-                    self.columns.first().unwrap_or(&self.columns_fallback()),
-                    index,
-                )
-            };
+            let region = || self.block_region(self.columns.first().unwrap_or(&self.columns_fallback()), index);
             let slice = keys
                 .get(start..start + block.rows as usize)
                 .ok_or_else(|| corrupt(region(), "block beyond the key column"))?;
             if slice.first() != Some(&block.first_key) || slice.last() != Some(&block.last_key) {
-                return Err(corrupt(
-                    region(),
-                    "keys disagree with the block's key range",
-                ));
+                return Err(corrupt(region(), "keys disagree with the block's key range"));
             }
             start += block.rows as usize;
         }
@@ -768,23 +800,13 @@ mod tests {
     use super::*;
 
     fn sample(rows: usize) -> Vec<Column> {
-        let keys: Vec<CubeKey> = (0..rows as u32)
-            .map(|i| CubeKey::new(16, i, i / 3, 7))
-            .collect();
+        let keys: Vec<CubeKey> = (0..rows as u32).map(|i| CubeKey::new(16, i, i / 3, 7)).collect();
         let mut sorted = keys.clone();
         sorted.sort();
         vec![
             Column::keys(sorted),
-            Column::new(
-                "u",
-                1,
-                ColumnValues::F32((0..rows).map(|i| i as f32 * 0.5).collect()),
-            ),
-            Column::new(
-                "v",
-                3,
-                ColumnValues::F32((0..rows * 3).map(|i| -(i as f32)).collect()),
-            ),
+            Column::new("u", 1, ColumnValues::F32((0..rows).map(|i| i as f32 * 0.5).collect())),
+            Column::new("v", 3, ColumnValues::F32((0..rows * 3).map(|i| -(i as f32)).collect())),
             Column::new("count", 1, ColumnValues::U32((0..rows as u32).collect())),
         ]
     }
@@ -819,11 +841,7 @@ mod tests {
             let mut bad = bytes.clone();
             bad[i] ^= 0x20;
             let result = SegmentReader::parse(&bad).and_then(|r| r.verify());
-            assert!(
-                result.is_err(),
-                "flip at byte {i} of {} went unnoticed",
-                bytes.len()
-            );
+            assert!(result.is_err(), "flip at byte {i} of {} went unnoticed", bytes.len());
         }
         for len in 0..bytes.len() {
             let result = SegmentReader::parse(&bytes[..len]).and_then(|r| r.verify());
@@ -836,10 +854,7 @@ mod tests {
         let mut columns = sample(10);
         columns[1].values = ColumnValues::F32(vec![0.0; 3]);
         assert!(encode_segment(&columns, &mut Vec::new()).is_err());
-        let unsorted = vec![Column::keys(vec![
-            CubeKey::new(3, 1, 0, 0),
-            CubeKey::new(3, 0, 0, 0),
-        ])];
+        let unsorted = vec![Column::keys(vec![CubeKey::new(3, 1, 0, 0), CubeKey::new(3, 0, 0, 0)])];
         assert!(encode_segment(&unsorted, &mut Vec::new()).is_err());
     }
 

@@ -44,11 +44,7 @@ impl SyntheticStage {
         let mut keys: Vec<CubeKey> = (0..self.rows_per_unit)
             .map(|_| {
                 let r = splitmix64(&mut state);
-                let (x, y, z) = (
-                    (r as u32) % span,
-                    ((r >> 21) as u32) % span,
-                    ((r >> 42) as u32) % span,
-                );
+                let (x, y, z) = ((r as u32) % span, ((r >> 21) as u32) % span, ((r >> 42) as u32) % span);
                 CubeKey::new(ROW_DEPTH, ux * span + x, uy * span + y, uz * span + z)
             })
             .collect();
@@ -114,6 +110,7 @@ impl Stage for SyntheticStage {
         Ok(UnitOutput {
             segments: vec![self.unit_columns(unit.id)],
             extra: Vec::new(),
+            block_rows: 0,
         })
     }
 }

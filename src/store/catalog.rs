@@ -28,8 +28,10 @@ pub const STAGE_RUNS: TableDefinition<&str, &[u8]> = TableDefinition::new("stage
 pub const UNITS_DONE: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("units_done");
 /// (stage name, first key of a unit) -> [`UnitState`]: per-unit state a stage keeps between
 /// runs (the treetop index, dirty marks).
-pub const UNIT_STATE: TableDefinition<(&str, CubeKeyColumn), &[u8]> =
-    TableDefinition::new("unit_state");
+pub const UNIT_STATE: TableDefinition<(&str, CubeKeyColumn), &[u8]> = TableDefinition::new("unit_state");
+
+/// Depth map id (content hash) -> bincode `DepthMapRecord` (see `stages::ingest`).
+pub const DEPTH_MAPS: TableDefinition<u64, &[u8]> = TableDefinition::new("depth_maps");
 
 pub(crate) const META_FORMAT_VERSION: &str = "format_version";
 pub(crate) const META_CURRENT_VERSION: &str = "current_version";
@@ -48,11 +50,9 @@ pub fn encode<T: Serialize>(value: &T) -> Vec<u8> {
 
 pub fn decode<T: DeserializeOwned>(table: &'static str, bytes: &[u8]) -> Result<T, StoreError> {
     let (value, used) =
-        bincode::serde::decode_from_slice(bytes, bincode_config()).map_err(|e| {
-            StoreError::CatalogCorruption {
-                table,
-                reason: e.to_string(),
-            }
+        bincode::serde::decode_from_slice(bytes, bincode_config()).map_err(|e| StoreError::CatalogCorruption {
+            table,
+            reason: e.to_string(),
         })?;
     if used != bytes.len() {
         return Err(StoreError::CatalogCorruption {
@@ -113,21 +113,14 @@ pub struct UnitRecord {
 }
 
 /// Reads a little-endian u64 scalar from META.
-pub fn meta_u64(
-    table: &impl ReadableTable<&'static str, &'static [u8]>,
-    key: &str,
-) -> Result<Option<u64>, StoreError> {
+pub fn meta_u64(table: &impl ReadableTable<&'static str, &'static [u8]>, key: &str) -> Result<Option<u64>, StoreError> {
     match table.get(key)? {
         None => Ok(None),
         Some(guard) => {
-            let bytes: [u8; 8] =
-                guard
-                    .value()
-                    .try_into()
-                    .map_err(|_| StoreError::CatalogCorruption {
-                        table: "meta",
-                        reason: format!("'{key}' is not 8 bytes"),
-                    })?;
+            let bytes: [u8; 8] = guard.value().try_into().map_err(|_| StoreError::CatalogCorruption {
+                table: "meta",
+                reason: format!("'{key}' is not 8 bytes"),
+            })?;
             Ok(Some(u64::from_le_bytes(bytes)))
         }
     }
@@ -162,6 +155,7 @@ pub fn canonical_dump(db: &impl ReadableDatabase) -> Result<Vec<u8>, StoreError>
     }
     dump!(META, |k: &str| k.as_bytes().to_vec());
     dump!(VERSIONS, |k: u64| k.to_be_bytes().to_vec());
+    dump!(DEPTH_MAPS, |k: u64| k.to_be_bytes().to_vec());
     dump!(SEGMENTS, |k: &str| k.as_bytes().to_vec());
     dump!(STAGE_RUNS, |k: &str| k.as_bytes().to_vec());
     dump!(UNITS_DONE, |k: (&str, u64)| {

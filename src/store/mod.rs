@@ -21,11 +21,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use redb::{ReadableDatabase, ReadableTable};
 
-use crate::format::segment::encode_segment;
+use crate::format::segment::{DEFAULT_BLOCK_ROWS, encode_segment_with_block_rows};
 use crate::format::{Column, DecodeError, SegmentSummary};
 use catalog::{
-    CATALOG_FORMAT_VERSION, META, META_CURRENT_VERSION, META_FORMAT_VERSION, META_GC_HORIZON,
-    SEGMENTS, STAGE_RUNS, UNIT_STATE, UNITS_DONE, VERSION_TIMES, VERSIONS, VersionRecord,
+    CATALOG_FORMAT_VERSION, META, META_CURRENT_VERSION, META_FORMAT_VERSION, META_GC_HORIZON, SEGMENTS, STAGE_RUNS,
+    UNIT_STATE, UNITS_DONE, VERSION_TIMES, VERSIONS, VersionRecord,
 };
 pub use failpoint::IoFaults;
 pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSpec};
@@ -33,6 +33,9 @@ pub use snapshot::{SegmentFile, Snapshot};
 
 pub const CATALOG_FILE: &str = "catalog.redb";
 pub const SEGMENTS_DIR: &str = "segments";
+/// Scratch space of stages (sorted runs, level sets); never part of a version, emptied on every
+/// writable open.
+pub const SCRATCH_DIR: &str = "tmp";
 const SEGMENT_SUFFIX: &str = ".seg";
 const TEMP_SUFFIX: &str = ".tmp";
 
@@ -57,9 +60,7 @@ pub enum StoreError {
         "{path}: the catalog was not closed cleanly; open it for writing once (for example `octstore verify`) to recover it"
     )]
     NeedsRecovery { path: PathBuf },
-    #[error(
-        "catalog format version {found} is not supported by this build (it reads version {supported})"
-    )]
+    #[error("catalog format version {found} is not supported by this build (it reads version {supported})")]
     UnsupportedFormat { found: u32, supported: u32 },
     #[error("catalog error: {0}")]
     Catalog(#[from] redb::Error),
@@ -68,11 +69,7 @@ pub enum StoreError {
     #[error("corrupt segment {file}: {detail}")]
     Corruption { file: PathBuf, detail: DecodeError },
     #[error("segment {file}: checksum mismatch: got {got:016x}, expected {expected:016x}")]
-    ChecksumMismatch {
-        file: PathBuf,
-        got: u64,
-        expected: u64,
-    },
+    ChecksumMismatch { file: PathBuf, got: u64, expected: u64 },
     #[error(
         "the store refuses writes after a failed fsync: data may not be durable; reopen it to continue from the last commit"
     )]
@@ -111,22 +108,18 @@ redb_error!(
 
 pub type Result<T, E = StoreError> = std::result::Result<T, E>;
 
-fn io_error(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> StoreError {
+pub fn io_error(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> StoreError {
     let path = path.to_path_buf();
-    move |source| StoreError::Io {
-        action,
-        path,
-        source,
-    }
+    move |source| StoreError::Io { action, path, source }
 }
 
-pub(crate) enum Catalog {
+pub enum Catalog {
     Writable(redb::Database),
     ReadOnly(redb::ReadOnlyDatabase),
 }
 
 impl Catalog {
-    pub(crate) fn begin_read(&self) -> Result<redb::ReadTransaction> {
+    pub fn begin_read(&self) -> Result<redb::ReadTransaction> {
         Ok(match self {
             Catalog::Writable(db) => db.begin_read()?,
             Catalog::ReadOnly(db) => db.begin_read()?,
@@ -194,10 +187,7 @@ impl Store {
             let txn = db.begin_write()?;
             {
                 let mut meta = txn.open_table(META)?;
-                meta.insert(
-                    META_FORMAT_VERSION,
-                    CATALOG_FORMAT_VERSION.to_le_bytes().as_slice(),
-                )?;
+                meta.insert(META_FORMAT_VERSION, CATALOG_FORMAT_VERSION.to_le_bytes().as_slice())?;
                 meta.insert(META_CURRENT_VERSION, 0u64.to_le_bytes().as_slice())?;
                 meta.insert(META_GC_HORIZON, 0u64.to_le_bytes().as_slice())?;
                 let record = VersionRecord {
@@ -245,6 +235,10 @@ impl Store {
         };
         store.check_format()?;
         store.remove_debris()?;
+        let scratch = store.root.join(SCRATCH_DIR);
+        if scratch.exists() {
+            fs::remove_dir_all(&scratch).map_err(io_error("remove scratch", &scratch))?;
+        }
         Ok(store)
     }
 
@@ -252,8 +246,7 @@ impl Store {
     pub fn open_read_only(path: impl AsRef<Path>) -> Result<Store> {
         let root = path.as_ref().to_path_buf();
         let catalog_path = Store::catalog_path_checked(&root)?;
-        let db =
-            redb::ReadOnlyDatabase::open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        let db = redb::ReadOnlyDatabase::open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
         let store = Store {
             root,
             catalog: Catalog::ReadOnly(db),
@@ -277,9 +270,7 @@ impl Store {
         if !catalog_path.is_file() {
             return Err(StoreError::NotAStore {
                 path: root.to_path_buf(),
-                reason: format!(
-                    "no {CATALOG_FILE} (create one with `octstore ingest` or `octstore demo`)"
-                ),
+                reason: format!("no {CATALOG_FILE} (create one with `octstore ingest` or `octstore demo`)"),
             });
         }
         Ok(catalog_path)
@@ -292,12 +283,14 @@ impl Store {
             reason: format!("catalog has no meta table ({e})"),
         })?;
         let found = match meta.get(META_FORMAT_VERSION)? {
-            Some(v) => v.value().try_into().map(u32::from_le_bytes).map_err(|_| {
-                StoreError::CatalogCorruption {
+            Some(v) => v
+                .value()
+                .try_into()
+                .map(u32::from_le_bytes)
+                .map_err(|_| StoreError::CatalogCorruption {
                     table: "meta",
                     reason: "format_version is not 4 bytes".into(),
-                }
-            })?,
+                })?,
             None => {
                 return Err(StoreError::NotAStore {
                     path: self.root.clone(),
@@ -326,15 +319,25 @@ impl Store {
         self.segments_dir().join(name)
     }
 
+    /// A stage's scratch folder, created empty.
+    pub fn scratch_dir(&self, stage: &str) -> Result<PathBuf> {
+        let dir = self.root.join(SCRATCH_DIR).join(stage);
+        if dir.exists() {
+            fs::remove_dir_all(&dir).map_err(io_error("remove scratch", &dir))?;
+        }
+        fs::create_dir_all(&dir).map_err(io_error("create scratch", &dir))?;
+        Ok(dir)
+    }
+
     pub fn is_read_only(&self) -> bool {
         matches!(self.catalog, Catalog::ReadOnly(_))
     }
 
-    pub(crate) fn catalog(&self) -> &Catalog {
+    pub fn catalog(&self) -> &Catalog {
         &self.catalog
     }
 
-    pub(crate) fn writable(&self) -> Result<&redb::Database> {
+    pub fn writable(&self) -> Result<&redb::Database> {
         if self.poisoned.load(Ordering::SeqCst) {
             return Err(StoreError::Poisoned);
         }
@@ -393,15 +396,11 @@ impl Store {
 
     /// Writes one segment through the commit protocol's file steps: temporary name, fsync,
     /// rename, directory fsync. The caller then records it in a catalog transaction.
-    pub(crate) fn write_segment_file(
-        &self,
-        name: &str,
-        columns: &[Column],
-    ) -> Result<SegmentSummary> {
+    pub(crate) fn write_segment_file(&self, name: &str, columns: &[Column], block_rows: u32) -> Result<SegmentSummary> {
         self.writable()?;
         let final_path = self.segment_path(name);
         let temp_path = self.segment_path(&format!("{name}{TEMP_SUFFIX}"));
-        let result = self.write_segment_steps(&temp_path, &final_path, columns);
+        let result = self.write_segment_steps(&temp_path, &final_path, columns, block_rows);
         if result.is_err() {
             // Best effort: debris left here is also removed on the next open.
             let _ = fs::remove_file(&temp_path);
@@ -414,6 +413,7 @@ impl Store {
         temp_path: &Path,
         final_path: &Path,
         columns: &[Column],
+        block_rows: u32,
     ) -> Result<SegmentSummary> {
         let file = File::create(temp_path).map_err(io_error("create", temp_path))?;
         let mut writer = BufWriter::with_capacity(
@@ -423,7 +423,12 @@ impl Store {
                 faults: &self.faults,
             },
         );
-        let summary = encode_segment(columns, &mut writer).map_err(|e| match e {
+        let block_rows = if block_rows == 0 {
+            DEFAULT_BLOCK_ROWS
+        } else {
+            block_rows
+        };
+        let summary = encode_segment_with_block_rows(columns, block_rows, &mut writer).map_err(|e| match e {
             crate::format::EncodeError::Io(source) => StoreError::Io {
                 action: "write",
                 path: temp_path.to_path_buf(),
@@ -459,7 +464,7 @@ impl Store {
 
     /// Removes segment files that no catalog record references: debris of a crash between a
     /// segment's rename and its unit's commit, and temporary files.
-    fn remove_debris(&self) -> Result<Vec<String>> {
+    pub(crate) fn remove_debris(&self) -> Result<Vec<String>> {
         let referenced: std::collections::BTreeSet<String> = {
             let txn = self.catalog.begin_read()?;
             let segments = txn.open_table(SEGMENTS)?;
@@ -475,9 +480,7 @@ impl Store {
         for entry in entries {
             let entry = entry.map_err(io_error("list", &dir))?;
             let name = entry.file_name().to_string_lossy().into_owned();
-            if !referenced.contains(&name)
-                && (name.ends_with(SEGMENT_SUFFIX) || name.ends_with(TEMP_SUFFIX))
-            {
+            if !referenced.contains(&name) && (name.ends_with(SEGMENT_SUFFIX) || name.ends_with(TEMP_SUFFIX)) {
                 fs::remove_file(entry.path()).map_err(io_error("remove debris", &entry.path()))?;
                 removed.push(name);
             }
@@ -512,8 +515,7 @@ impl Store {
                 let (name, value) = entry?;
                 let record: catalog::SegmentRecord = catalog::decode("segments", value.value())?;
                 let dead = record.dropped.is_some_and(|d| d <= horizon);
-                let abandoned =
-                    record.created > current && !pending_targets.contains(&record.created);
+                let abandoned = record.created > current && !pending_targets.contains(&record.created);
                 if dead || abandoned {
                     doomed.push((name.value().to_string(), record.bytes));
                 }

@@ -17,10 +17,10 @@ use std::time::Instant;
 use redb::{ReadableTable, WriteTransaction};
 
 use super::catalog::{
-    self, META, META_CURRENT_VERSION, SEGMENTS, STAGE_RUNS, SegmentRecord, StageRun, UNITS_DONE,
-    UnitRecord, VERSION_TIMES, VERSIONS, VersionRecord,
+    self, META, META_CURRENT_VERSION, SEGMENTS, STAGE_RUNS, SegmentRecord, StageRun, UNITS_DONE, UnitRecord,
+    VERSION_TIMES, VERSIONS, VersionRecord,
 };
-use super::{Result, Snapshot, Store, failpoint};
+use super::{Result, Snapshot, Store, StoreError, failpoint};
 use crate::format::Column;
 
 /// One unit of work of a stage run.
@@ -35,6 +35,8 @@ pub struct UnitSpec {
 /// Which previously visible segments of the stage a finished run replaces.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Replace {
+    /// Exactly these segments (by file name): a stage that rewrites only what changed.
+    Names(BTreeSet<String>),
     /// All of them: the stage's output is rebuilt whole.
     All,
     /// Those whose unit id is among the run's units.
@@ -54,6 +56,8 @@ pub struct Plan {
 pub struct UnitOutput {
     pub segments: Vec<Vec<Column>>,
     pub extra: Vec<u8>,
+    /// Rows per compressed block of the unit's segments (0: the format's default).
+    pub block_rows: u32,
 }
 
 pub trait Stage: Sync {
@@ -78,12 +82,7 @@ pub trait Stage: Sync {
     fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput>;
 
     /// Stage-specific catalog updates in the finishing transaction; returns the version summary.
-    fn finish(
-        &self,
-        _txn: &WriteTransaction,
-        _base: &Snapshot<'_>,
-        units: &[(u64, UnitRecord)],
-    ) -> Result<String> {
+    fn finish(&self, _txn: &WriteTransaction, _base: &Snapshot<'_>, units: &[(u64, UnitRecord)]) -> Result<String> {
         Ok(format!("{} unit(s)", units.len()))
     }
 }
@@ -151,9 +150,7 @@ impl Store {
             f.extend_from_slice(&stage.input_digest(&base));
             f
         };
-        if self.stage_fingerprint(name)?.as_deref() == Some(fingerprint.as_slice())
-            && !self.run_in_progress(name)?
-        {
+        if self.stage_fingerprint(name)?.as_deref() == Some(fingerprint.as_slice()) && !self.run_in_progress(name)? {
             return Ok(RunReport {
                 stage: name.to_string(),
                 version: None,
@@ -177,10 +174,7 @@ impl Store {
                     .iter()?
                     .map(|e| {
                         let (k, v) = e?;
-                        Ok((
-                            k.value().to_string(),
-                            catalog::decode("stage_runs", v.value())?,
-                        ))
+                        Ok((k.value().to_string(), catalog::decode("stage_runs", v.value())?))
                     })
                     .collect::<Result<_>>()?;
                 for (other, run) in existing {
@@ -196,9 +190,7 @@ impl Store {
                             "stage '{name}': the interrupted run had other parameters or inputs; starting over"
                         );
                     } else if other != name || !same || !options.resume {
-                        tracing::info!(
-                            "stage '{other}': discarding an interrupted run (use --resume to continue it)"
-                        );
+                        tracing::info!("stage '{other}': discarding an interrupted run (use --resume to continue it)");
                     }
                     discard_run(&txn, &other)?;
                     discarded = true;
@@ -225,11 +217,7 @@ impl Store {
             self.remove_debris()?;
         }
 
-        let pending: Vec<&UnitSpec> = plan
-            .units
-            .iter()
-            .filter(|u| !done.contains(&u.id))
-            .collect();
+        let pending: Vec<&UnitSpec> = plan.units.iter().filter(|u| !done.contains(&u.id)).collect();
         let resumed_units = plan.units.len() - pending.len();
         if resumed_units > 0 {
             tracing::info!(
@@ -237,15 +225,19 @@ impl Store {
                 plan.units.len()
             );
         }
-        let bar = progress_bar(
-            options.progress,
-            name,
-            plan.units.len() as u64,
-            resumed_units as u64,
-        );
+        let bar = progress_bar(options.progress, name, plan.units.len() as u64, resumed_units as u64);
 
-        self.run_pending(stage, &base, target, &pending, options.threads.max(1), &bar)?;
+        let outcome = self.run_pending(stage, &base, target, &pending, options.threads.max(1), &bar);
         bar.finish_and_clear();
+        if let Err(error) = outcome {
+            // Bad input cannot be fixed by resuming: abandon the run so the catalog is exactly
+            // as it was at the last commit. Other failures (I/O, a full disk) keep the committed
+            // units for `--resume`.
+            if matches!(error, StoreError::Stage { .. }) {
+                self.abandon_run(name)?;
+            }
+            return Err(error);
+        }
 
         failpoint::hit("stage.before_finish");
         let run = FinishingRun {
@@ -293,9 +285,7 @@ impl Store {
             drop(tx);
             let mut first_error = None;
             for result in rx {
-                match result.and_then(|(unit, segments, extra)| {
-                    self.commit_unit(name, unit, segments, extra)
-                }) {
+                match result.and_then(|(unit, segments, extra)| self.commit_unit(name, unit, segments, extra)) {
                     Ok(()) => bar.inc(1),
                     Err(e) => {
                         stop.store(true, Ordering::SeqCst);
@@ -318,7 +308,7 @@ impl Store {
         let mut written = Vec::with_capacity(output.segments.len());
         for (part, columns) in output.segments.iter().enumerate() {
             let file = segment_name(stage.name(), target, unit.id, part);
-            let summary = self.write_segment_file(&file, columns)?;
+            let summary = self.write_segment_file(&file, columns, output.block_rows)?;
             written.push((
                 file,
                 SegmentRecord {
@@ -365,12 +355,7 @@ impl Store {
         Ok(())
     }
 
-    fn finish_run(
-        &self,
-        stage: &dyn Stage,
-        base: &Snapshot<'_>,
-        run: &FinishingRun<'_>,
-    ) -> Result<RunReport> {
+    fn finish_run(&self, stage: &dyn Stage, base: &Snapshot<'_>, run: &FinishingRun<'_>) -> Result<RunReport> {
         let name = stage.name();
         let FinishingRun {
             target,
@@ -407,7 +392,8 @@ impl Store {
                     rows += record.rows;
                     continue;
                 }
-                let replaced = match plan.replace {
+                let replaced = match &plan.replace {
+                    Replace::Names(names) => names.contains(file.value()),
                     Replace::All => true,
                     Replace::SameUnits => replaced_units.contains(&record.unit),
                     Replace::Nothing => false,
@@ -423,8 +409,7 @@ impl Store {
             }
         }
         let fingerprint_key = stage_fingerprint_key(name);
-        txn.open_table(META)?
-            .insert(fingerprint_key.as_str(), fingerprint)?;
+        txn.open_table(META)?.insert(fingerprint_key.as_str(), fingerprint)?;
         if units.is_empty() && dropped == 0 {
             // Nothing changed: no new version.
             txn.open_table(STAGE_RUNS)?.remove(name)?;
@@ -453,8 +438,7 @@ impl Store {
             };
             txn.open_table(VERSIONS)?
                 .insert(target, catalog::encode(&record).as_slice())?;
-            txn.open_table(VERSION_TIMES)?
-                .insert(target, super::unix_millis())?;
+            txn.open_table(VERSION_TIMES)?.insert(target, super::unix_millis())?;
             txn.open_table(META)?
                 .insert(META_CURRENT_VERSION, target.to_le_bytes().as_slice())?;
         }
@@ -483,6 +467,16 @@ impl Store {
         Ok(meta
             .get(stage_fingerprint_key(stage).as_str())?
             .map(|v| v.value().to_vec()))
+    }
+
+    /// Drops a run in progress: its records, then its files.
+    pub fn abandon_run(&self, stage: &str) -> Result<()> {
+        let txn = self.writable()?.begin_write()?;
+        discard_run(&txn, stage)?;
+        txn.open_table(STAGE_RUNS)?.remove(stage)?;
+        txn.commit()?;
+        self.remove_debris()?;
+        Ok(())
     }
 
     pub fn run_in_progress(&self, stage: &str) -> Result<bool> {
@@ -519,11 +513,9 @@ fn progress_bar(enabled: bool, stage: &str, total: u64, already: u64) -> indicat
     }
     let bar = indicatif::ProgressBar::new(total);
     bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{prefix:>12} [{bar:40}] {pos}/{len} units, {elapsed} (eta {eta})",
-        )
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-        .progress_chars("=> "),
+        indicatif::ProgressStyle::with_template("{prefix:>12} [{bar:40}] {pos}/{len} units, {elapsed} (eta {eta})")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
     );
     bar.set_prefix(stage.to_string());
     bar.set_position(already);

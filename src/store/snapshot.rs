@@ -9,8 +9,7 @@ use redb::ReadableTable;
 use xxhash_rust::xxh3::Xxh3;
 
 use super::catalog::{
-    self, META, META_CURRENT_VERSION, META_GC_HORIZON, SEGMENTS, SegmentRecord, VERSIONS,
-    VersionRecord,
+    self, META, META_CURRENT_VERSION, META_GC_HORIZON, SEGMENTS, SegmentRecord, VERSIONS, VersionRecord,
 };
 use super::{Result, Store, StoreError};
 use crate::format::SegmentReader;

@@ -28,10 +28,7 @@ impl VerifyReport {
 pub type StageCheck = fn(&Snapshot<'_>) -> Result<Vec<String>>;
 
 fn describe_range(record: &SegmentRecord) -> String {
-    let (first, last) = (
-        CubeKey::from_raw(record.first_key),
-        CubeKey::from_raw(record.last_key),
-    );
+    let (first, last) = (CubeKey::from_raw(record.first_key), CubeKey::from_raw(record.last_key));
     format!("keys {first}..={last} ({first:?}..={last:?})")
 }
 
@@ -51,29 +48,19 @@ fn damage(shown: &std::path::Display<'_>, record: &SegmentRecord, detail: &Decod
     if block_level {
         format!("corrupt segment {shown}: {detail}")
     } else {
-        format!(
-            "corrupt segment {shown}: {detail} (segment {})",
-            describe_range(record)
-        )
+        format!("corrupt segment {shown}: {detail} (segment {})", describe_range(record))
     }
 }
 
-fn check_segment(
-    store: &Store,
-    name: &str,
-    record: &SegmentRecord,
-) -> std::result::Result<(), String> {
+fn check_segment(store: &Store, name: &str, record: &SegmentRecord) -> std::result::Result<(), String> {
     let path = store.segment_path(name);
     let shown = path.display();
-    let file = SegmentFile::open(path.clone(), record)
-        .map_err(|e| format!("{e} (segment {})", describe_range(record)))?;
+    let file =
+        SegmentFile::open(path.clone(), record).map_err(|e| format!("{e} (segment {})", describe_range(record)))?;
     // Locate the damage first, so the message names the column and key range.
     let located = (|| -> std::result::Result<(), String> {
-        let reader =
-            SegmentReader::parse(file.bytes()).map_err(|detail| damage(&shown, record, &detail))?;
-        let digest = reader
-            .verify()
-            .map_err(|detail| damage(&shown, record, &detail))?;
+        let reader = SegmentReader::parse(file.bytes()).map_err(|detail| damage(&shown, record, &detail))?;
+        let digest = reader.verify().map_err(|detail| damage(&shown, record, &detail))?;
         if digest != record.content_digest {
             return Err(format!(
                 "segment {shown}: content digest {digest:016x} differs from the catalog's {:016x} (segment {})",
@@ -117,10 +104,7 @@ impl Store {
                 .iter()?
                 .map(|e| {
                     let (k, v) = e?;
-                    Ok((
-                        k.value().to_string(),
-                        catalog::decode("segments", v.value())?,
-                    ))
+                    Ok((k.value().to_string(), catalog::decode("segments", v.value())?))
                 })
                 .collect::<Result<_>>()?
         };
@@ -158,8 +142,8 @@ pub fn disjoint_ranges(snapshot: &Snapshot<'_>, stage: &str) -> Vec<String> {
             && a.last_key >= b.first_key
         {
             problems.push(format!(
-                    "stage '{stage}': segments {a_name} and {b_name} overlap in key range or are out of order"
-                ));
+                "stage '{stage}': segments {a_name} and {b_name} overlap in key range or are out of order"
+            ));
         }
     }
     problems

@@ -61,10 +61,7 @@ pub fn assert_same_store(a: &Fingerprint, b: &Fingerprint, context: &str) {
         "{context}: different segment files"
     );
     for (name, bytes) in &a.segments {
-        assert!(
-            bytes == &b.segments[name],
-            "{context}: segment {name} differs"
-        );
+        assert!(bytes == &b.segments[name], "{context}: segment {name} differs");
     }
     assert!(a.catalog == b.catalog, "{context}: catalog content differs");
 }

@@ -1,0 +1,240 @@
+//! Built-in synthetic scenes: analytic shapes ray-cast into depth maps from a ring of cameras,
+//! with optional noise. Used by `octstore demo`, the tests and the quality tools, so that no
+//! input files are needed.
+
+use std::path::Path;
+
+use glam::{DMat4, DVec3, DVec4};
+use serde_json::json;
+
+use crate::stages::depthmap::{DepthImage, write_pfm};
+
+#[derive(Clone, Copy, Debug)]
+pub enum Shape {
+    Sphere {
+        center: DVec3,
+        radius: f64,
+    },
+    /// Axis-aligned box.
+    Box {
+        min: DVec3,
+        max: DVec3,
+    },
+}
+
+impl Shape {
+    /// Distance along a unit ray to the first hit in front of the origin.
+    fn hit(&self, origin: DVec3, dir: DVec3) -> Option<f64> {
+        match *self {
+            Shape::Sphere { center, radius } => {
+                let oc = origin - center;
+                let b = oc.dot(dir);
+                let c = oc.length_squared() - radius * radius;
+                let disc = b * b - c;
+                if disc < 0.0 {
+                    return None;
+                }
+                let s = disc.sqrt();
+                [-b - s, -b + s].into_iter().find(|t| *t > 1e-9)
+            }
+            Shape::Box { min, max } => {
+                let inv = dir.recip();
+                let t0 = (min - origin) * inv;
+                let t1 = (max - origin) * inv;
+                let near = t0.min(t1).max_element();
+                let far = t0.max(t1).min_element();
+                if near > far || far <= 1e-9 {
+                    return None;
+                }
+                Some(if near > 1e-9 { near } else { far })
+            }
+        }
+    }
+
+    /// Signed distance (negative inside); exact for the sphere, exact outside the box.
+    pub fn signed_distance(&self, p: DVec3) -> f64 {
+        match *self {
+            Shape::Sphere { center, radius } => (p - center).length() - radius,
+            Shape::Box { min, max } => {
+                let c = (min + max) * 0.5;
+                let h = (max - min) * 0.5;
+                let q = (p - c).abs() - h;
+                q.max(DVec3::ZERO).length() + q.max_element().min(0.0)
+            }
+        }
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct Noise {
+    /// Gaussian depth noise, as a fraction of the depth.
+    pub relative_sigma: f64,
+    /// Fraction of valid pixels replaced by a random depth between 0.2 and 2 times the true one.
+    pub outliers: f64,
+    pub seed: u64,
+}
+
+#[derive(Clone, Debug)]
+pub struct SceneSpec {
+    pub shapes: Vec<Shape>,
+    /// Number of cameras on a ring around `target`, alternating above and below it.
+    pub cameras: usize,
+    pub distance: f64,
+    pub target: DVec3,
+    pub width: u32,
+    pub height: u32,
+    /// Horizontal field of view in degrees.
+    pub fov_degrees: f64,
+    pub noise: Option<Noise>,
+}
+
+impl SceneSpec {
+    /// The demo scene: a sphere resting on a box, seen by a ring of cameras.
+    pub fn demo() -> SceneSpec {
+        SceneSpec {
+            shapes: vec![
+                Shape::Sphere {
+                    center: DVec3::new(0.0, 0.0, 0.35),
+                    radius: 0.35,
+                },
+                Shape::Box {
+                    min: DVec3::new(-0.5, -0.4, -0.3),
+                    max: DVec3::new(0.5, 0.4, 0.05),
+                },
+            ],
+            cameras: 16,
+            distance: 2.2,
+            target: DVec3::new(0.0, 0.0, 0.05),
+            width: 160,
+            height: 120,
+            fov_degrees: 50.0,
+            noise: Some(Noise {
+                relative_sigma: 0.002,
+                outliers: 0.02,
+                seed: 7,
+            }),
+        }
+    }
+
+    /// Signed distance to the union of the shapes.
+    pub fn signed_distance(&self, p: DVec3) -> f64 {
+        self.shapes
+            .iter()
+            .map(|s| s.signed_distance(p))
+            .fold(f64::INFINITY, f64::min)
+    }
+
+    pub fn focal(&self) -> f64 {
+        f64::from(self.width) * 0.5 / (self.fov_degrees.to_radians() * 0.5).tan()
+    }
+
+    /// Camera-to-world poses (OpenCV axes) looking at the target.
+    pub fn poses(&self) -> Vec<DMat4> {
+        (0..self.cameras)
+            .map(|i| {
+                let angle = std::f64::consts::TAU * i as f64 / self.cameras as f64;
+                let elevation: f64 = if i % 2 == 0 { 0.45 } else { -0.25 };
+                let eye = self.target
+                    + DVec3::new(
+                        angle.cos() * elevation.cos(),
+                        angle.sin() * elevation.cos(),
+                        elevation.sin(),
+                    ) * self.distance;
+                let forward = (self.target - eye).normalize();
+                let right = forward.cross(DVec3::Z).normalize();
+                let down = forward.cross(right);
+                DMat4::from_cols(
+                    right.extend(0.0),
+                    down.extend(0.0),
+                    forward.extend(0.0),
+                    DVec4::new(eye.x, eye.y, eye.z, 1.0),
+                )
+            })
+            .collect()
+    }
+
+    /// Renders camera `index`: z-depth per pixel, NaN where no shape is hit.
+    pub fn render(&self, index: usize, pose: &DMat4) -> DepthImage {
+        let f = self.focal();
+        let (cx, cy) = (f64::from(self.width) * 0.5, f64::from(self.height) * 0.5);
+        let origin = pose.w_axis.truncate();
+        let mut rng = self
+            .noise
+            .as_ref()
+            .map(|n| n.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut depth = Vec::with_capacity((self.width * self.height) as usize);
+        for j in 0..self.height {
+            for i in 0..self.width {
+                let local = DVec3::new((f64::from(i) - cx) / f, (f64::from(j) - cy) / f, 1.0);
+                let dir_world = pose.transform_vector3(local);
+                let scale = dir_world.length();
+                let dir = dir_world / scale;
+                let hit = self
+                    .shapes
+                    .iter()
+                    .filter_map(|s| s.hit(origin, dir))
+                    .fold(f64::INFINITY, f64::min);
+                let mut z = if hit.is_finite() { hit / scale } else { f64::NAN };
+                if let (Some(noise), Some(state)) = (&self.noise, rng.as_mut())
+                    && z.is_finite()
+                {
+                    if uniform(state) < noise.outliers {
+                        z *= 0.2 + 1.8 * uniform(state);
+                    } else {
+                        z *= 1.0 + noise.relative_sigma * gaussian(state);
+                    }
+                }
+                depth.push(z as f32);
+            }
+        }
+        DepthImage {
+            width: self.width,
+            height: self.height,
+            depth,
+        }
+    }
+
+    /// Renders every camera into `dir` as PFM files plus `scene.json`, the manifest to ingest.
+    pub fn write(&self, dir: &Path) -> std::io::Result<std::path::PathBuf> {
+        std::fs::create_dir_all(dir)?;
+        let f = self.focal();
+        let mut entries = Vec::new();
+        for (index, pose) in self.poses().iter().enumerate() {
+            let name = format!("view-{index:03}.pfm");
+            write_pfm(&dir.join(&name), &self.render(index, pose))?;
+            let m = pose.transpose().to_cols_array(); // row-major
+            entries.push(json!({
+                "image": name,
+                "width": self.width,
+                "height": self.height,
+                "intrinsics": {"fx": f, "fy": f, "cx": f64::from(self.width) * 0.5, "cy": f64::from(self.height) * 0.5},
+                "pose": {"camera_to_world": m, "axes": "opencv"},
+                "kind": "photo",
+            }));
+        }
+        let manifest = dir.join("scene.json");
+        std::fs::write(
+            &manifest,
+            serde_json::to_string_pretty(&json!({ "depth_maps": entries })).unwrap_or_default(),
+        )?;
+        Ok(manifest)
+    }
+}
+
+fn splitmix(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+fn uniform(state: &mut u64) -> f64 {
+    (splitmix(state) >> 11) as f64 / (1u64 << 53) as f64
+}
+
+fn gaussian(state: &mut u64) -> f64 {
+    let u1 = uniform(state).max(1e-300);
+    let u2 = uniform(state);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}

@@ -1,0 +1,359 @@
+//! Finding depth maps in user paths: the 7-Scenes / RGB-D folder layout, single 7-Scenes frames,
+//! and the generic JSON scene manifest (README, "Inputs").
+
+use std::path::{Path, PathBuf};
+
+use glam::{DMat4, DVec4};
+use serde::Deserialize;
+
+use super::depthmap::{DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose, image_size};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum InputFormat {
+    /// Decide from the path; an unrecognised path is an error, never a guess.
+    Auto,
+    /// A folder with camera-intrinsics.txt, frame-XXXXXX.depth.png and frame-XXXXXX.pose.txt,
+    /// or single frame-XXXXXX.depth.png files of such a folder.
+    SevenScenes,
+    /// A JSON scene manifest.
+    Manifest,
+    /// A COLMAP dense workspace.
+    Colmap,
+    /// Terrestrial LIDAR scans (E57 or PTX).
+    Lidar,
+}
+
+#[derive(Clone, Debug)]
+pub struct DiscoverOptions {
+    pub format: InputFormat,
+    /// Take every n-th frame of a folder.
+    pub stride: usize,
+    /// Take at most this many frames of a folder.
+    pub limit: Option<usize>,
+}
+
+impl Default for DiscoverOptions {
+    fn default() -> Self {
+        DiscoverOptions {
+            format: InputFormat::Auto,
+            stride: 1,
+            limit: None,
+        }
+    }
+}
+
+fn detect(path: &Path) -> Result<InputFormat, InputError> {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_lowercase())
+        .unwrap_or_default();
+    if path.is_dir() {
+        if path.join("camera-intrinsics.txt").is_file() {
+            return Ok(InputFormat::SevenScenes);
+        }
+        if path.join("sparse").is_dir() && path.join("stereo").is_dir() {
+            return Ok(InputFormat::Colmap);
+        }
+        return Err(bad(
+            path,
+            "cannot tell the input format: a folder needs camera-intrinsics.txt (7-Scenes/RGB-D) or sparse/ and stereo/ (COLMAP); pass --format",
+        ));
+    }
+    if !path.exists() {
+        return Err(bad(path, "no such file or folder"));
+    }
+    if name.ends_with(".depth.png") {
+        return Ok(InputFormat::SevenScenes);
+    }
+    if name.ends_with(".json") {
+        return Ok(InputFormat::Manifest);
+    }
+    if name.ends_with(".e57") || name.ends_with(".ptx") {
+        return Ok(InputFormat::Lidar);
+    }
+    Err(bad(
+        path,
+        "cannot tell the input format (expected a 7-Scenes folder or frame-*.depth.png, a .json manifest, a COLMAP workspace, .e57 or .ptx); pass --format",
+    ))
+}
+
+/// All depth maps named by `paths`, validated cheaply (headers, poses, intrinsics).
+pub fn discover(paths: &[PathBuf], options: &DiscoverOptions) -> Result<Vec<DepthMapSource>, InputError> {
+    let mut sources = Vec::new();
+    for path in paths {
+        let format = match options.format {
+            InputFormat::Auto => detect(path)?,
+            other => other,
+        };
+        match format {
+            InputFormat::SevenScenes if path.is_dir() => sources.extend(seven_scenes_folder(path, options)?),
+            InputFormat::SevenScenes => sources.push(seven_scenes_frame(path)?),
+            InputFormat::Manifest => sources.extend(manifest(path)?),
+            InputFormat::Colmap => {
+                return Err(bad(
+                    path,
+                    "COLMAP workspaces are not supported yet by this build (see the README's input list); convert to a JSON manifest",
+                ));
+            }
+            InputFormat::Lidar => {
+                return Err(bad(
+                    path,
+                    "E57/PTX LIDAR scans are not supported yet by this build; export them as spherical depth maps in a JSON manifest",
+                ));
+            }
+            InputFormat::Auto => unreachable!("detect never returns Auto"),
+        }
+    }
+    if sources.is_empty() {
+        return Err(InputError::Bad {
+            file: paths.first().cloned().unwrap_or_default(),
+            problem: "no depth maps found".into(),
+        });
+    }
+    Ok(sources)
+}
+
+fn read_text(path: &Path) -> Result<String, InputError> {
+    std::fs::read_to_string(path).map_err(|source| InputError::Io {
+        file: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Parses whitespace-separated numbers, exactly `n` of them.
+fn numbers(path: &Path, text: &str, n: usize, what: &str) -> Result<Vec<f64>, InputError> {
+    let values: Vec<f64> = text
+        .split_whitespace()
+        .map(|t| {
+            t.parse::<f64>()
+                .map_err(|_| bad(path, format!("{what}: '{t}' is not a number")))
+        })
+        .collect::<Result<_, _>>()?;
+    if values.len() != n {
+        return Err(bad(
+            path,
+            format!("{what}: expected {n} numbers, found {}", values.len()),
+        ));
+    }
+    Ok(values)
+}
+
+fn row_major_4x4(values: &[f64]) -> DMat4 {
+    let row = |r: usize| DVec4::new(values[4 * r], values[4 * r + 1], values[4 * r + 2], values[4 * r + 3]);
+    DMat4::from_cols(row(0), row(1), row(2), row(3)).transpose()
+}
+
+fn seven_scenes_intrinsics(dir: &Path) -> Result<Projection, InputError> {
+    let path = dir.join("camera-intrinsics.txt");
+    let k = numbers(&path, &read_text(&path)?, 9, "3x3 intrinsics matrix")?;
+    Ok(Projection::Pinhole {
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+    })
+}
+
+fn seven_scenes_source(depth: &Path, projection: Projection) -> Result<DepthMapSource, InputError> {
+    let name = depth
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let stem = name
+        .strip_suffix(".depth.png")
+        .ok_or_else(|| bad(depth, "expected a name like frame-000000.depth.png"))?;
+    let pose_path = depth.with_file_name(format!("{stem}.pose.txt"));
+    if !pose_path.is_file() {
+        return Err(bad(
+            depth,
+            format!("missing pose: {} does not exist", pose_path.display()),
+        ));
+    }
+    let pose = row_major_4x4(&numbers(&pose_path, &read_text(&pose_path)?, 16, "4x4 pose matrix")?);
+    check_pose(&pose_path, &pose)?;
+    let format = ImageFormat::Png16 { scale: 0.001 };
+    let (width, height) = image_size(depth, &format)?;
+    let source = DepthMapSource {
+        path: std::path::absolute(depth).unwrap_or_else(|_| depth.to_path_buf()),
+        format,
+        width,
+        height,
+        projection,
+        camera_to_world: pose.to_cols_array(),
+        kind: Kind::Rgbd,
+        weight: Kind::Rgbd.default_weight(),
+    };
+    source.check_intrinsics()?;
+    Ok(source)
+}
+
+fn seven_scenes_frame(depth: &Path) -> Result<DepthMapSource, InputError> {
+    let dir = depth
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    seven_scenes_source(depth, seven_scenes_intrinsics(dir)?)
+}
+
+fn seven_scenes_folder(dir: &Path, options: &DiscoverOptions) -> Result<Vec<DepthMapSource>, InputError> {
+    let projection = seven_scenes_intrinsics(dir)?;
+    let mut frames: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|source| InputError::Io {
+            file: dir.to_path_buf(),
+            source,
+        })?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().ends_with(".depth.png"))
+        })
+        .collect();
+    frames.sort();
+    frames
+        .into_iter()
+        .step_by(options.stride.max(1))
+        .take(options.limit.unwrap_or(usize::MAX))
+        .map(|frame| seven_scenes_source(&frame, projection))
+        .collect()
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Manifest {
+    depth_maps: Vec<ManifestEntry>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ManifestEntry {
+    image: PathBuf,
+    format: Option<String>,
+    depth_scale: Option<f64>,
+    width: u32,
+    height: u32,
+    intrinsics: Option<ManifestIntrinsics>,
+    projection: Option<String>,
+    pose: ManifestPose,
+    kind: String,
+    weight: Option<f32>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ManifestIntrinsics {
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ManifestPose {
+    camera_to_world: Option<Vec<f64>>,
+    world_to_camera: Option<Vec<f64>>,
+    /// "opencv" (x right, y down, z forward) or "opengl" (x right, y up, z backward).
+    axes: String,
+}
+
+fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
+    let parsed: Manifest =
+        serde_json::from_str(&read_text(path)?).map_err(|e| bad(path, format!("invalid manifest: {e}")))?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    parsed
+        .depth_maps
+        .into_iter()
+        .enumerate()
+        .map(|(index, entry)| {
+            let at = |problem: String| bad(path, format!("depth_maps[{index}]: {problem}"));
+            let image = if entry.image.is_absolute() {
+                entry.image.clone()
+            } else {
+                base.join(&entry.image)
+            };
+            let ext = image
+                .extension()
+                .map(|e| e.to_string_lossy().to_lowercase())
+                .unwrap_or_default();
+            let format = match entry.format.as_deref().unwrap_or(ext.as_str()) {
+                "png" | "png16" => ImageFormat::Png16 {
+                    scale: entry.depth_scale.unwrap_or(0.001),
+                },
+                "pfm" => ImageFormat::Pfm,
+                "npy" => ImageFormat::NpyF32,
+                other => return Err(at(format!("unknown image format '{other}' (png16, pfm, npy)"))),
+            };
+            let kind = match entry.kind.as_str() {
+                "photo" => Kind::Photo,
+                "rgbd" => Kind::Rgbd,
+                "lidar" => Kind::Lidar,
+                other => return Err(at(format!("unknown kind '{other}' (photo, rgbd, lidar)"))),
+            };
+            let projection = match (entry.projection.as_deref(), entry.intrinsics) {
+                (Some("spherical"), None) => Projection::Spherical,
+                (None | Some("pinhole"), Some(k)) => Projection::Pinhole {
+                    fx: k.fx,
+                    fy: k.fy,
+                    cx: k.cx,
+                    cy: k.cy,
+                },
+                _ => {
+                    return Err(at(
+                        "give either pinhole \"intrinsics\" or \"projection\": \"spherical\"".into(),
+                    ));
+                }
+            };
+            let matrix = match (&entry.pose.camera_to_world, &entry.pose.world_to_camera) {
+                (Some(m), None) => row_major_4x4(&check16(m).map_err(&at)?),
+                (None, Some(m)) => {
+                    let w2c = row_major_4x4(&check16(m).map_err(&at)?);
+                    check_pose(path, &w2c).map_err(|e| at(e.to_string()))?;
+                    w2c.inverse()
+                }
+                _ => {
+                    return Err(at(
+                        "the pose needs exactly one of camera_to_world and world_to_camera".into()
+                    ));
+                }
+            };
+            let matrix = match entry.pose.axes.as_str() {
+                "opencv" => matrix,
+                "opengl" => matrix * DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0)),
+                other => return Err(at(format!("unknown pose axes '{other}' (opencv, opengl)"))),
+            };
+            check_pose(path, &matrix).map_err(|e| at(e.to_string()))?;
+            let (width, height) = image_size(&image, &format)?;
+            if (width, height) != (entry.width, entry.height) {
+                return Err(bad(
+                    &image,
+                    format!(
+                        "image is {width}x{height} but the manifest says {}x{}",
+                        entry.width, entry.height
+                    ),
+                ));
+            }
+            let source = DepthMapSource {
+                path: std::path::absolute(&image).unwrap_or(image),
+                format,
+                width,
+                height,
+                projection,
+                camera_to_world: matrix.to_cols_array(),
+                kind,
+                weight: entry.weight.unwrap_or(kind.default_weight()),
+            };
+            source.check_intrinsics()?;
+            Ok(source)
+        })
+        .collect()
+}
+
+fn check16(m: &[f64]) -> Result<Vec<f64>, String> {
+    if m.len() != 16 {
+        return Err(format!(
+            "a pose matrix has 16 numbers (row-major 4x4), found {}",
+            m.len()
+        ));
+    }
+    Ok(m.to_vec())
+}

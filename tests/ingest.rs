@@ -1,0 +1,387 @@
+//! Ingest and octree build: inputs, bad input, incremental and order-independent builds.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::*;
+use glam::{DMat4, DVec3};
+use octstore::Store;
+use octstore::scenes::{SceneSpec, Shape};
+use octstore::stages::depthmap::{DepthImage, ImageFormat, write_pfm};
+use octstore::stages::ingest::{IngestOptions, IngestStage, back_project};
+use octstore::stages::inputs::{DiscoverOptions, discover};
+use octstore::stages::octree::{OctreeStage, check_octree_keys};
+use octstore::stages::{INGEST, OCTREE};
+use octstore::store::RunOptions;
+
+fn kitchen() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/7scenes-redkitchen")
+}
+
+fn frame(n: u32) -> String {
+    kitchen()
+        .join(format!("frame-{n:06}.depth.png"))
+        .to_string_lossy()
+        .into_owned()
+}
+
+fn options() -> RunOptions {
+    RunOptions {
+        resume: false,
+        threads: 2,
+        progress: false,
+    }
+}
+
+fn small_scene() -> SceneSpec {
+    SceneSpec {
+        shapes: vec![Shape::Sphere {
+            center: DVec3::new(0.1, -0.2, 0.3),
+            radius: 0.5,
+        }],
+        cameras: 6,
+        distance: 2.0,
+        target: DVec3::new(0.1, -0.2, 0.3),
+        width: 48,
+        height: 36,
+        fov_degrees: 45.0,
+        noise: None,
+    }
+}
+
+/// Ingest + octree through the library; returns the store.
+fn build(dir: &Path, inputs: &[Vec<PathBuf>], root: Option<([f64; 3], f64)>, max_depth: u8, leaf_cubes: u64) -> Store {
+    let store = Store::create(dir).unwrap();
+    for batch in inputs {
+        let sources = discover(batch, &DiscoverOptions::default()).unwrap();
+        let stage = IngestStage::prepare(
+            &store,
+            sources,
+            &IngestOptions {
+                root,
+                root_margin: 0.1,
+                max_depth,
+            },
+        )
+        .unwrap();
+        store.run_stage(&stage, &options()).unwrap();
+    }
+    let scene = octstore::stages::ingest::read_scene(&store).unwrap().unwrap();
+    let scratch = store.scratch_dir(OCTREE).unwrap();
+    let stage = OctreeStage::new(scene, leaf_cubes, 1 << 20, scratch);
+    store.run_stage(&stage, &options()).unwrap();
+    store
+}
+
+fn octree_keys(store: &Store) -> Vec<octstore::CubeKey> {
+    let snap = store.latest().unwrap();
+    let mut keys = Vec::new();
+    for (name, _) in snap.segments(OCTREE) {
+        keys.extend(snap.open_segment(name).unwrap().reader().unwrap().read_keys().unwrap());
+    }
+    keys.sort();
+    keys
+}
+
+#[test]
+fn redkitchen_frames_give_a_complete_balanced_octree() {
+    let dir = tempfile::tempdir().unwrap();
+    let inputs = vec![vec![PathBuf::from(frame(0)), PathBuf::from(frame(500))]];
+    let store = build(dir.path(), &inputs, None, 9, 3000);
+    let snap = store.latest().unwrap();
+    assert_eq!(snap.segments(INGEST).len(), 2);
+    let keys = octree_keys(&store);
+    assert!(keys.len() > 1000, "{} cubes", keys.len());
+    assert_eq!(check_octree_keys(&keys), Vec::<String>::new());
+    // The treetop: every leaf segment below the limit, and ranges are contiguous.
+    assert!(snap.segments(OCTREE).len() > 2);
+    assert!(snap.segments(OCTREE).iter().all(|(_, r)| r.rows < 3000));
+    let report = store.verify(&[octstore::stages::octree::verify_octree]).unwrap();
+    assert!(report.is_ok(), "{:?}", report.problems);
+    // Every requested cube is a node with its radius sums.
+    let requested: u64 = snap.rows(INGEST);
+    assert!(requested > 0);
+}
+
+#[test]
+fn manifest_formats_and_pose_conventions_back_project_onto_the_surface() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = small_scene();
+    let pose = spec.poses()[1];
+    let image = spec.render(1, &pose);
+    write_pfm(&dir.path().join("a.pfm"), &image).unwrap();
+    write_npy(&dir.path().join("a.npy"), &image);
+    write_png16(&dir.path().join("a.png"), &image, 0.0001);
+    let f = spec.focal();
+    let k = serde_json::json!({"fx": f, "fy": f, "cx": 24.0, "cy": 18.0});
+    let row_major = |m: DMat4| m.transpose().to_cols_array().to_vec();
+    // The same camera expressed four ways.
+    let gl = pose * DMat4::from_diagonal(glam::DVec4::new(1.0, -1.0, -1.0, 1.0));
+    let entries = serde_json::json!({"depth_maps": [
+        {"image": "a.pfm", "width": 48, "height": 36, "intrinsics": k, "kind": "photo",
+         "pose": {"camera_to_world": row_major(pose), "axes": "opencv"}},
+        {"image": "a.npy", "width": 48, "height": 36, "intrinsics": k, "kind": "rgbd",
+         "pose": {"world_to_camera": row_major(pose.inverse()), "axes": "opencv"}},
+        {"image": "a.png", "depth_scale": 0.0001, "width": 48, "height": 36, "intrinsics": k, "kind": "lidar",
+         "pose": {"camera_to_world": row_major(gl), "axes": "opengl"}},
+    ]});
+    let manifest = dir.path().join("m.json");
+    std::fs::write(&manifest, entries.to_string()).unwrap();
+    let sources = discover(&[manifest], &DiscoverOptions::default()).unwrap();
+    assert_eq!(sources.len(), 3);
+    assert_eq!(sources[2].weight, 5.0, "LIDAR votes weigh 5 by default");
+    assert!(matches!(sources[2].format, ImageFormat::Png16 { .. }));
+    for source in &sources {
+        let samples = back_project(source, &source.load().unwrap());
+        assert!(samples.points.len() > 300, "{}", source.path.display());
+        for p in &samples.points {
+            let d = spec.signed_distance(*p).abs();
+            assert!(
+                d < 2e-3,
+                "{}: sample {p:?} is {d} from the sphere",
+                source.path.display()
+            );
+        }
+    }
+}
+
+fn write_npy(path: &Path, image: &DepthImage) {
+    let mut header = format!(
+        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, {}), }}",
+        image.height, image.width
+    );
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for d in &image.depth {
+        out.extend_from_slice(&d.to_le_bytes());
+    }
+    std::fs::write(path, out).unwrap();
+}
+
+fn write_png16(path: &Path, image: &DepthImage, scale: f64) {
+    let pixels: Vec<u16> = image
+        .depth
+        .iter()
+        .map(|d| {
+            if d.is_finite() {
+                (f64::from(*d) / scale).round() as u16
+            } else {
+                0
+            }
+        })
+        .collect();
+    let buffer = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(image.width, image.height, pixels).unwrap();
+    buffer.save(path).unwrap();
+}
+
+#[test]
+fn bad_input_gives_a_clear_error_and_leaves_the_store_unchanged() {
+    let root = tempfile::tempdir().unwrap();
+    let store_dir = root.path().join("store");
+    let scene = small_scene().write(&root.path().join("scene")).unwrap();
+    let out = octstore(
+        &[
+            "ingest",
+            store_dir.to_str().unwrap(),
+            scene.to_str().unwrap(),
+            "--quiet",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let before = fingerprint(&store_dir);
+
+    let bad = root.path().join("bad");
+    std::fs::create_dir_all(&bad).unwrap();
+    std::fs::write(bad.join("camera-intrinsics.txt"), "585 0 320\n0 585 240\n0 0 1\n").unwrap();
+    std::fs::copy(frame(0), bad.join("frame-000000.depth.png")).unwrap();
+    let expect_error = |args: &[&str], needle: &str| {
+        let mut all = vec!["ingest", store_dir.to_str().unwrap()];
+        all.extend_from_slice(args);
+        let out = octstore(&all, &[]);
+        assert!(!out.status.success(), "{args:?} should fail");
+        let err = stderr(&out);
+        assert!(err.contains(needle), "{args:?}: expected '{needle}' in: {err}");
+        assert_same_store(&before, &fingerprint(&store_dir), &format!("{args:?}"));
+    };
+    // Missing pose.
+    let png = bad.join("frame-000000.depth.png");
+    expect_error(&[png.to_str().unwrap()], "missing pose");
+    // Non-invertible pose.
+    std::fs::write(
+        bad.join("frame-000000.pose.txt"),
+        "0 0 0 1\n0 0 0 2\n0 0 0 3\n0 0 0 1\n",
+    )
+    .unwrap();
+    expect_error(&[png.to_str().unwrap()], "not invertible");
+    // Unparseable pose.
+    std::fs::write(bad.join("frame-000000.pose.txt"), "1 0 0 0\n0 1 0 zero\n").unwrap();
+    expect_error(&[png.to_str().unwrap()], "frame-000000.pose.txt");
+    std::fs::copy(
+        kitchen().join("frame-000000.pose.txt"),
+        bad.join("frame-000000.pose.txt"),
+    )
+    .unwrap();
+    // Size that does not match the intrinsics.
+    std::fs::write(bad.join("camera-intrinsics.txt"), "585 0 900\n0 585 240\n0 0 1\n").unwrap();
+    expect_error(&[png.to_str().unwrap()], "do not match");
+    std::fs::write(bad.join("camera-intrinsics.txt"), "585 0 320\n0 585 240\n0 0 1\n").unwrap();
+    // Truncated image.
+    let bytes = std::fs::read(frame(0)).unwrap();
+    std::fs::write(&png, &bytes[..bytes.len() / 2]).unwrap();
+    expect_error(&[png.to_str().unwrap()], "frame-000000.depth.png");
+    // Outside the root cube fixed by the first ingest.
+    std::fs::write(&png, &bytes).unwrap();
+    expect_error(&[png.to_str().unwrap()], "outside the store's root cube");
+    // Unknown format: no guessing.
+    let odd = root.path().join("scan.xyz");
+    std::fs::write(&odd, "1 2 3").unwrap();
+    expect_error(&[odd.to_str().unwrap()], "cannot tell the input format");
+}
+
+#[test]
+fn invalid_depths_are_skipped_and_counted() {
+    let root = tempfile::tempdir().unwrap();
+    let spec = small_scene();
+    let pose = spec.poses()[0];
+    let mut image = spec.render(0, &pose);
+    let valid_before = image.depth.iter().filter(|d| d.is_finite()).count();
+    image.depth[100] = f32::NAN;
+    image.depth[101] = -1.0;
+    image.depth[102] = f32::INFINITY;
+    image.depth[103] = 1.0e9;
+    let _ = valid_before;
+    write_pfm(&root.path().join("v.pfm"), &image).unwrap();
+    let source = octstore::stages::depthmap::DepthMapSource {
+        path: root.path().join("v.pfm"),
+        format: ImageFormat::Pfm,
+        width: spec.width,
+        height: spec.height,
+        projection: octstore::stages::depthmap::Projection::Pinhole {
+            fx: spec.focal(),
+            fy: spec.focal(),
+            cx: 24.0,
+            cy: 18.0,
+        },
+        camera_to_world: pose.to_cols_array(),
+        kind: octstore::stages::depthmap::Kind::Photo,
+        weight: 1.0,
+    };
+    let loaded = source.load().unwrap();
+    let samples = back_project(&source, &loaded);
+    assert_eq!(samples.stats.absurd, 1, "{:?}", samples.stats);
+    let invalid_expected = loaded.depth.iter().filter(|d| !d.is_finite()).count() as u64;
+    assert_eq!(samples.stats.invalid, invalid_expected);
+    assert!(samples.points.iter().all(|p| p.is_finite()));
+}
+
+#[test]
+fn incremental_ingest_equals_all_at_once_in_any_order() {
+    let root = tempfile::tempdir().unwrap();
+    let (a, b, c) = (
+        PathBuf::from(frame(10)),
+        PathBuf::from(frame(400)),
+        PathBuf::from(frame(800)),
+    );
+    // A fixed root so that the first ingest does not decide it differently.
+    let fixed = Some(([-3.0, -3.0, -3.0], 8.0));
+    let all = build(
+        &root.path().join("all"),
+        &[vec![a.clone(), b.clone(), c.clone()]],
+        fixed,
+        9,
+        2000,
+    );
+    let incremental = build(
+        &root.path().join("inc"),
+        &[vec![c.clone(), a.clone()], vec![b.clone()]],
+        fixed,
+        9,
+        2000,
+    );
+    let (sa, si) = (all.latest().unwrap(), incremental.latest().unwrap());
+    assert_eq!(sa.digest(OCTREE), si.digest(OCTREE));
+    assert_eq!(sa.digest(INGEST), si.digest(INGEST));
+    // Byte-identical octree segment content, leaf by leaf.
+    let contents = |snap: &octstore::Snapshot<'_>| -> Vec<Vec<u8>> {
+        snap.segments(OCTREE)
+            .iter()
+            .map(|(name, _)| snap.open_segment(name).unwrap().bytes().to_vec())
+            .collect()
+    };
+    assert_eq!(contents(&sa), contents(&si));
+
+    // A second solve with nothing new does nothing; a new depth map rewrites only the leaves
+    // whose cubes changed.
+    let scene = octstore::stages::ingest::read_scene(&incremental).unwrap().unwrap();
+    let again = OctreeStage::new(scene, 2000, 1 << 20, incremental.scratch_dir(OCTREE).unwrap());
+    assert_eq!(incremental.run_stage(&again, &options()).unwrap().version, None);
+    let leaves_before = si.segments(OCTREE).len();
+    drop(si);
+    let sources = discover(&[PathBuf::from(frame(830))], &DiscoverOptions::default()).unwrap();
+    let stage = IngestStage::prepare(&incremental, sources, &IngestOptions::default()).unwrap();
+    incremental.run_stage(&stage, &options()).unwrap();
+    let rebuild = OctreeStage::new(scene, 2000, 1 << 20, incremental.scratch_dir(OCTREE).unwrap());
+    let report = incremental.run_stage(&rebuild, &options()).unwrap();
+    let leaves_after = incremental.latest().unwrap().segments(OCTREE).len();
+    assert!(report.units > 0, "the new frame changed nothing");
+    assert!(
+        report.units < leaves_after.max(leaves_before),
+        "all {} leaves were rewritten for one new frame",
+        report.units
+    );
+    assert!(
+        incremental
+            .verify(&[octstore::stages::octree::verify_octree])
+            .unwrap()
+            .is_ok()
+    );
+}
+
+#[test]
+fn ingest_cli_reports_and_info_counts() {
+    let root = tempfile::tempdir().unwrap();
+    let store = root.path().join("s");
+    let out = octstore(
+        &[
+            "ingest",
+            store.to_str().unwrap(),
+            &frame(0),
+            &frame(1),
+            "--max-depth",
+            "8",
+            "--memory-budget",
+            "256MiB",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(stdout(&out).contains("2 depth map(s)"), "{}", stdout(&out));
+    let out = octstore(
+        &[
+            "solve",
+            store.to_str().unwrap(),
+            "--until",
+            "octree",
+            "--leaf-cubes",
+            "5000",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(stdout(&out).contains("treetop leaves"), "{}", stdout(&out));
+    let info = octstore(&["info", store.to_str().unwrap(), "--json"], &[]);
+    let json: serde_json::Value = serde_json::from_str(&stdout(&info)).unwrap();
+    assert_eq!(json["depth_maps"], 2);
+    assert!(json["cubes"].as_u64().unwrap() > 100);
+    assert!(json["treetop_leaves"].as_u64().unwrap() >= 1);
+    assert!(json["digest"]["octree"].is_string());
+    let verify = octstore(&["verify", store.to_str().unwrap()], &[]);
+    assert!(verify.status.success(), "{}", stderr(&verify));
+}
