@@ -86,6 +86,9 @@ pub struct SceneSpec {
     /// Horizontal field of view in degrees.
     pub fov_degrees: f64,
     pub noise: Option<Noise>,
+    /// Half-size of a room (walls seen from inside, centred on the target) behind the shapes:
+    /// without a background, rays that miss the object carry no free-space evidence.
+    pub room: Option<f64>,
 }
 
 impl SceneSpec {
@@ -113,6 +116,7 @@ impl SceneSpec {
                 outliers: 0.02,
                 seed: 7,
             }),
+            room: Some(3.0),
         }
     }
 
@@ -174,6 +178,16 @@ impl SceneSpec {
                     .iter()
                     .filter_map(|s| s.hit(origin, dir))
                     .fold(f64::INFINITY, f64::min);
+                let hit = match self.room {
+                    Some(half) if !hit.is_finite() => {
+                        let room = Shape::Box {
+                            min: self.target - DVec3::splat(half),
+                            max: self.target + DVec3::splat(half),
+                        };
+                        room.hit(origin, dir).unwrap_or(f64::INFINITY)
+                    }
+                    _ => hit,
+                };
                 let mut z = if hit.is_finite() { hit / scale } else { f64::NAN };
                 if let (Some(noise), Some(state)) = (&self.noise, rng.as_mut())
                     && z.is_finite()

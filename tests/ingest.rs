@@ -47,6 +47,7 @@ fn small_scene() -> SceneSpec {
         height: 36,
         fov_degrees: 45.0,
         noise: None,
+        room: None,
     }
 }
 

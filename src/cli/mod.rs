@@ -6,9 +6,11 @@ use std::process::ExitCode;
 use clap::{Args, Parser, Subcommand};
 use serde::Serialize;
 
+use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage};
 use crate::stages::inputs::{DiscoverOptions, InputFormat};
 use crate::stages::octree::{self, OctreeStage};
+use crate::stages::solve::{LevelStage, SolveParams};
 use crate::stages::{self, synthetic::SyntheticStage};
 use crate::store::{RunOptions, Store, StoreError};
 
@@ -41,6 +43,8 @@ pub struct GlobalOptions {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
 pub enum SolveStage {
     Octree,
+    Histograms,
+    Solution,
 }
 
 #[derive(Subcommand, Debug)]
@@ -79,11 +83,32 @@ pub enum Command {
         #[arg(long)]
         resume: bool,
         /// Run the pending stages up to and including this one.
-        #[arg(long, value_enum, default_value = "octree")]
+        #[arg(long, value_enum, default_value = "solution")]
         until: SolveStage,
+        /// TGV weight of |grad u - v| (times the cube side).
+        #[arg(long, default_value_t = SolveParams::default().alpha1)]
+        alpha1: f32,
+        /// TGV weight of |E(v)| (times the cube side squared).
+        #[arg(long, default_value_t = SolveParams::default().alpha0)]
+        alpha0: f32,
+        /// Weight of the histogram data term.
+        #[arg(long, default_value_t = SolveParams::default().lambda)]
+        lambda: f32,
+        /// Primal-dual iterations per level.
+        #[arg(long, default_value_t = SolveParams::default().iterations)]
+        iterations: u32,
         /// Treetop leaves hold fewer cubes than this.
         #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
         leaf_cubes: u64,
+    },
+    /// Render the built-in synthetic scene, then ingest, solve and extract it (no files needed).
+    Demo {
+        /// Output folder: depth maps, the store, demo.ply.
+        #[arg(long, default_value = "octstore-demo")]
+        out: PathBuf,
+        /// Primal-dual iterations per level.
+        #[arg(long, default_value_t = 100)]
+        iterations: u32,
     },
     /// Summary of a store: version, inputs, cubes, leaves, segments, bytes, content digests.
     Info {
@@ -289,6 +314,10 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             resume,
             until,
             leaf_cubes,
+            alpha1,
+            alpha0,
+            lambda,
+            iterations,
         } => {
             let store = Store::open(&store)?;
             let scene = stages::ingest::read_scene(&store)?.ok_or_else(|| StoreError::Stage {
@@ -305,6 +334,77 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 summary(&report);
                 let _ = std::fs::remove_dir_all(scratch);
             }
+            if until >= SolveStage::Histograms {
+                let depth_maps = stages::ingest::registered_depth_maps(&store)?;
+                let stage = HistogramsStage::new(scene, depth_maps);
+                summary(&store.run_stage(&stage, &run_options(&global, resume))?);
+            }
+            if until >= SolveStage::Solution {
+                let params = SolveParams {
+                    alpha1,
+                    alpha0,
+                    lambda,
+                    iterations,
+                };
+                let finest = stages::octree_max_depth(&store)?;
+                for level in 0..=finest {
+                    let stage = LevelStage::new(level, scene, params);
+                    summary(&store.run_stage(&stage, &run_options(&global, resume))?);
+                }
+            }
+        }
+        Command::Demo { out, iterations } => {
+            let started = std::time::Instant::now();
+            let spec = crate::scenes::SceneSpec::demo();
+            let manifest = spec
+                .write(&out.join("input"))
+                .map_err(crate::store::io_error("write demo input", &out))?;
+            println!(
+                "demo: rendered {} depth maps of {}x{} into {}",
+                spec.cameras,
+                spec.width,
+                spec.height,
+                out.join("input").display()
+            );
+            let store_path = out.join("store");
+            if store_path.exists() {
+                std::fs::remove_dir_all(&store_path).map_err(crate::store::io_error("remove", &store_path))?;
+            }
+            let store = Store::create(&store_path)?;
+            let sources =
+                stages::inputs::discover(&[manifest], &DiscoverOptions::default()).map_err(|e| StoreError::Stage {
+                    stage: stages::INGEST.into(),
+                    unit: "demo inputs".into(),
+                    message: e.to_string(),
+                })?;
+            let options = IngestOptions {
+                root: None,
+                root_margin: 0.1,
+                max_depth: 8,
+            };
+            let ingest = IngestStage::prepare(&store, sources, &options)?;
+            let run = run_options(&global, false);
+            summary(&store.run_stage(&ingest, &run)?);
+            let scene = *ingest.scene();
+            let scratch = store.scratch_dir(stages::OCTREE)?;
+            let leaf_cubes = octree::effective_leaf_cubes(20_000, global.memory_budget, run.threads);
+            let octree_stage = OctreeStage::new(scene, leaf_cubes, global.memory_budget / 4, scratch.clone());
+            summary(&store.run_stage(&octree_stage, &run)?);
+            let _ = std::fs::remove_dir_all(scratch);
+            let histograms = HistogramsStage::new(scene, stages::ingest::registered_depth_maps(&store)?);
+            summary(&store.run_stage(&histograms, &run)?);
+            let params = SolveParams {
+                iterations,
+                ..SolveParams::default()
+            };
+            for level in 0..=stages::octree_max_depth(&store)? {
+                summary(&store.run_stage(&LevelStage::new(level, scene, params), &run)?);
+            }
+            println!(
+                "demo: done in {:.1}s; store at {}",
+                started.elapsed().as_secs_f64(),
+                store_path.display()
+            );
         }
         Command::Info { store, json, version } => {
             let store = Store::open_for_reading(&store)?;

@@ -1,12 +1,16 @@
 //! Pipeline stages. Each is a [`Stage`](crate::store::Stage) run by the store's stage runner.
 
 pub mod depthmap;
+pub mod histograms;
 pub mod ingest;
 pub mod inputs;
 pub mod octree;
 pub mod records;
 pub mod scene;
+pub mod solve;
 pub mod synthetic;
+pub mod tgv;
+pub mod treetop;
 
 /// Stage names, in pipeline order. They name segments and catalog entries: changing one is a
 /// format change.
@@ -14,3 +18,20 @@ pub const INGEST: &str = "ingest";
 pub const OCTREE: &str = "octree";
 pub const HISTOGRAMS: &str = "histograms";
 pub const SOLUTION: &str = "solution";
+
+/// Meta key: deepest level of the latest octree (u8), written by the octree stage.
+pub const META_OCTREE_MAX_DEPTH: &str = "octree_max_depth";
+
+/// Deepest level of the latest octree.
+pub fn octree_max_depth(store: &crate::store::Store) -> crate::store::Result<u8> {
+    let txn = store.catalog().begin_read()?;
+    let meta = txn.open_table(crate::store::catalog::META)?;
+    let value = meta
+        .get(META_OCTREE_MAX_DEPTH)?
+        .map(|v| v.value().first().copied().unwrap_or(0));
+    value.ok_or_else(|| crate::store::StoreError::Stage {
+        stage: OCTREE.into(),
+        unit: "-".into(),
+        message: "no octree yet: run `octstore solve --until octree`".into(),
+    })
+}

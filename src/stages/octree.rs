@@ -233,6 +233,7 @@ impl LeafUnit {
 }
 
 struct Prepared {
+    finest: u8,
     nodes: PathBuf,
     units: Vec<LeafUnit>,
     total: u64,
@@ -473,6 +474,7 @@ impl OctreeStage {
             started.elapsed().as_secs_f64() - noded
         );
         Ok(Prepared {
+            finest,
             nodes: nodes_path,
             units,
             total,
@@ -664,6 +666,8 @@ impl Stage for OctreeStage {
         for key in old {
             table.remove((OCTREE, key))?;
         }
+        txn.open_table(crate::store::catalog::META)?
+            .insert(super::META_OCTREE_MAX_DEPTH, [prepared.finest].as_slice())?;
         for unit in prepared.units.iter().filter(|u| !u.top) {
             let entry = (unit.ranges.first().map(|r| r.0).unwrap_or(0), unit.cubes());
             table.insert((OCTREE, unit.key), catalog::encode(&entry).as_slice())?;
@@ -689,7 +693,11 @@ mod tests {
         assert!(kids.iter().all(|c| c.parent() == Some(key)));
         assert!(kids.windows(2).all(|w| w[0] < w[1]));
         assert_eq!(face_neighbours(CubeKey::new(1, 0, 0, 0)).count(), 3);
-        assert_eq!(face_neighbours(key).count(), 5, "z = 3 is on the root boundary at depth 2");
+        assert_eq!(
+            face_neighbours(key).count(),
+            5,
+            "z = 3 is on the root boundary at depth 2"
+        );
         assert_eq!(face_neighbours(CubeKey::new(2, 1, 2, 2)).count(), 6);
     }
 }

@@ -1,0 +1,361 @@
+//! `histograms`: votes of every depth map into per-cube histograms (paper 3.4, 4.4, Algorithm 1).
+//!
+//! Per treetop unit, only depth maps whose frustum meets the unit's cube are read, one at a time
+//! with its mipmap pyramid. Votes are additive and exact (weights are multiples of 1/16 and sums
+//! stay far below 2^24 / 16 in f32), so after an incremental ingest a unit whose octree part is
+//! unchanged only receives the new depth maps' votes, and the result equals a from-scratch run.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use glam::DVec3;
+use redb::WriteTransaction;
+use serde::{Deserialize, Serialize};
+
+use super::depthmap::{DepthImage, DepthMapSource, Projection};
+use super::ingest::DepthMapRecord;
+use super::scene::Scene;
+use super::treetop::Treetop;
+use super::{HISTOGRAMS, OCTREE};
+use crate::format::{Column, ColumnValues, CubeKey};
+use crate::store::catalog::{self, UNIT_STATE, UnitRecord};
+use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
+
+pub const BINS: usize = 8;
+
+/// Bin of a clamped signed distance a in [-1, 1] (DESIGN.md: the printed formula is garbled).
+pub fn bin_of(a: f64) -> usize {
+    (((a + 1.0) / 2.0 * 8.0).floor() as usize).min(BINS - 1)
+}
+
+/// Bin centres f_b = -1 + (2b + 1) / 8.
+pub fn bin_center(b: usize) -> f32 {
+    -1.0 + (2.0 * b as f32 + 1.0) / 8.0
+}
+
+/// Vote weights are rounded to multiples of 1/16 so that sums are exact in any order.
+pub fn quantized_weight(weight: f32) -> f32 {
+    ((weight * 16.0).round() / 16.0).max(0.0)
+}
+
+/// A depth map and its mipmap pyramid: level k averages the valid depths of 2^k x 2^k pixels.
+pub struct Pyramid {
+    pub source: DepthMapSource,
+    pub levels: Vec<DepthImage>,
+}
+
+impl Pyramid {
+    pub fn new(source: DepthMapSource, image: DepthImage) -> Pyramid {
+        let mut levels = vec![image];
+        while let Some(last) = levels.last() {
+            if last.width <= 1 && last.height <= 1 {
+                break;
+            }
+            let (w, h) = (last.width.div_ceil(2), last.height.div_ceil(2));
+            let mut depth = Vec::with_capacity((w * h) as usize);
+            for j in 0..h {
+                for i in 0..w {
+                    let (mut sum, mut n) = (0f64, 0u32);
+                    for (di, dj) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                        let d = last.get(2 * i + di, 2 * j + dj);
+                        if d.is_finite() {
+                            sum += f64::from(d);
+                            n += 1;
+                        }
+                    }
+                    depth.push(if n > 0 { (sum / f64::from(n)) as f32 } else { f32::NAN });
+                }
+            }
+            levels.push(DepthImage {
+                width: w,
+                height: h,
+                depth,
+            });
+        }
+        Pyramid { source, levels }
+    }
+
+    /// Algorithm 1 for one voxel: the bin it votes into, if any.
+    pub fn vote(&self, world_to_camera: &glam::DMat4, center: DVec3, radius: f64) -> Option<usize> {
+        let local = world_to_camera.transform_point3(center);
+        let (u, v, distance) = self.source.project(local)?;
+        let pixels_per_unit = match self.source.projection {
+            Projection::Pinhole { fx, fy, .. } => fx.max(fy) / distance,
+            Projection::Spherical => f64::from(self.source.width) / std::f64::consts::TAU / distance,
+        };
+        let footprint = 2.0 * radius * pixels_per_unit;
+        let level = if footprint > 1.0 {
+            footprint.log2().floor() as usize
+        } else {
+            0
+        };
+        let level = level.min(self.levels.len() - 1);
+        let image = self.levels.get(level)?;
+        let scale = f64::from(1u32 << level);
+        let (i, j) = (
+            ((u - (scale - 1.0) * 0.5) / scale).round(),
+            ((v - (scale - 1.0) * 0.5) / scale).round(),
+        );
+        let i = if matches!(self.source.projection, Projection::Spherical) {
+            i.rem_euclid(f64::from(image.width))
+        } else {
+            i
+        };
+        if i < 0.0 || j < 0.0 || i >= f64::from(image.width) || j >= f64::from(image.height) {
+            return None;
+        }
+        let depth = f64::from(image.get(i as u32, j as u32));
+        if !depth.is_finite() {
+            return None;
+        }
+        let delta = 6.0 * radius;
+        let eta = 3.0 * delta;
+        let a = depth - distance;
+        if a < -eta {
+            return None;
+        }
+        Some(bin_of((a / delta).clamp(-1.0, 1.0)))
+    }
+
+    /// Whether a ball may project into the image (frustum test; LIDAR sees all around).
+    pub fn may_see(source: &DepthMapSource, world_to_camera: &glam::DMat4, center: DVec3, radius: f64) -> bool {
+        match source.projection {
+            Projection::Spherical => true,
+            Projection::Pinhole { fx, fy, cx, cy } => {
+                let p = world_to_camera.transform_point3(center);
+                if p.z + radius <= 0.0 {
+                    return false;
+                }
+                if p.z <= radius {
+                    return true;
+                }
+                let (u, v) = (fx * p.x / p.z + cx, fy * p.y / p.z + cy);
+                let margin = radius / (p.z - radius) * fx.max(fy) * 1.5 + 1.0;
+                u > -margin
+                    && v > -margin
+                    && u < f64::from(source.width) + margin
+                    && v < f64::from(source.height) + margin
+            }
+        }
+    }
+}
+
+/// Centre and radius of every cube of a unit: r_c (eq. 5) where samples spawned it, else the
+/// cube's natural radius (half its side).
+pub fn cube_geometry(scene: &Scene, keys: &[CubeKey], sums: &[u64], counts: &[u32]) -> (Vec<DVec3>, Vec<f64>) {
+    let centers = keys.iter().map(|k| scene.cube_center(*k)).collect();
+    let radii = keys
+        .iter()
+        .zip(sums.iter().zip(counts))
+        .map(|(k, (s, c))| {
+            if *c > 0 {
+                scene.mean_radius(*s, *c)
+            } else {
+                scene.cube_side(k.depth()) * 0.5
+            }
+        })
+        .collect();
+    (centers, radii)
+}
+
+/// What a unit's histograms were computed from; kept in `unit_state` for incremental runs.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Eq)]
+pub struct HistogramState {
+    pub octree_digest: u64,
+    /// Depth maps that voted (sorted ids).
+    pub depth_maps: Vec<u64>,
+}
+
+struct UnitPlan {
+    octree_segment: String,
+    key: CubeKey,
+    /// Previous histogram segment to add to, and the maps already in it.
+    previous: Option<(String, BTreeSet<u64>)>,
+}
+
+pub struct HistogramsStage {
+    pub scene: Scene,
+    /// All registered depth maps, by id.
+    pub depth_maps: Vec<(u64, DepthMapRecord)>,
+    units: std::sync::OnceLock<Vec<UnitPlan>>,
+}
+
+impl HistogramsStage {
+    pub fn new(scene: Scene, depth_maps: Vec<(u64, DepthMapRecord)>) -> HistogramsStage {
+        HistogramsStage {
+            scene,
+            depth_maps,
+            units: std::sync::OnceLock::new(),
+        }
+    }
+
+    fn all_ids(&self) -> BTreeSet<u64> {
+        self.depth_maps.iter().map(|(id, _)| *id).collect()
+    }
+}
+
+fn unit_state(base: &Snapshot<'_>, key: CubeKey) -> Result<Option<HistogramState>> {
+    let txn = base.store().catalog().begin_read()?;
+    let table = txn.open_table(UNIT_STATE)?;
+    match table.get((HISTOGRAMS, key))? {
+        Some(v) => Ok(Some(catalog::decode("unit_state", v.value())?)),
+        None => Ok(None),
+    }
+}
+
+impl Stage for HistogramsStage {
+    fn name(&self) -> &'static str {
+        HISTOGRAMS
+    }
+
+    fn params(&self) -> Vec<u8> {
+        catalog::encode(&self.all_ids().into_iter().collect::<Vec<_>>())
+    }
+
+    fn input_digest(&self, base: &Snapshot<'_>) -> Vec<u8> {
+        base.digest(OCTREE).to_le_bytes().to_vec()
+    }
+
+    fn plan(&self, base: &Snapshot<'_>) -> Result<Plan> {
+        let treetop = Treetop::of(base)?;
+        let previous: BTreeMap<u128, String> = base
+            .segments(HISTOGRAMS)
+            .iter()
+            .map(|(name, r)| (r.first_key, name.clone()))
+            .collect();
+        let all = self.all_ids();
+        let mut plans = Vec::new();
+        let mut units = Vec::new();
+        let mut replaced = BTreeSet::new();
+        let mut kept = BTreeSet::new();
+        for (index, unit) in treetop.units.iter().enumerate() {
+            let state = unit_state(base, unit.key)?;
+            let prior = match (previous.get(&unit.record.first_key), state) {
+                (Some(name), Some(state)) if state.octree_digest == unit.record.content_digest => {
+                    Some((name.clone(), state.depth_maps.into_iter().collect::<BTreeSet<u64>>()))
+                }
+                _ => None,
+            };
+            let up_to_date = prior.as_ref().is_some_and(|(_, maps)| *maps == all);
+            if up_to_date {
+                if let Some((name, _)) = &prior {
+                    kept.insert(name.clone());
+                }
+            } else {
+                units.push(UnitSpec {
+                    id: index as u64,
+                    label: format!("leaf {:?} ({} cubes)", unit.key, unit.record.rows),
+                });
+            }
+            plans.push(UnitPlan {
+                octree_segment: unit.segment.clone(),
+                key: unit.key,
+                previous: prior,
+            });
+        }
+        for name in previous.into_values() {
+            if !kept.contains(&name) {
+                replaced.insert(name);
+            }
+        }
+        let _ = self.units.set(plans);
+        Ok(Plan {
+            units,
+            replace: Replace::Names(replaced),
+        })
+    }
+
+    fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput> {
+        let plans = self.units.get().ok_or_else(|| StoreError::Stage {
+            stage: HISTOGRAMS.into(),
+            unit: unit.label.clone(),
+            message: "units run before planning".into(),
+        })?;
+        let plan = plans.get(unit.id as usize).ok_or_else(|| StoreError::Stage {
+            stage: HISTOGRAMS.into(),
+            unit: unit.label.clone(),
+            message: "unit out of range".into(),
+        })?;
+        let file = base.open_segment(&plan.octree_segment)?;
+        let reader = file.reader()?;
+        let keys = reader.read_keys().map_err(|e| file.corruption(e))?;
+        let (_, sums) = reader.read_u64("radius_sum").map_err(|e| file.corruption(e))?;
+        let (_, counts) = reader.read_u32("radius_count").map_err(|e| file.corruption(e))?;
+        let (centers, radii) = cube_geometry(&self.scene, &keys, &sums, &counts);
+
+        let (mut hist, already): (Vec<f32>, BTreeSet<u64>) = match &plan.previous {
+            Some((name, maps)) => {
+                let previous = base.open_segment(name)?;
+                let previous_reader = previous.reader()?;
+                let (_, hist) = previous_reader.read_f32("hist").map_err(|e| previous.corruption(e))?;
+                if hist.len() != keys.len() * BINS {
+                    return Err(previous.corruption(crate::format::DecodeError::MissingColumn(
+                        "hist rows matching the octree unit".into(),
+                    )));
+                }
+                (hist, maps.clone())
+            }
+            None => (vec![0f32; keys.len() * BINS], BTreeSet::new()),
+        };
+        // The unit's bounding ball, for the frustum test.
+        let unit_center = self.scene.cube_center(plan.key);
+        let unit_radius = self.scene.cube_side(plan.key.depth()) * 0.87 + radii.iter().copied().fold(0.0, f64::max);
+        let mut voted = already.clone();
+        for (id, record) in &self.depth_maps {
+            if already.contains(id) {
+                continue;
+            }
+            voted.insert(*id);
+            let source = &record.source;
+            let world_to_camera = source.pose().inverse();
+            if !Pyramid::may_see(source, &world_to_camera, unit_center, unit_radius) {
+                continue;
+            }
+            let image = source.load().map_err(|e| StoreError::Stage {
+                stage: HISTOGRAMS.into(),
+                unit: unit.label.clone(),
+                message: e.to_string(),
+            })?;
+            let pyramid = Pyramid::new(source.clone(), image);
+            let weight = quantized_weight(source.weight);
+            for (index, (center, radius)) in centers.iter().zip(&radii).enumerate() {
+                if let Some(bin) = pyramid.vote(&world_to_camera, *center, *radius)
+                    && let Some(h) = hist.get_mut(index * BINS + bin)
+                {
+                    *h += weight;
+                }
+            }
+        }
+        let state = HistogramState {
+            octree_digest: file_digest(base, &plan.octree_segment),
+            depth_maps: voted.into_iter().collect(),
+        };
+        Ok(UnitOutput {
+            segments: vec![vec![
+                Column::keys(keys),
+                Column::new("hist", BINS as u16, ColumnValues::F32(hist)),
+            ]],
+            extra: catalog::encode(&(plan.key, state)),
+            block_rows: 0,
+        })
+    }
+
+    fn finish(&self, txn: &WriteTransaction, _base: &Snapshot<'_>, units: &[(u64, UnitRecord)]) -> Result<String> {
+        let mut table = txn.open_table(UNIT_STATE)?;
+        for (_, record) in units {
+            let (key, state): (CubeKey, HistogramState) = catalog::decode("units_done", &record.extra)?;
+            table.insert((HISTOGRAMS, key), catalog::encode(&state).as_slice())?;
+        }
+        Ok(format!(
+            "{} unit(s) voted by {} depth map(s)",
+            units.len(),
+            self.depth_maps.len()
+        ))
+    }
+}
+
+fn file_digest(base: &Snapshot<'_>, segment: &str) -> u64 {
+    base.segments(OCTREE)
+        .iter()
+        .find(|(n, _)| n == segment)
+        .map_or(0, |(_, r)| r.content_digest)
+}

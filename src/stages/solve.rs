@@ -1,0 +1,473 @@
+//! The coarse-to-fine TGV solve (paper 4.5): one stage per level l, `solution-LL`, whose units
+//! are the treetop units. The level cut is every cube at depth l plus every octree leaf above
+//! it; it tiles the root because the octree is complete. Inside a unit all cut cubes (set A) are
+//! free; their face neighbours in other units (set B) are frozen to the values of the cube that
+//! covered them at level l - 1 (their parent, or themselves if they are coarser leaves). Each
+//! cube starts from the same previous-level values.
+//!
+//! Every level is a version, so `solve --resume` continues at the level and unit where it
+//! stopped, and each level's segments (key, u, v, p, q) remain readable.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use redb::WriteTransaction;
+use serde::{Deserialize, Serialize};
+
+use super::HISTOGRAMS;
+use super::histograms::BINS;
+use super::scene::Scene;
+use super::tgv::{Problem, State};
+use super::treetop::{Treetop, UnitKeys, children_on_min_face, plus_neighbour};
+use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
+use crate::store::catalog::{self, UnitRecord};
+use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
+
+/// Stage names of the levels.
+pub const LEVEL_STAGES: [&str; MAX_DEPTH as usize + 1] = [
+    "solution-00",
+    "solution-01",
+    "solution-02",
+    "solution-03",
+    "solution-04",
+    "solution-05",
+    "solution-06",
+    "solution-07",
+    "solution-08",
+    "solution-09",
+    "solution-10",
+    "solution-11",
+    "solution-12",
+    "solution-13",
+    "solution-14",
+    "solution-15",
+    "solution-16",
+    "solution-17",
+    "solution-18",
+    "solution-19",
+    "solution-20",
+    "solution-21",
+    "solution-22",
+    "solution-23",
+    "solution-24",
+    "solution-25",
+    "solution-26",
+    "solution-27",
+    "solution-28",
+    "solution-29",
+    "solution-30",
+    "solution-31",
+    "solution-32",
+];
+
+/// Solver parameters, recorded with every level's run. alpha1 and alpha0 multiply h and h^2
+/// (h the cube side, in units of the root side), which makes the result invariant to the
+/// scene's scale; v is likewise in units of 1 / root side.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
+pub struct SolveParams {
+    pub alpha1: f32,
+    pub alpha0: f32,
+    pub lambda: f32,
+    pub iterations: u32,
+}
+
+impl Default for SolveParams {
+    fn default() -> Self {
+        SolveParams {
+            alpha1: 1.0,
+            alpha0: 2.0,
+            lambda: 0.1,
+            iterations: 200,
+        }
+    }
+}
+
+/// A unit's cut values at one level.
+pub struct LevelValues {
+    pub keys: Vec<CubeKey>,
+    pub u: Vec<f32>,
+    pub v: Vec<[f32; 3]>,
+    pub p: Vec<[f32; 3]>,
+    pub q: Vec<[f32; 6]>,
+}
+
+impl LevelValues {
+    pub fn find(&self, key: CubeKey) -> Option<usize> {
+        self.keys.binary_search(&key).ok()
+    }
+}
+
+fn columns_of(values: &LevelValues) -> Vec<Column> {
+    let flat = |rows: &[[f32; 3]]| rows.iter().flatten().copied().collect::<Vec<f32>>();
+    vec![
+        Column::keys(values.keys.clone()),
+        Column::new("u", 1, ColumnValues::F32(values.u.clone())),
+        Column::new("v", 3, ColumnValues::F32(flat(&values.v))),
+        Column::new("p", 3, ColumnValues::F32(flat(&values.p))),
+        Column::new("q", 6, ColumnValues::F32(values.q.iter().flatten().copied().collect())),
+    ]
+}
+
+/// Reads a level segment.
+pub fn read_level_values(snapshot: &Snapshot<'_>, segment: &str) -> Result<LevelValues> {
+    let file = snapshot.open_segment(segment)?;
+    let reader = file.reader()?;
+    let c = |e| file.corruption(e);
+    let keys = reader.read_keys().map_err(c)?;
+    let (_, u) = reader.read_f32("u").map_err(c)?;
+    let (_, v) = reader.read_f32("v").map_err(c)?;
+    let (_, p) = reader.read_f32("p").map_err(c)?;
+    let (_, q) = reader.read_f32("q").map_err(c)?;
+    let n = keys.len();
+    if u.len() != n || v.len() != 3 * n || p.len() != 3 * n || q.len() != 6 * n {
+        return Err(file.corruption(crate::format::DecodeError::MissingColumn(
+            "u, v, p, q of matching lengths".into(),
+        )));
+    }
+    let triple = |x: &[f32]| x.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+    Ok(LevelValues {
+        keys,
+        u,
+        v: triple(&v),
+        p: triple(&p),
+        q: q.chunks_exact(6)
+            .map(|c| [c[0], c[1], c[2], c[3], c[4], c[5]])
+            .collect(),
+    })
+}
+
+/// Previous-level (u, v, p, q) of one cube.
+type Inherited = (f32, [f32; 3], [f32; 3], [f32; 6]);
+
+/// Lazily loaded keys and previous-level values of the units a worker touches.
+struct Neighbourhood<'a, 's> {
+    base: &'a Snapshot<'s>,
+    treetop: &'a Treetop,
+    previous_level: Option<&'static str>,
+    keys: BTreeMap<usize, Arc<UnitKeys>>,
+    values: BTreeMap<usize, Option<Arc<LevelValues>>>,
+}
+
+impl Neighbourhood<'_, '_> {
+    fn unit_keys(&mut self, unit: usize) -> Result<Arc<UnitKeys>> {
+        if let Some(k) = self.keys.get(&unit) {
+            return Ok(k.clone());
+        }
+        let info = self.treetop.units.get(unit).ok_or_else(|| StoreError::Stage {
+            stage: "solution".into(),
+            unit: format!("unit {unit}"),
+            message: "no such treetop unit".into(),
+        })?;
+        let file = self.base.open_segment(&info.segment)?;
+        let keys = file.reader()?.read_keys().map_err(|e| file.corruption(e))?;
+        let loaded = Arc::new(UnitKeys { keys, top: info.top });
+        self.keys.insert(unit, loaded.clone());
+        Ok(loaded)
+    }
+
+    /// Whether `key` exists, and if so whether it is an octree leaf.
+    fn node(&mut self, key: CubeKey) -> Result<Option<bool>> {
+        let unit = self.treetop.unit_of(key);
+        let keys = self.unit_keys(unit)?;
+        Ok(keys.keys.binary_search(&key).ok().map(|i| keys.is_leaf(i)))
+    }
+
+    fn previous(&mut self, key: CubeKey) -> Result<Option<Inherited>> {
+        let Some(stage) = self.previous_level else {
+            return Ok(None);
+        };
+        let unit = self.treetop.unit_of(key);
+        if !self.values.contains_key(&unit) {
+            let segment = self
+                .base
+                .segments(stage)
+                .iter()
+                .find(|(_, r)| r.unit == unit as u64)
+                .map(|(n, _)| n.clone());
+            let loaded = match segment {
+                Some(name) => Some(Arc::new(read_level_values(self.base, &name)?)),
+                None => None,
+            };
+            self.values.insert(unit, loaded);
+        }
+        Ok(self
+            .values
+            .get(&unit)
+            .and_then(|v| v.as_ref())
+            .and_then(|v| v.find(key).map(|i| (v.u[i], v.v[i], v.p[i], v.q[i]))))
+    }
+}
+
+pub struct LevelStage {
+    pub level: u8,
+    pub scene: Scene,
+    pub params: SolveParams,
+    treetop: std::sync::OnceLock<Treetop>,
+}
+
+#[derive(Serialize, Deserialize, Default, Clone, Copy)]
+struct LevelUnitExtra {
+    cubes: u64,
+    energy_before: f64,
+    energy_after: f64,
+}
+
+impl LevelStage {
+    pub fn new(level: u8, scene: Scene, params: SolveParams) -> LevelStage {
+        LevelStage {
+            level,
+            scene,
+            params,
+            treetop: std::sync::OnceLock::new(),
+        }
+    }
+
+    fn previous_stage(&self) -> Option<&'static str> {
+        (self.level > 0).then(|| LEVEL_STAGES[usize::from(self.level - 1)])
+    }
+
+    /// The key whose previous-level values a cut cube inherits.
+    fn source_key(&self, key: CubeKey) -> CubeKey {
+        if key.depth() == self.level {
+            key.parent().unwrap_or(key)
+        } else {
+            key
+        }
+    }
+
+    fn stage_error(&self, unit: &UnitSpec, message: String) -> StoreError {
+        StoreError::Stage {
+            stage: LEVEL_STAGES[usize::from(self.level)].into(),
+            unit: unit.label.clone(),
+            message,
+        }
+    }
+
+    /// Builds the unit's problem and initial state; `None` when the unit has no cut cubes.
+    pub fn build_problem(
+        &self,
+        base: &Snapshot<'_>,
+        unit_index: usize,
+    ) -> Result<Option<(Vec<CubeKey>, Problem, State)>> {
+        let treetop = self.treetop.get().ok_or_else(|| StoreError::Stage {
+            stage: LEVEL_STAGES[usize::from(self.level)].into(),
+            unit: format!("unit {unit_index}"),
+            message: "units run before planning".into(),
+        })?;
+        let level = self.level;
+        let mut hood = Neighbourhood {
+            base,
+            treetop,
+            previous_level: self.previous_stage(),
+            keys: BTreeMap::new(),
+            values: BTreeMap::new(),
+        };
+        let own = hood.unit_keys(unit_index)?;
+        let cut: Vec<usize> = (0..own.keys.len())
+            .filter(|&i| {
+                let d = own.keys[i].depth();
+                d == level || (d < level && own.is_leaf(i))
+            })
+            .collect();
+        if cut.is_empty() {
+            return Ok(None);
+        }
+        let keys: Vec<CubeKey> = cut.iter().map(|&i| own.keys[i]).collect();
+        let n = keys.len();
+        let index_of = |k: CubeKey| keys.binary_search(&k).ok();
+
+        // Histograms of the cut cubes, aligned with the unit's octree rows.
+        let hist_all = {
+            let unit = treetop.units.get(unit_index).map(|u| u.record.first_key);
+            let name = base
+                .segments(HISTOGRAMS)
+                .iter()
+                .find(|(_, r)| Some(r.first_key) == unit)
+                .map(|(n, _)| n.clone())
+                .ok_or_else(|| StoreError::Stage {
+                    stage: LEVEL_STAGES[usize::from(level)].into(),
+                    unit: format!("unit {unit_index}"),
+                    message: "no histograms for this unit: run the histograms stage first".into(),
+                })?;
+            let file = base.open_segment(&name)?;
+            let (_, h) = file.reader()?.read_f32("hist").map_err(|e| file.corruption(e))?;
+            if h.len() != own.keys.len() * BINS {
+                return Err(file.corruption(crate::format::DecodeError::MissingColumn(
+                    "hist rows matching the octree unit".into(),
+                )));
+            }
+            h
+        };
+        let hist: Vec<[f32; BINS]> = cut
+            .iter()
+            .map(|&i| std::array::from_fn(|b| hist_all[i * BINS + b]))
+            .collect();
+
+        // Lengths in units of the root side: the discrete problem, and so every iterate, is then
+        // the same for a scaled or translated scene.
+        let side = |k: CubeKey| (0.5f64).powi(i32::from(k.depth())) as f32;
+        let mut frozen: BTreeMap<CubeKey, u32> = BTreeMap::new();
+        let mut frozen_u = Vec::new();
+        let mut frozen_v = Vec::new();
+        let mut start = vec![0u32];
+        let mut terms: Vec<(u32, f32)> = Vec::new();
+        for &key in &keys {
+            for axis in 0..3 {
+                let mut neighbours: Vec<CubeKey> = Vec::new();
+                if let Some(n0) = plus_neighbour(key, axis) {
+                    match hood.node(n0)? {
+                        Some(leaf) if leaf || n0.depth() == level => neighbours.push(n0),
+                        Some(_) => neighbours.extend(children_on_min_face(n0, axis)),
+                        None => {
+                            let mut up = n0.parent();
+                            while let Some(a) = up {
+                                if hood.node(a)?.is_some() {
+                                    neighbours.push(a);
+                                    break;
+                                }
+                                up = a.parent();
+                            }
+                        }
+                    }
+                }
+                let count = neighbours.len() as f32;
+                for neighbour in neighbours {
+                    let w = 1.0 / (count * 0.5 * (side(key) + side(neighbour)));
+                    let target = match index_of(neighbour) {
+                        Some(i) => i as u32,
+                        None => {
+                            let slot = match frozen.get(&neighbour) {
+                                Some(s) => *s,
+                                None => {
+                                    let (u, v) = match hood.previous(self.source_key(neighbour))? {
+                                        Some((u, v, _, _)) => (u, v),
+                                        None => (0.0, [0.0; 3]),
+                                    };
+                                    let s = frozen_u.len() as u32;
+                                    frozen_u.push(u);
+                                    frozen_v.push(v);
+                                    frozen.insert(neighbour, s);
+                                    s
+                                }
+                            };
+                            n as u32 + slot
+                        }
+                    };
+                    terms.push((target, w));
+                }
+                start.push(terms.len() as u32);
+            }
+        }
+        let mut state = State::zeros(n);
+        for (c, key) in keys.iter().enumerate() {
+            if let Some((u, v, p, q)) = hood.previous(self.source_key(*key))? {
+                state.u[c] = u;
+                state.v[c] = v;
+                state.p[c] = p;
+                state.q[c] = q;
+            }
+        }
+        let problem = Problem {
+            n,
+            start,
+            terms,
+            frozen_u,
+            frozen_v,
+            hist,
+            alpha1: keys.iter().map(|k| self.params.alpha1 * side(*k)).collect(),
+            alpha0: keys.iter().map(|k| self.params.alpha0 * side(*k) * side(*k)).collect(),
+            lambda: self.params.lambda,
+        };
+        Ok(Some((keys, problem, state)))
+    }
+}
+
+impl Stage for LevelStage {
+    fn name(&self) -> &'static str {
+        LEVEL_STAGES[usize::from(self.level)]
+    }
+
+    fn params(&self) -> Vec<u8> {
+        catalog::encode(&(self.params, self.scene))
+    }
+
+    fn input_digest(&self, base: &Snapshot<'_>) -> Vec<u8> {
+        let mut digest = base.digest(HISTOGRAMS).to_le_bytes().to_vec();
+        digest.extend_from_slice(&base.digest(super::OCTREE).to_le_bytes());
+        if let Some(previous) = self.previous_stage() {
+            digest.extend_from_slice(&base.digest(previous).to_le_bytes());
+        }
+        digest
+    }
+
+    fn plan(&self, base: &Snapshot<'_>) -> Result<Plan> {
+        let treetop = Treetop::of(base)?;
+        let units = treetop
+            .units
+            .iter()
+            .enumerate()
+            .filter(|(_, u)| CubeKey::from_raw(u.record.first_key).depth() <= self.level)
+            .map(|(index, u)| UnitSpec {
+                id: index as u64,
+                label: format!("level {} leaf {:?}", self.level, u.key),
+            })
+            .collect();
+        let _ = self.treetop.set(treetop);
+        Ok(Plan {
+            units,
+            replace: Replace::All,
+        })
+    }
+
+    fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput> {
+        let Some((keys, problem, mut state)) = self.build_problem(base, unit.id as usize)? else {
+            return Ok(UnitOutput {
+                extra: catalog::encode(&LevelUnitExtra::default()),
+                ..UnitOutput::default()
+            });
+        };
+        if problem.start.len() != 3 * problem.n + 1 {
+            return Err(self.stage_error(unit, "internal: malformed neighbour lists".into()));
+        }
+        let (energy_before, energy_after) = super::tgv::solve(&problem, &mut state, self.params.iterations as usize);
+        let values = LevelValues {
+            keys,
+            u: state.u,
+            v: state.v,
+            p: state.p,
+            q: state.q,
+        };
+        Ok(UnitOutput {
+            segments: vec![columns_of(&values)],
+            extra: catalog::encode(&LevelUnitExtra {
+                cubes: values.keys.len() as u64,
+                energy_before,
+                energy_after,
+            }),
+            block_rows: 0,
+        })
+    }
+
+    fn finish(&self, _txn: &WriteTransaction, _base: &Snapshot<'_>, units: &[(u64, UnitRecord)]) -> Result<String> {
+        let mut total = LevelUnitExtra::default();
+        for (_, record) in units {
+            let e: LevelUnitExtra = catalog::decode("units_done", &record.extra)?;
+            total.cubes += e.cubes;
+            total.energy_before += e.energy_before;
+            total.energy_after += e.energy_after;
+        }
+        let line = format!(
+            "level {}: {} cubes, energy {:.6e} -> {:.6e} ({} iterations; alpha1 {}, alpha0 {}, lambda {})",
+            self.level,
+            total.cubes,
+            total.energy_before,
+            total.energy_after,
+            self.params.iterations,
+            self.params.alpha1,
+            self.params.alpha0,
+            self.params.lambda
+        );
+        tracing::info!("{line}");
+        Ok(line)
+    }
+}

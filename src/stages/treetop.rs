@@ -1,0 +1,119 @@
+//! The treetop as later stages see it: units are the octree's segments (one per treetop leaf,
+//! plus one for the treetop's internal nodes), and every cube key belongs to exactly one unit.
+
+use crate::format::CubeKey;
+use crate::store::catalog::SegmentRecord;
+use crate::store::{Result, Snapshot, StoreError};
+
+use super::OCTREE;
+use super::octree::children;
+
+#[derive(Clone, Debug)]
+pub struct TreetopUnit {
+    /// The leaf cube (root key for the internal-node unit).
+    pub key: CubeKey,
+    pub segment: String,
+    pub record: SegmentRecord,
+    pub top: bool,
+}
+
+/// Units in a fixed order: the internal-node unit first (if any), then leaves by key.
+#[derive(Clone, Debug)]
+pub struct Treetop {
+    pub units: Vec<TreetopUnit>,
+}
+
+impl Treetop {
+    pub fn of(snapshot: &Snapshot<'_>) -> Result<Treetop> {
+        let segments = snapshot.segments(OCTREE);
+        if segments.is_empty() {
+            return Err(StoreError::Stage {
+                stage: OCTREE.into(),
+                unit: "-".into(),
+                message: "no octree yet: run `octstore solve --until octree` first".into(),
+            });
+        }
+        let root = CubeKey::new(0, 0, 0, 0);
+        let mut units: Vec<TreetopUnit> = segments
+            .iter()
+            .map(|(name, record)| TreetopUnit {
+                key: CubeKey::from_raw(record.first_key),
+                segment: name.clone(),
+                record: record.clone(),
+                top: segments.len() > 1 && record.first_key == root.raw(),
+            })
+            .collect();
+        units.sort_by_key(|u| (!u.top, u.key));
+        Ok(Treetop { units })
+    }
+
+    /// Index of the unit holding `key` (existing or not): the leaf whose subtree contains it,
+    /// else the internal-node unit.
+    pub fn unit_of(&self, key: CubeKey) -> usize {
+        let leaves_start = usize::from(self.units.first().is_some_and(|u| u.top));
+        let leaves = self.units.get(leaves_start..).unwrap_or(&[]);
+        let position = leaves.partition_point(|u| u.key <= key);
+        if position > 0
+            && let Some(unit) = leaves.get(position - 1)
+            && unit.key.is_ancestor_or_self_of(key)
+        {
+            return leaves_start + position - 1;
+        }
+        0
+    }
+}
+
+/// Sorted keys of one unit, with the octree's leaf test.
+pub struct UnitKeys {
+    pub keys: Vec<CubeKey>,
+    pub top: bool,
+}
+
+impl UnitKeys {
+    pub fn contains(&self, key: CubeKey) -> bool {
+        self.keys.binary_search(&key).is_ok()
+    }
+
+    /// Whether an existing node of this unit is a leaf of the octree. Nodes of the internal
+    /// unit never are; in a leaf unit a node is internal iff the next key is its descendant.
+    pub fn is_leaf(&self, index: usize) -> bool {
+        if self.top {
+            return false;
+        }
+        match (self.keys.get(index), self.keys.get(index + 1)) {
+            (Some(k), Some(next)) => !k.is_ancestor_or_self_of(*next),
+            (Some(_), None) => true,
+            _ => false,
+        }
+    }
+}
+
+/// Children of `key` that touch its face on the `-` side of `axis` (the 4 finer neighbours seen
+/// from a cube on that side).
+pub fn children_on_min_face(key: CubeKey, axis: usize) -> [CubeKey; 4] {
+    let all = children(key);
+    let mut out = [key; 4];
+    let mut n = 0;
+    for (i, child) in all.iter().enumerate() {
+        if (i >> axis) & 1 == 0 {
+            if let Some(slot) = out.get_mut(n) {
+                *slot = *child;
+            }
+            n += 1;
+        }
+    }
+    out
+}
+
+/// The same-size neighbour on the `+` side of `axis`, if inside the root.
+pub fn plus_neighbour(key: CubeKey, axis: usize) -> Option<CubeKey> {
+    let depth = key.depth();
+    let mut c = key.coords();
+    let max = if depth >= 32 { u32::MAX } else { (1u32 << depth) - 1 };
+    let slot = c.get_mut(axis)?;
+    if *slot >= max {
+        return None;
+    }
+    *slot += 1;
+    Some(CubeKey::new(depth, c[0], c[1], c[2]))
+}

@@ -1,0 +1,297 @@
+//! Histograms and the TGV solve on synthetic scenes with known truth.
+
+use glam::DVec3;
+use octstore::Store;
+use octstore::scenes::{Noise, SceneSpec, Shape};
+use octstore::stages::histograms::HistogramsStage;
+use octstore::stages::ingest::{IngestOptions, IngestStage, registered_depth_maps};
+use octstore::stages::inputs::{DiscoverOptions, discover};
+use octstore::stages::octree::OctreeStage;
+use octstore::stages::scene::Scene;
+use octstore::stages::solve::{LEVEL_STAGES, LevelStage, SolveParams, read_level_values};
+use octstore::stages::tgv::{Operator, State, energy, solve};
+use octstore::stages::{OCTREE, octree_max_depth};
+use octstore::store::RunOptions;
+
+fn options() -> RunOptions {
+    RunOptions {
+        resume: false,
+        threads: 2,
+        progress: false,
+    }
+}
+
+fn sphere_scene(scale: f64, shift: DVec3, noise: Option<Noise>) -> SceneSpec {
+    let center = DVec3::new(0.2, -0.1, 0.3) * scale + shift;
+    SceneSpec {
+        shapes: vec![Shape::Sphere {
+            center,
+            radius: 0.5 * scale,
+        }],
+        cameras: 20,
+        distance: 2.2 * scale,
+        target: center,
+        width: 64,
+        height: 48,
+        fov_degrees: 45.0,
+        noise,
+        room: Some(3.0 * scale),
+    }
+}
+
+/// Renders, ingests and solves a scene; returns the store and its scene.
+fn pipeline(
+    dir: &std::path::Path,
+    spec: &SceneSpec,
+    max_depth: u8,
+    leaf_cubes: u64,
+    iterations: u32,
+) -> (Store, Scene) {
+    let manifest = spec.write(&dir.join("input")).unwrap();
+    let store = Store::create(dir.join("store")).unwrap();
+    let sources = discover(&[manifest], &DiscoverOptions::default()).unwrap();
+    let ingest = IngestStage::prepare(
+        &store,
+        sources,
+        &IngestOptions {
+            root: None,
+            root_margin: 0.2,
+            max_depth,
+        },
+    )
+    .unwrap();
+    store.run_stage(&ingest, &options()).unwrap();
+    let scene = *ingest.scene();
+    let octree = OctreeStage::new(scene, leaf_cubes, 1 << 20, store.scratch_dir(OCTREE).unwrap());
+    store.run_stage(&octree, &options()).unwrap();
+    let histograms = HistogramsStage::new(scene, registered_depth_maps(&store).unwrap());
+    store.run_stage(&histograms, &options()).unwrap();
+    let params = SolveParams {
+        iterations,
+        ..SolveParams::default()
+    };
+    for level in 0..=octree_max_depth(&store).unwrap() {
+        store
+            .run_stage(&LevelStage::new(level, scene, params), &options())
+            .unwrap();
+    }
+    (store, scene)
+}
+
+/// The finest level's (centre, side, u) for every leaf.
+fn field(store: &Store, scene: &Scene) -> Vec<(octstore::CubeKey, DVec3, f64, f32)> {
+    let snap = store.latest().unwrap();
+    let finest = LEVEL_STAGES[usize::from(octree_max_depth(store).unwrap())];
+    let mut out = Vec::new();
+    for (name, _) in snap.segments(finest) {
+        let values = read_level_values(&snap, name).unwrap();
+        for (k, u) in values.keys.iter().zip(&values.u) {
+            out.push((*k, scene.cube_center(*k), scene.cube_side(k.depth()), *u));
+        }
+    }
+    out.sort_by_key(|e| e.0);
+    out
+}
+
+#[test]
+fn operator_and_adjoint_agree_on_real_balanced_octrees() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, scene) = pipeline(dir.path(), &sphere_scene(1.0, DVec3::ZERO, None), 6, 300, 5);
+    let base = store.latest().unwrap();
+    let mut checked = 0;
+    let mut seed = 99u64;
+    let mut rand = move || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((seed >> 33) as f32 / (1u64 << 31) as f32) * 2.0 - 1.0
+    };
+    for level in [3u8, 5, 6] {
+        let stage = LevelStage::new(level, scene, SolveParams::default());
+        use octstore::store::Stage;
+        let plan = stage.plan(&base).unwrap();
+        for unit in plan.units.iter().take(6) {
+            let Some((keys, problem, _)) = stage.build_problem(&base, unit.id as usize).unwrap() else {
+                continue;
+            };
+            let jumps = keys.windows(2).any(|w| w[0].depth() != w[1].depth());
+            let frozen = !problem.frozen_u.is_empty();
+            let op = Operator::new(&problem);
+            let n = problem.n;
+            let u: Vec<f32> = (0..n).map(|_| rand()).collect();
+            let v: Vec<[f32; 3]> = (0..n).map(|_| [rand(), rand(), rand()]).collect();
+            let y: Vec<[f32; 3]> = (0..n).map(|_| [rand(), rand(), rand()]).collect();
+            let z: Vec<[f32; 6]> = (0..n).map(|_| std::array::from_fn(|_| rand())).collect();
+            let (ku, kv) = op.apply(&u, &v, false);
+            let (ty, tz) = op.apply_t(&y, &z);
+            let lhs: f64 = (0..n)
+                .map(|c| {
+                    (0..3).map(|a| f64::from(ku[c][a]) * f64::from(y[c][a])).sum::<f64>()
+                        + (0..6).map(|a| f64::from(kv[c][a]) * f64::from(z[c][a])).sum::<f64>()
+                })
+                .sum();
+            let rhs: f64 = (0..n)
+                .map(|c| {
+                    f64::from(u[c]) * f64::from(ty[c])
+                        + (0..3).map(|a| f64::from(v[c][a]) * f64::from(tz[c][a])).sum::<f64>()
+                })
+                .sum();
+            let scale = lhs.abs().max(rhs.abs()).max(1.0);
+            assert!(
+                (lhs - rhs).abs() / scale < 1e-4,
+                "level {level}: <Kx,y> {lhs} vs <x,K'y> {rhs}"
+            );
+            if jumps && frozen {
+                checked += 1;
+            }
+        }
+    }
+    assert!(
+        checked > 0,
+        "no unit with level jumps and frozen neighbours was checked"
+    );
+}
+
+#[test]
+fn energy_decreases_on_a_noisy_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let noise = Some(Noise {
+        relative_sigma: 0.01,
+        outliers: 0.1,
+        seed: 3,
+    });
+    let (store, scene) = pipeline(dir.path(), &sphere_scene(1.0, DVec3::ZERO, noise), 6, 1_000_000, 1);
+    let base = store.latest().unwrap();
+    let stage = LevelStage::new(6, scene, SolveParams::default());
+    use octstore::store::Stage;
+    stage.plan(&base).unwrap();
+    let (_, problem, initial) = stage.build_problem(&base, 0).unwrap().unwrap();
+    let op = Operator::new(&problem);
+    // Start far from the optimum: everything "outside".
+    let mut state = State {
+        u: vec![1.0; problem.n],
+        ..initial.clone()
+    };
+    let mut energies = vec![energy(&op, &state)];
+    for _ in 0..6 {
+        solve(&problem, &mut state, 50);
+        energies.push(energy(&op, &state));
+    }
+    assert!(energies.last().unwrap() < &(energies[0] * 0.8), "{energies:?}");
+    for pair in energies.windows(2).skip(2) {
+        assert!(pair[1] <= pair[0] * 1.01, "energy went up: {energies:?}");
+    }
+}
+
+#[test]
+fn noisy_sphere_with_outliers_is_inside_negative_outside_positive() {
+    let dir = tempfile::tempdir().unwrap();
+    let noise = Some(Noise {
+        relative_sigma: 0.005,
+        outliers: 0.1,
+        seed: 11,
+    });
+    let spec = sphere_scene(1.0, DVec3::ZERO, noise);
+    let (store, scene) = pipeline(dir.path(), &spec, 8, 5000, 100);
+    let cubes = field(&store, &scene);
+    let (mut inside, mut outside, mut wrong) = (0, 0, Vec::new());
+    for (key, center, side, u) in &cubes {
+        let sd = spec.signed_distance(*center);
+        // Away from the surface, and within the region the cameras observe.
+        if sd < -1.5 * side && sd > -0.4 {
+            inside += 1;
+            if *u >= 0.0 {
+                wrong.push((key, sd, *u));
+            }
+        } else if sd > 1.5 * side && sd < 0.5 {
+            outside += 1;
+            if *u <= 0.0 {
+                wrong.push((key, sd, *u));
+            }
+        }
+    }
+    assert!(inside > 10 && outside > 50, "inside {inside}, outside {outside}");
+    assert!(
+        wrong.len() * 50 <= inside + outside,
+        "{} of {} wrong: {:?}",
+        wrong.len(),
+        inside + outside,
+        &wrong[..wrong.len().min(5)]
+    );
+    // Zero crossings between finest neighbouring cubes lie within a fraction of a cube.
+    let finest = cubes.iter().map(|c| c.0.depth()).max().unwrap();
+    let lookup: std::collections::BTreeMap<_, _> = cubes.iter().map(|c| (c.0, c)).collect();
+    let mut crossings = Vec::new();
+    for (key, center, side, u) in cubes.iter().filter(|c| c.0.depth() == finest) {
+        for axis in 0..3 {
+            let Some(n) = octstore::stages::treetop::plus_neighbour(*key, axis) else {
+                continue;
+            };
+            if let Some((_, c2, _, u2)) = lookup.get(&n)
+                && (u > &0.0) != (u2 > &0.0)
+                && spec.signed_distance(*center).abs() < 0.25
+            {
+                let t = f64::from(*u / (*u - *u2));
+                let p = *center + (*c2 - *center) * t;
+                crossings.push(spec.signed_distance(p).abs() / side);
+            }
+        }
+    }
+    crossings.sort_by(f64::total_cmp);
+    assert!(crossings.len() > 100, "{} crossings", crossings.len());
+    let median = crossings[crossings.len() / 2];
+    assert!(median < 0.5, "median zero-crossing error {median} cubes");
+}
+
+#[test]
+fn scaled_and_shifted_scenes_give_the_same_indicator() {
+    let a = tempfile::tempdir().unwrap();
+    let b = tempfile::tempdir().unwrap();
+    let (store_a, scene_a) = pipeline(a.path(), &sphere_scene(1.0, DVec3::ZERO, None), 6, 1_000_000, 50);
+    let shift = DVec3::new(5.0e4, -2.0e4, 1.0e4);
+    let (store_b, scene_b) = pipeline(b.path(), &sphere_scene(1000.0, shift, None), 6, 1_000_000, 50);
+    let fa = field(&store_a, &scene_a);
+    let fb = field(&store_b, &scene_b);
+    let keys_b: std::collections::BTreeMap<_, _> = fb.iter().map(|c| (c.0, c.3)).collect();
+    let common: Vec<f32> = fa
+        .iter()
+        .filter_map(|c| keys_b.get(&c.0).map(|u| (c.3 - u).abs()))
+        .collect();
+    assert!(
+        common.len() as f64 > 0.95 * fa.len() as f64,
+        "{} of {} cubes in common",
+        common.len(),
+        fa.len()
+    );
+    let max = common.iter().copied().fold(0f32, f32::max);
+    let mean = common.iter().sum::<f32>() / common.len() as f32;
+    assert!(mean < 0.01 && max < 0.2, "mean |du| {mean}, max {max}");
+}
+
+#[test]
+fn one_leaf_and_many_leaves_agree_near_borders() {
+    let a = tempfile::tempdir().unwrap();
+    let b = tempfile::tempdir().unwrap();
+    let spec = sphere_scene(1.0, DVec3::ZERO, None);
+    let (store_a, scene) = pipeline(a.path(), &spec, 6, 1_000_000, 100);
+    let (store_b, _) = pipeline(b.path(), &spec, 6, 200, 100);
+    assert_eq!(store_a.latest().unwrap().segments(OCTREE).len(), 1);
+    assert!(store_b.latest().unwrap().segments(OCTREE).len() > 10);
+    let fa = field(&store_a, &scene);
+    let fb: std::collections::BTreeMap<_, _> = field(&store_b, &scene).into_iter().map(|c| (c.0, c.3)).collect();
+    let near_surface: Vec<f32> = fa
+        .iter()
+        .filter(|c| spec.signed_distance(c.1).abs() < 3.0 * c.2)
+        .map(|c| (c.3 - fb[&c.0]).abs())
+        .collect();
+    let mean = near_surface.iter().sum::<f32>() / near_surface.len() as f32;
+    let sign_flips = fa.iter().filter(|c| (c.3 > 0.0) != (fb[&c.0] > 0.0)).count();
+    eprintln!(
+        "seams: mean |du| near the surface {mean}, sign flips {sign_flips} of {}",
+        fa.len()
+    );
+    assert!(mean < 0.3, "mean |du| near the surface {mean}");
+    assert!(
+        sign_flips * 100 < fa.len(),
+        "{sign_flips} of {} cubes changed sign",
+        fa.len()
+    );
+}
