@@ -10,6 +10,7 @@
 
 pub mod cli;
 pub mod format;
+pub mod render;
 pub mod scenes;
 pub mod stages;
 pub mod store;

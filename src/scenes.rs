@@ -116,7 +116,7 @@ impl SceneSpec {
                 outliers: 0.02,
                 seed: 7,
             }),
-            room: Some(3.0),
+            room: Some(2.6),
         }
     }
 

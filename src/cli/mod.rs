@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use clap::{Args, Parser, Subcommand};
 use serde::Serialize;
 
+use crate::stages::extract::{Mesh, Region};
 use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage};
 use crate::stages::inputs::{DiscoverOptions, InputFormat};
@@ -110,6 +111,28 @@ pub enum Command {
         #[arg(long, default_value_t = 100)]
         iterations: u32,
     },
+    /// Write the surface u = 0 as a mesh (binary PLY, or OBJ by extension).
+    Extract {
+        store: PathBuf,
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Only what lies in this box: minx,miny,minz,maxx,maxy,maxz.
+        #[arg(long, value_parser = parse_region)]
+        region: Option<Region>,
+        /// Extract from this version instead of the latest.
+        #[arg(long)]
+        version: Option<u64>,
+    },
+    /// Render a mesh written by `extract` as a shaded PNG.
+    Render {
+        mesh: PathBuf,
+        #[arg(short, long)]
+        output: PathBuf,
+        #[arg(long, default_value_t = 800)]
+        width: u32,
+        #[arg(long, default_value_t = 600)]
+        height: u32,
+    },
     /// Summary of a store: version, inputs, cubes, leaves, segments, bytes, content digests.
     Info {
         store: PathBuf,
@@ -149,6 +172,62 @@ pub enum Command {
         #[arg(long)]
         resume: bool,
     },
+}
+
+fn save_png(image: &image::RgbImage, path: &std::path::Path) -> Result<(), StoreError> {
+    image.save(path).map_err(|e| StoreError::Io {
+        action: "write image",
+        path: path.to_path_buf(),
+        source: std::io::Error::other(e.to_string()),
+    })
+}
+
+fn parse_region(text: &str) -> Result<Region, String> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|t| t.trim().parse::<f64>().map_err(|_| format!("'{t}' is not a number")))
+        .collect::<Result<_, _>>()?;
+    match v[..] {
+        [a, b, c, d, e, f] if a < d && b < e && c < f => Ok(Region {
+            min: glam::DVec3::new(a, b, c),
+            max: glam::DVec3::new(d, e, f),
+        }),
+        _ => Err("expected minx,miny,minz,maxx,maxy,maxz with min < max".into()),
+    }
+}
+
+/// Extracts the latest (or a given) version's surface into `output`; prints a summary.
+pub fn extract_to(
+    store: &Store,
+    output: &std::path::Path,
+    region: Option<Region>,
+    version: Option<u64>,
+) -> Result<Mesh, StoreError> {
+    let started = std::time::Instant::now();
+    let scene = stages::ingest::read_scene(store)?.ok_or_else(|| StoreError::Stage {
+        stage: "extract".into(),
+        unit: "-".into(),
+        message: "the store has no depth maps yet".into(),
+    })?;
+    let snapshot = match version {
+        Some(v) => store.snapshot(v)?,
+        None => store.latest()?,
+    };
+    let finest = stages::octree_max_depth(store)?;
+    let mesh = stages::extract::extract(&snapshot, &scene, finest, region)?;
+    stages::extract::write_mesh(output, &mesh).map_err(crate::store::io_error("write mesh", output))?;
+    let (boundary, non_manifold) = stages::extract::edge_defects(&mesh);
+    println!(
+        "extract    {} vertices, {} triangles, {} boundary edges, {} non-manifold edges -> {} | {:.2}s | peak memory {:.0} MB",
+        mesh.positions.len(),
+        mesh.triangles.len(),
+        boundary,
+        non_manifold,
+        output.display(),
+        started.elapsed().as_secs_f64(),
+        peak_rss_bytes() as f64 / 1e6
+    );
+    Ok(mesh)
 }
 
 fn parse_root(text: &str) -> Result<([f64; 3], f64), String> {
@@ -379,8 +458,8 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 })?;
             let options = IngestOptions {
                 root: None,
-                root_margin: 0.1,
-                max_depth: 8,
+                root_margin: 0.05,
+                max_depth: 9,
             };
             let ingest = IngestStage::prepare(&store, sources, &options)?;
             let run = run_options(&global, false);
@@ -400,11 +479,46 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             for level in 0..=stages::octree_max_depth(&store)? {
                 summary(&store.run_stage(&LevelStage::new(level, scene, params), &run)?);
             }
+            let mesh = extract_to(&store, &out.join("demo.ply"), None, None)?;
+            // The preview shows the objects, not the room around them.
+            let objects = Region {
+                min: glam::DVec3::new(-0.7, -0.6, -0.45),
+                max: glam::DVec3::new(0.7, 0.6, 0.85),
+            };
+            let preview = stages::extract::clip(&mesh, objects);
+            save_png(&crate::render::render(&preview, 800, 600), &out.join("demo.png"))?;
+            println!(
+                "demo: wrote {} and {}",
+                out.join("demo.ply").display(),
+                out.join("demo.png").display()
+            );
             println!(
                 "demo: done in {:.1}s; store at {}",
                 started.elapsed().as_secs_f64(),
                 store_path.display()
             );
+        }
+        Command::Extract {
+            store,
+            output,
+            region,
+            version,
+        } => {
+            let store = Store::open_for_reading(&store)?;
+            extract_to(&store, &output, region, version)?;
+        }
+        Command::Render {
+            mesh,
+            output,
+            width,
+            height,
+        } => {
+            let mesh = stages::extract::read_ply(&mesh).map_err(|message| StoreError::Stage {
+                stage: "render".into(),
+                unit: "-".into(),
+                message,
+            })?;
+            save_png(&crate::render::render(&mesh, width, height), &output)?;
         }
         Command::Info { store, json, version } => {
             let store = Store::open_for_reading(&store)?;

@@ -47,6 +47,8 @@ pub struct SampleStats {
     pub absurd: u64,
     /// Valid pixels without a valid 4-neighbour: no radius can be estimated.
     pub isolated: u64,
+    /// Samples outside the root cube (stray outliers; more than 1% is an error).
+    pub outside: u64,
 }
 
 impl SampleStats {
@@ -57,6 +59,7 @@ impl SampleStats {
         self.invalid += o.invalid;
         self.absurd += o.absurd;
         self.isolated += o.isolated;
+        self.outside += o.outside;
     }
 }
 
@@ -250,28 +253,32 @@ impl IngestStage {
                         max_depth: options.max_depth,
                     },
                     None => {
-                        let bounds = maps
+                        // A robust box: per axis, the 0.1% and 99.9% quantiles of a sample of
+                        // every map's points, so that stray outliers do not inflate the root.
+                        let per_map: Vec<Vec<DVec3>> = maps
                             .par_iter()
                             .map(|(_, source)| {
                                 let image = source.load().map_err(input_error)?;
                                 let samples = back_project(source, &image);
-                                Ok(samples.points.iter().fold(
-                                    (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
-                                    |(lo, hi), p| (lo.min(*p), hi.max(*p)),
-                                ))
+                                let step = (samples.points.len() / 20_000).max(1);
+                                Ok(samples.points.iter().step_by(step).copied().collect())
                             })
-                            .collect::<Result<Vec<_>>>()?;
-                        let (lo, hi) = bounds.into_iter().fold(
-                            (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
-                            |(lo, hi), (a, b)| (lo.min(a), hi.max(b)),
-                        );
-                        if !lo.is_finite() || !hi.is_finite() {
+                            .collect::<Result<_>>()?;
+                        let points: Vec<DVec3> = per_map.into_iter().flatten().collect();
+                        if points.is_empty() {
                             return Err(StoreError::Stage {
                                 stage: INGEST.into(),
                                 unit: "all depth maps".into(),
                                 message: "no valid depth samples: nothing to build a scene from".into(),
                             });
                         }
+                        let quantile = |axis: usize, q: f64| -> f64 {
+                            let mut v: Vec<f64> = points.iter().map(|p| p[axis]).collect();
+                            v.sort_by(f64::total_cmp);
+                            v[((v.len() - 1) as f64 * q).round() as usize]
+                        };
+                        let lo = DVec3::new(quantile(0, 0.001), quantile(1, 0.001), quantile(2, 0.001));
+                        let hi = DVec3::new(quantile(0, 0.999), quantile(1, 0.999), quantile(2, 0.999));
                         Scene::around(lo, hi, options.root_margin, options.max_depth)
                     }
                 };
@@ -301,16 +308,20 @@ impl IngestStage {
         let mut entries: Vec<(CubeKey, u64)> = Vec::with_capacity(samples.points.len());
         for (p, r) in samples.points.iter().zip(&samples.radii) {
             if !self.scene.contains(*p) {
-                return Err(super::depthmap::bad(
-                    &source.path,
-                    format!(
-                        "sample at ({:.4}, {:.4}, {:.4}) lies outside the store's root cube (min {:?}, side {}); create a new store whose first ingest includes this depth map, or give --root / a larger --root-margin",
-                        p.x, p.y, p.z, self.scene.root_min, self.scene.root_side
-                    ),
-                ));
+                stats.outside += 1;
+                continue;
             }
             let depth = self.scene.depth_for_radius(*r);
             entries.push((self.scene.key_at(*p, depth), self.scene.quantize_radius(*r)));
+        }
+        if stats.outside * 100 > stats.samples.max(1) {
+            return Err(super::depthmap::bad(
+                &source.path,
+                format!(
+                    "{} of {} samples lie outside the store's root cube (min {:?}, side {}); create a new store whose first ingest includes this depth map, or give --root / a larger --root-margin",
+                    stats.outside, stats.samples, self.scene.root_min, self.scene.root_side
+                ),
+            ));
         }
         entries.sort_unstable();
         let mut keys: Vec<CubeKey> = Vec::new();
@@ -420,14 +431,15 @@ impl Stage for IngestStage {
                 .insert(META_SCENE, catalog::encode(&self.scene).as_slice())?;
         }
         Ok(format!(
-            "{} depth map(s): {} samples, {} cubes; skipped {} invalid, {} absurd, {} isolated of {} pixels",
+            "{} depth map(s): {} samples, {} cubes; skipped {} invalid, {} absurd, {} isolated of {} pixels, {} outside the root",
             units.len(),
             total.samples,
             total.cubes,
             total.invalid,
             total.absurd,
             total.isolated,
-            total.pixels
+            total.pixels,
+            total.outside
         ))
     }
 }

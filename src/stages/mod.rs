@@ -1,6 +1,7 @@
 //! Pipeline stages. Each is a [`Stage`](crate::store::Stage) run by the store's stage runner.
 
 pub mod depthmap;
+pub mod extract;
 pub mod histograms;
 pub mod ingest;
 pub mod inputs;

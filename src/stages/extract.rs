@@ -1,0 +1,560 @@
+//! Surface extraction (paper 4.6): the zero level set of u over the finest level cut.
+//!
+//! Dual marching tetrahedra. u lives at leaf centres. For every corner point V of the octree,
+//! the dual cell joins the centres of the (up to 8) leaves incident to V, one per octant, with
+//! repeats where a coarse leaf covers several octants; corners outside the root are virtual
+//! exterior cells with u = +1, which closes every surface. Each dual cell is generated exactly
+//! once, by the deepest incident leaf that comes first in octant order, and split into the 6
+//! Kuhn tetrahedra around its 0-7 diagonal, so neighbouring cells cut their shared faces along
+//! the same diagonal and the tetrahedra conform. A surface vertex lies on a tetrahedron edge and
+//! is named by the unordered pair of cells at its ends, so the same vertex is produced, and
+//! welded, wherever the edge appears: on both sides of a level change and of a treetop border.
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::Write;
+use std::path::Path;
+use std::sync::Arc;
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::scene::Scene;
+use super::solve::{LEVEL_STAGES, read_level_values};
+use super::treetop::Treetop;
+use crate::format::{CubeKey, MAX_DEPTH};
+use crate::store::{Result, Snapshot, StoreError};
+
+/// Identity of a dual-cell corner: a leaf key, or a virtual exterior cell (bit 127 set, bits
+/// 124..127 the mirrored axes, then the key of the leaf it mirrors).
+type CornerId = u128;
+const VIRTUAL: u128 = 1 << 127;
+
+#[derive(Clone, Copy)]
+struct Corner {
+    id: CornerId,
+    center: DVec3,
+    u: f32,
+    depth: u8,
+}
+
+/// Sorted leaf keys of a unit and their final u.
+type LeafValues = (Vec<CubeKey>, Vec<f32>);
+
+/// The final indicator of every leaf, per unit, loaded on demand.
+struct FinalLevel<'a, 's> {
+    base: &'a Snapshot<'s>,
+    treetop: &'a Treetop,
+    stage: &'static str,
+    units: BTreeMap<usize, Option<Arc<LeafValues>>>,
+}
+
+impl FinalLevel<'_, '_> {
+    fn unit(&mut self, unit: usize) -> Result<Option<Arc<LeafValues>>> {
+        if let Some(v) = self.units.get(&unit) {
+            return Ok(v.clone());
+        }
+        let segment = self
+            .base
+            .segments(self.stage)
+            .iter()
+            .find(|(_, r)| r.unit == unit as u64)
+            .map(|(n, _)| n.clone());
+        let loaded = match segment {
+            Some(name) => {
+                let values = read_level_values(self.base, &name)?;
+                Some(Arc::new((values.keys, values.u)))
+            }
+            None => None,
+        };
+        self.units.insert(unit, loaded.clone());
+        Ok(loaded)
+    }
+
+    /// The leaf containing the finest cell at full-resolution coordinates `cell`.
+    fn leaf_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, f32)>> {
+        let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
+        let unit = self.treetop.unit_of(probe);
+        let Some(values) = self.unit(unit)? else {
+            return Ok(None);
+        };
+        let (keys, u) = (&values.0, &values.1);
+        let position = keys.partition_point(|k| *k <= probe);
+        if position == 0 {
+            return Ok(None);
+        }
+        let index = position - 1;
+        match (keys.get(index), u.get(index)) {
+            (Some(k), Some(u)) if k.is_ancestor_or_self_of(probe) => Ok(Some((*k, *u))),
+            _ => Ok(None),
+        }
+    }
+}
+
+/// A triangle soup with welded vertices, per unit.
+#[derive(Default)]
+pub struct UnitMesh {
+    /// Edge identity (sorted corner pair) and position of each vertex.
+    pub vertices: Vec<((CornerId, CornerId), DVec3, DVec3)>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+/// The Kuhn subdivision of a cube with corners indexed by octant bits (x = 1, y = 2, z = 4):
+/// the 6 monotone paths from corner 0 to corner 7.
+const KUHN: [[usize; 4]; 6] = [
+    [0, 1, 3, 7],
+    [0, 1, 5, 7],
+    [0, 2, 3, 7],
+    [0, 2, 6, 7],
+    [0, 4, 5, 7],
+    [0, 4, 6, 7],
+];
+
+fn full_side(depth: u8) -> u64 {
+    1u64 << (u32::from(MAX_DEPTH) - u32::from(depth))
+}
+
+fn dual_cells_of_unit(
+    scene: &Scene,
+    level: &mut FinalLevel<'_, '_>,
+    keys: &[CubeKey],
+    values: &[f32],
+) -> Result<UnitMesh> {
+    let mut mesh = UnitMesh::default();
+    let mut vertex_index: HashMap<(CornerId, CornerId), u32> = HashMap::new();
+    let limit = 1u64 << 32;
+    for (key, own_u) in keys.iter().zip(values) {
+        let d = key.depth();
+        let side = full_side(d);
+        let [x, y, z] = key.corner_full_resolution().map(u64::from);
+        for corner in 0..8u64 {
+            let v = [
+                x + (corner & 1) * side,
+                y + ((corner >> 1) & 1) * side,
+                z + ((corner >> 2) & 1) * side,
+            ];
+            // The 8 octants around V, with the leaf (or virtual exterior cell) in each.
+            let mut corners: [Option<Corner>; 8] = [None; 8];
+            let mut generator_ok = true;
+            for (octant, slot) in corners.iter_mut().enumerate() {
+                let o = octant as u64;
+                let cell = [
+                    v[0] as i64 - 1 + (o & 1) as i64,
+                    v[1] as i64 - 1 + ((o >> 1) & 1) as i64,
+                    v[2] as i64 - 1 + ((o >> 2) & 1) as i64,
+                ];
+                // Outside the root, the octree continues as its mirror image across the root's
+                // faces, with u = +1: neighbouring dual cells then agree on every virtual cell.
+                let mut mirrored = 0u128;
+                let inside = cell.map(|c| c);
+                let mut probe = [0u32; 3];
+                for axis in 0..3 {
+                    let c = inside[axis];
+                    let m = if c < 0 {
+                        mirrored |= 1 << axis;
+                        -1 - c
+                    } else if c >= limit as i64 {
+                        mirrored |= 1 << axis;
+                        2 * limit as i64 - 1 - c
+                    } else {
+                        c
+                    };
+                    probe[axis] = m.clamp(0, limit as i64 - 1) as u32;
+                }
+                let Some((leaf, u)) = level.leaf_at(probe)? else {
+                    generator_ok = false;
+                    break;
+                };
+                let mut center = scene.cube_center(leaf);
+                if mirrored != 0 {
+                    let (lo, hi) = (scene.min(), scene.min() + DVec3::splat(scene.root_side));
+                    for axis in 0..3 {
+                        if mirrored & (1 << axis) != 0 {
+                            center[axis] = if inside[axis] < 0 {
+                                2.0 * lo[axis] - center[axis]
+                            } else {
+                                2.0 * hi[axis] - center[axis]
+                            };
+                        }
+                    }
+                }
+                let c = Corner {
+                    id: if mirrored != 0 {
+                        VIRTUAL | (mirrored << 124) | leaf.raw()
+                    } else {
+                        leaf.raw()
+                    },
+                    center,
+                    u: if mirrored != 0 { 1.0 } else { u },
+                    depth: leaf.depth(),
+                };
+                *slot = Some(c);
+            }
+            let corners: [Corner; 8] = corners.map(|c| {
+                c.unwrap_or(Corner {
+                    id: VIRTUAL,
+                    center: DVec3::ZERO,
+                    u: 1.0,
+                    depth: 0,
+                })
+            });
+            // Generated by the deepest real leaf, first in octant order.
+            let deepest = corners.iter().filter(|c| c.id & VIRTUAL == 0).map(|c| c.depth).max();
+            let first = corners
+                .iter()
+                .position(|c| c.id & VIRTUAL == 0 && Some(c.depth) == deepest);
+            match first.and_then(|i| corners.get(i)) {
+                Some(c) if c.id == key.raw() => {}
+                _ => generator_ok = false,
+            }
+            if !generator_ok {
+                continue;
+            }
+            let _ = own_u;
+            let positive = corners.iter().filter(|c| c.u > 0.0).count();
+            if positive == 0 || positive == 8 {
+                continue;
+            }
+            // Gradient of u over the cell, for vertex normals.
+            let mut gradient = DVec3::ZERO;
+            for axis in 0..3 {
+                let (mut plus, mut minus, mut np, mut nm) = (0f64, 0f64, 0, 0);
+                let (mut cp, mut cm) = (0f64, 0f64);
+                for (i, c) in corners.iter().enumerate() {
+                    if (i >> axis) & 1 == 1 {
+                        plus += f64::from(c.u);
+                        cp += c.center[axis];
+                        np += 1;
+                    } else {
+                        minus += f64::from(c.u);
+                        cm += c.center[axis];
+                        nm += 1;
+                    }
+                }
+                let dist = cp / f64::from(np) - cm / f64::from(nm);
+                if dist.abs() > 0.0 {
+                    gradient[axis] = (plus / f64::from(np) - minus / f64::from(nm)) / dist;
+                }
+            }
+            for tet in KUHN {
+                let t = tet.map(|i| corners[i]);
+                let inside: Vec<usize> = (0..4).filter(|&i| t[i].u <= 0.0).collect();
+                let outside: Vec<usize> = (0..4).filter(|&i| t[i].u > 0.0).collect();
+                if inside.is_empty() || outside.is_empty() {
+                    continue;
+                }
+                let mut vertex = |a: usize, b: usize, mesh: &mut UnitMesh| -> u32 {
+                    let (ca, cb) = (t[a], t[b]);
+                    let edge = if ca.id <= cb.id { (ca.id, cb.id) } else { (cb.id, ca.id) };
+                    *vertex_index.entry(edge).or_insert_with(|| {
+                        let (lo, hi) = if ca.id <= cb.id { (ca, cb) } else { (cb, ca) };
+                        let s = f64::from(lo.u) / (f64::from(lo.u) - f64::from(hi.u));
+                        let position = lo.center + (hi.center - lo.center) * s;
+                        mesh.vertices.push((edge, position, DVec3::ZERO));
+                        (mesh.vertices.len() - 1) as u32
+                    })
+                };
+                let mut polygon: Vec<u32> = Vec::new();
+                if inside.len() == 1 || outside.len() == 1 {
+                    let (apex, others) = if inside.len() == 1 {
+                        (inside[0], &outside)
+                    } else {
+                        (outside[0], &inside)
+                    };
+                    for &o in others.iter() {
+                        polygon.push(vertex(apex, o, &mut mesh));
+                    }
+                } else {
+                    let (i0, i1, o0, o1) = (inside[0], inside[1], outside[0], outside[1]);
+                    polygon.push(vertex(i0, o0, &mut mesh));
+                    polygon.push(vertex(i0, o1, &mut mesh));
+                    polygon.push(vertex(i1, o1, &mut mesh));
+                    polygon.push(vertex(i1, o0, &mut mesh));
+                }
+                for &vi in &polygon {
+                    if let Some(v) = mesh.vertices.get_mut(vi as usize) {
+                        v.2 += gradient;
+                    }
+                }
+                // Orient towards positive u (outside).
+                let to_outside = outside.iter().map(|&i| t[i].center).sum::<DVec3>() / outside.len() as f64
+                    - inside.iter().map(|&i| t[i].center).sum::<DVec3>() / inside.len() as f64;
+                for k in 1..polygon.len() - 1 {
+                    let mut tri = [polygon[0], polygon[k], polygon[k + 1]];
+                    if tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2] {
+                        continue;
+                    }
+                    let p = tri.map(|i| mesh.vertices[i as usize].1);
+                    let normal = (p[1] - p[0]).cross(p[2] - p[0]);
+                    if normal.dot(to_outside) < 0.0 {
+                        tri.swap(1, 2);
+                    }
+                    mesh.triangles.push(tri);
+                }
+            }
+        }
+    }
+    Ok(mesh)
+}
+
+/// An axis-aligned box in world coordinates.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Region {
+    pub min: DVec3,
+    pub max: DVec3,
+}
+
+/// The extracted mesh: welded vertices with normals, and triangles.
+#[derive(Default, Debug, Clone)]
+pub struct Mesh {
+    pub positions: Vec<[f32; 3]>,
+    pub normals: Vec<[f32; 3]>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+/// Extracts the surface u = 0 of the latest solution, optionally only what lies in `region`.
+pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, region: Option<Region>) -> Result<Mesh> {
+    let treetop = Treetop::of(snapshot)?;
+    let stage = LEVEL_STAGES[usize::from(finest)];
+    if snapshot.segments(stage).is_empty() {
+        return Err(StoreError::Stage {
+            stage: "extract".into(),
+            unit: "-".into(),
+            message: format!("no solution at level {finest}: run `octstore solve` first"),
+        });
+    }
+    let units: Vec<usize> = (0..treetop.units.len())
+        .filter(|&i| {
+            let Some(unit) = treetop.units.get(i) else { return false };
+            if unit.top {
+                return false;
+            }
+            match region {
+                None => true,
+                Some(r) => {
+                    // The unit's cube, grown by one finest cube for dual cells on its border.
+                    let side = scene.cube_side(unit.key.depth());
+                    let lo = scene.cube_center(unit.key) - DVec3::splat(side * 0.5 + scene.cube_side(finest));
+                    let hi = lo + DVec3::splat(side + 2.0 * scene.cube_side(finest));
+                    lo.cmple(r.max).all() && hi.cmpge(r.min).all()
+                }
+            }
+        })
+        .collect();
+    let meshes: Vec<UnitMesh> = units
+        .par_iter()
+        .map(|&unit| {
+            let mut level = FinalLevel {
+                base: snapshot,
+                treetop: &treetop,
+                stage,
+                units: BTreeMap::new(),
+            };
+            match level.unit(unit)? {
+                Some(values) => dual_cells_of_unit(scene, &mut level, &values.0, &values.1),
+                None => Ok(UnitMesh::default()),
+            }
+        })
+        .collect::<Result<_>>()?;
+    // Weld across units by edge identity, in unit order (deterministic).
+    let mut index: HashMap<(CornerId, CornerId), u32> = HashMap::new();
+    let mut positions: Vec<DVec3> = Vec::new();
+    let mut normals: Vec<DVec3> = Vec::new();
+    let mut triangles = Vec::new();
+    for mesh in meshes {
+        let map: Vec<u32> = mesh
+            .vertices
+            .iter()
+            .map(|(edge, p, n)| match index.get(edge) {
+                Some(&i) => {
+                    normals[i as usize] += *n;
+                    i
+                }
+                None => {
+                    let i = positions.len() as u32;
+                    index.insert(*edge, i);
+                    positions.push(*p);
+                    normals.push(*n);
+                    i
+                }
+            })
+            .collect();
+        triangles.extend(mesh.triangles.iter().map(|t| t.map(|v| map[v as usize])));
+    }
+    let mut mesh = Mesh {
+        positions: positions.iter().map(|p| p.as_vec3().to_array()).collect(),
+        normals: normals
+            .iter()
+            .map(|n| n.normalize_or_zero().as_vec3().to_array())
+            .collect(),
+        triangles,
+    };
+    if let Some(r) = region {
+        mesh = clip(&mesh, r);
+    }
+    Ok(mesh)
+}
+
+/// Cuts a mesh at a box: triangles are clipped against its six planes (new vertices on the box
+/// faces are welded by position).
+pub fn clip(mesh: &Mesh, region: Region) -> Mesh {
+    let mut out = Mesh::default();
+    let mut welded: HashMap<[u32; 3], u32> = HashMap::new();
+    let mut add = |p: glam::Vec3, n: glam::Vec3, out: &mut Mesh| -> u32 {
+        let key = p.to_array().map(f32::to_bits);
+        *welded.entry(key).or_insert_with(|| {
+            out.positions.push(p.to_array());
+            out.normals.push(n.to_array());
+            (out.positions.len() - 1) as u32
+        })
+    };
+    let (lo, hi) = (region.min.as_vec3(), region.max.as_vec3());
+    for tri in &mesh.triangles {
+        let mut polygon: Vec<(glam::Vec3, glam::Vec3)> = tri
+            .iter()
+            .map(|&i| {
+                (
+                    glam::Vec3::from(mesh.positions[i as usize]),
+                    glam::Vec3::from(mesh.normals[i as usize]),
+                )
+            })
+            .collect();
+        for axis in 0..3 {
+            for (bound, keep_above) in [(lo[axis], true), (hi[axis], false)] {
+                let inside = |p: &glam::Vec3| if keep_above { p[axis] >= bound } else { p[axis] <= bound };
+                let mut next = Vec::new();
+                for i in 0..polygon.len() {
+                    let (a, b) = (polygon[i], polygon[(i + 1) % polygon.len()]);
+                    let (ia, ib) = (inside(&a.0), inside(&b.0));
+                    if ia {
+                        next.push(a);
+                    }
+                    if ia != ib {
+                        let t = (bound - a.0[axis]) / (b.0[axis] - a.0[axis]);
+                        let mut p = a.0 + (b.0 - a.0) * t;
+                        p[axis] = bound;
+                        next.push((p, (a.1 + (b.1 - a.1) * t).normalize_or_zero()));
+                    }
+                }
+                polygon = next;
+                if polygon.is_empty() {
+                    break;
+                }
+            }
+        }
+        if polygon.len() < 3 {
+            continue;
+        }
+        let ids: Vec<u32> = polygon.iter().map(|(p, n)| add(*p, *n, &mut out)).collect();
+        for k in 1..ids.len() - 1 {
+            let t = [ids[0], ids[k], ids[k + 1]];
+            if t[0] != t[1] && t[1] != t[2] && t[0] != t[2] {
+                out.triangles.push(t);
+            }
+        }
+    }
+    out
+}
+
+/// Edge statistics: (boundary edges, non-manifold edges).
+pub fn edge_defects(mesh: &Mesh) -> (usize, usize) {
+    let mut count: HashMap<(u32, u32), u32> = HashMap::new();
+    for t in &mesh.triangles {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            *count.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+        }
+    }
+    let boundary = count.values().filter(|&&c| c == 1).count();
+    let non_manifold = count.values().filter(|&&c| c > 2).count();
+    (boundary, non_manifold)
+}
+
+/// Writes binary little-endian PLY, or OBJ when the path ends in `.obj`.
+pub fn write_mesh(path: &Path, mesh: &Mesh) -> std::io::Result<()> {
+    let file = std::fs::File::create(path)?;
+    let mut out = std::io::BufWriter::new(file);
+    let is_obj = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("obj"));
+    if is_obj {
+        for (p, n) in mesh.positions.iter().zip(&mesh.normals) {
+            writeln!(out, "v {} {} {}", p[0], p[1], p[2])?;
+            writeln!(out, "vn {} {} {}", n[0], n[1], n[2])?;
+        }
+        for t in &mesh.triangles {
+            writeln!(out, "f {0}//{0} {1}//{1} {2}//{2}", t[0] + 1, t[1] + 1, t[2] + 1)?;
+        }
+    } else {
+        write!(
+            out,
+            "ply\nformat binary_little_endian 1.0\ncomment octstore\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nelement face {}\nproperty list uchar uint vertex_indices\nend_header\n",
+            mesh.positions.len(),
+            mesh.triangles.len()
+        )?;
+        for (p, n) in mesh.positions.iter().zip(&mesh.normals) {
+            for v in p.iter().chain(n) {
+                out.write_all(&v.to_le_bytes())?;
+            }
+        }
+        for t in &mesh.triangles {
+            out.write_all(&[3u8])?;
+            for v in t {
+                out.write_all(&v.to_le_bytes())?;
+            }
+        }
+    }
+    out.flush()
+}
+
+/// Reads a mesh written by [`write_mesh`] (binary little-endian PLY with float positions and
+/// normals, uchar/uint face lists).
+pub fn read_ply(path: &Path) -> Result<Mesh, String> {
+    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .ok_or_else(|| format!("{}: not a PLY file (no end_header)", path.display()))?
+        + 11;
+    let header = String::from_utf8_lossy(&bytes[..end]).into_owned();
+    if !header.contains("format binary_little_endian") || !header.contains("property float nx") {
+        return Err(format!(
+            "{}: only octstore's binary PLY (x y z nx ny nz) is read here",
+            path.display()
+        ));
+    }
+    let count = |what: &str| -> Result<usize, String> {
+        header
+            .split(what)
+            .nth(1)
+            .and_then(|s| s.split_whitespace().next())
+            .and_then(|n| n.parse().ok())
+            .ok_or_else(|| format!("{}: no '{what}' in the header", path.display()))
+    };
+    let (nv, nf) = (count("element vertex ")?, count("element face ")?);
+    let float = |o: usize| -> Result<f32, String> {
+        bytes
+            .get(o..o + 4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .ok_or_else(|| format!("{}: truncated", path.display()))
+    };
+    let mut mesh = Mesh::default();
+    for i in 0..nv {
+        let o = end + 24 * i;
+        mesh.positions.push([float(o)?, float(o + 4)?, float(o + 8)?]);
+        mesh.normals.push([float(o + 12)?, float(o + 16)?, float(o + 20)?]);
+    }
+    let faces = end + 24 * nv;
+    for i in 0..nf {
+        let o = faces + 13 * i;
+        if bytes.get(o) != Some(&3) {
+            return Err(format!("{}: face {i} is not a triangle", path.display()));
+        }
+        let index = |k: usize| -> Result<u32, String> {
+            let v = float(o + 1 + 4 * k)?.to_bits();
+            if v as usize >= nv {
+                return Err(format!("{}: face {i} refers to vertex {v} of {nv}", path.display()));
+            }
+            Ok(v)
+        };
+        mesh.triangles.push([index(0)?, index(1)?, index(2)?]);
+    }
+    Ok(mesh)
+}
