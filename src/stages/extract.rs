@@ -331,10 +331,12 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, region: Optio
             match region {
                 None => true,
                 Some(r) => {
-                    // The unit's cube, grown by one finest cube for dual cells on its border.
+                    // A dual cell spans the centres of leaves adjacent to its generating leaf,
+                    // which are at most twice its size (2:1 balance): grow the unit's cube by
+                    // twice its side to catch every cell that can reach into the box.
                     let side = scene.cube_side(unit.key.depth());
-                    let lo = scene.cube_center(unit.key) - DVec3::splat(side * 0.5 + scene.cube_side(finest));
-                    let hi = lo + DVec3::splat(side + 2.0 * scene.cube_side(finest));
+                    let lo = scene.cube_center(unit.key) - DVec3::splat(side * 2.5);
+                    let hi = lo + DVec3::splat(side * 5.0);
                     lo.cmple(r.max).all() && hi.cmpge(r.min).all()
                 }
             }
@@ -429,10 +431,14 @@ pub fn clip(mesh: &Mesh, region: Region) -> Mesh {
                         next.push(a);
                     }
                     if ia != ib {
-                        let t = (bound - a.0[axis]) / (b.0[axis] - a.0[axis]);
-                        let mut p = a.0 + (b.0 - a.0) * t;
+                        // Interpolate from a canonical end so that both triangles sharing the
+                        // edge compute bit-identical points, which then weld.
+                        let bits = |v: &glam::Vec3| v.to_array().map(f32::to_bits);
+                        let (s, e) = if bits(&a.0) <= bits(&b.0) { (a, b) } else { (b, a) };
+                        let t = (bound - s.0[axis]) / (e.0[axis] - s.0[axis]);
+                        let mut p = s.0 + (e.0 - s.0) * t;
                         p[axis] = bound;
-                        next.push((p, (a.1 + (b.1 - a.1) * t).normalize_or_zero()));
+                        next.push((p, (s.1 + (e.1 - s.1) * t).normalize_or_zero()));
                     }
                 }
                 polygon = next;

@@ -1,0 +1,130 @@
+//! SIGKILL `octstore solve` at random moments of the histogram and level phases: `verify`
+//! passes afterwards and `solve --resume` ends byte-identical to an uninterrupted run.
+
+mod common;
+
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::*;
+use glam::DVec3;
+use octstore::scenes::{SceneSpec, Shape};
+
+const TRIALS: u64 = 20;
+
+fn solve_args(store: &std::path::Path, resume: bool) -> Vec<String> {
+    let mut args: Vec<String> = [
+        "solve",
+        store.to_str().unwrap(),
+        "--leaf-cubes",
+        "300",
+        "--iterations",
+        "30",
+        "--threads",
+        "2",
+        "--quiet",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    if resume {
+        args.push("--resume".into());
+    }
+    args
+}
+
+fn next(state: &mut u64) -> u64 {
+    *state ^= *state << 13;
+    *state ^= *state >> 7;
+    *state ^= *state << 17;
+    *state
+}
+
+#[test]
+fn sigkill_during_histograms_and_solve_then_resume() {
+    let root = tempfile::tempdir().unwrap();
+    let center = DVec3::new(0.0, 0.0, 0.2);
+    let spec = SceneSpec {
+        shapes: vec![Shape::Sphere { center, radius: 0.4 }],
+        cameras: 8,
+        distance: 2.0,
+        target: center,
+        width: 40,
+        height: 30,
+        fov_degrees: 45.0,
+        noise: None,
+        room: Some(2.4),
+    };
+    let manifest = spec.write(&root.path().join("input")).unwrap();
+    let ingested = root.path().join("ingested");
+    let out = octstore(
+        &[
+            "ingest",
+            ingested.to_str().unwrap(),
+            manifest.to_str().unwrap(),
+            "--max-depth",
+            "6",
+            "--quiet",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let copy = |to: &std::path::Path| {
+        std::fs::create_dir_all(to.join("segments")).unwrap();
+        std::fs::copy(ingested.join("catalog.redb"), to.join("catalog.redb")).unwrap();
+        for e in std::fs::read_dir(ingested.join("segments")).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), to.join("segments").join(e.file_name())).unwrap();
+        }
+    };
+    let reference = root.path().join("reference");
+    copy(&reference);
+    let started = Instant::now();
+    let out = Command::new(octstore_bin())
+        .args(solve_args(&reference, false))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    let full_run = started.elapsed();
+    let expected = fingerprint(&reference);
+
+    let mut state = 0x9E37_79B9_7F4A_7C15_u64;
+    let mut interrupted = 0;
+    for trial in 0..TRIALS {
+        let store = root.path().join(format!("trial-{trial}"));
+        copy(&store);
+        let delay = Duration::from_micros(next(&mut state) % (full_run.as_micros() as u64 + 1));
+        let mut child = Command::new(octstore_bin())
+            .args(solve_args(&store, false))
+            .env("OCTSTORE_LOG", "warn")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(delay);
+        child.kill().unwrap();
+        if !child.wait().unwrap().success() {
+            interrupted += 1;
+        }
+        let verify = octstore(&["verify", store.to_str().unwrap()], &[]);
+        assert!(
+            verify.status.success(),
+            "trial {trial} ({delay:?}): {}",
+            stderr(&verify)
+        );
+        let resumed = Command::new(octstore_bin())
+            .args(solve_args(&store, true))
+            .output()
+            .unwrap();
+        assert!(resumed.status.success(), "trial {trial}: {}", stderr(&resumed));
+        assert_same_store(
+            &expected,
+            &fingerprint(&store),
+            &format!("trial {trial}, killed after {delay:?}"),
+        );
+    }
+    assert!(
+        interrupted >= TRIALS / 2,
+        "only {interrupted} of {TRIALS} kills landed mid-run"
+    );
+}
