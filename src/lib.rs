@@ -17,4 +17,5 @@ pub mod store;
 mod sys;
 
 pub use format::CubeKey;
+pub use stages::query::IndicatorField;
 pub use store::{Snapshot, Store, StoreError};

@@ -204,3 +204,66 @@ fn region_extraction_cuts_cleanly_at_the_box() {
     let mesh = extract(&opened.latest().unwrap(), &scene, finest, Some(region)).unwrap();
     assert_eq!(mesh.triangles.len(), half.triangles.len());
 }
+
+#[test]
+fn the_indicator_field_can_be_read_from_code_and_the_cli() {
+    use octstore::IndicatorField;
+    let dir = tempfile::tempdir().unwrap();
+    let spec = sphere();
+    let manifest = spec.write(&dir.path().join("input")).unwrap();
+    let store_path = run_cli(dir.path(), &manifest, "500", "2");
+    let store = octstore::Store::open_read_only(&store_path).unwrap();
+    let snapshot = store.latest().unwrap();
+    assert_eq!(
+        snapshot.finest_level(),
+        Some(octstore::stages::octree_max_depth(&store).unwrap())
+    );
+    let center = DVec3::new(0.2, -0.1, 0.3);
+    let inside = snapshot.indicator_at(center).unwrap().unwrap();
+    let outside = snapshot
+        .indicator_at(center + DVec3::new(0.0, 0.0, 0.9))
+        .unwrap()
+        .unwrap();
+    assert!(inside < 0.0 && outside > 0.0, "inside {inside}, outside {outside}");
+    assert_eq!(snapshot.indicator_at(DVec3::splat(1.0e6)).unwrap(), None);
+    // Cubes in a box around the sphere's top, with their histograms.
+    let region = Region {
+        min: center + DVec3::new(-0.2, -0.2, 0.35),
+        max: center + DVec3::new(0.2, 0.2, 0.65),
+    };
+    let level = snapshot.finest_level().unwrap();
+    let cubes = snapshot.cubes_in(&region, level).unwrap();
+    assert!(cubes.len() > 10);
+    assert!(
+        cubes.iter().any(|c| c.u < 0.0) && cubes.iter().any(|c| c.u > 0.0),
+        "the box straddles the surface"
+    );
+    assert!(cubes.iter().any(|c| c.histogram.iter().sum::<f32>() > 0.0));
+    // An older version stays readable: the octree version has no solution.
+    let octree_version = store
+        .log()
+        .unwrap()
+        .iter()
+        .find(|(_, r, _)| r.kind == "octree")
+        .unwrap()
+        .0;
+    assert_eq!(
+        store.snapshot(octree_version).unwrap().indicator_at(center).unwrap(),
+        None
+    );
+    drop(snapshot);
+    drop(store);
+    let out = octstore(
+        &[
+            "query",
+            store_path.to_str().unwrap(),
+            "--point",
+            "0.2,-0.1,0.3",
+            "--json",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let json: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
+    assert!(json["u"].as_f64().unwrap() < 0.0, "{json}");
+}

@@ -123,6 +123,17 @@ pub enum Command {
         #[arg(long)]
         version: Option<u64>,
     },
+    /// The indicator u at a point (interpolated), from the latest or a given version.
+    Query {
+        store: PathBuf,
+        /// x,y,z in world coordinates.
+        #[arg(long, value_parser = parse_point)]
+        point: [f64; 3],
+        #[arg(long)]
+        version: Option<u64>,
+        #[arg(long)]
+        json: bool,
+    },
     /// Render a mesh written by `extract` as a shaded PNG.
     Render {
         mesh: PathBuf,
@@ -172,6 +183,17 @@ pub enum Command {
         #[arg(long)]
         resume: bool,
     },
+}
+
+fn parse_point(text: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|t| t.trim().parse::<f64>().map_err(|_| format!("'{t}' is not a number")))
+        .collect::<Result<_, _>>()?;
+    match v[..] {
+        [x, y, z] => Ok([x, y, z]),
+        _ => Err("expected x,y,z".into()),
+    }
 }
 
 fn save_png(image: &image::RgbImage, path: &std::path::Path) -> Result<(), StoreError> {
@@ -506,6 +528,33 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
         } => {
             let store = Store::open_for_reading(&store)?;
             extract_to(&store, &output, region, version)?;
+        }
+        Command::Query {
+            store,
+            point,
+            version,
+            json,
+        } => {
+            use crate::IndicatorField;
+            let store = Store::open_for_reading(&store)?;
+            let snapshot = match version {
+                Some(v) => store.snapshot(v)?,
+                None => store.latest()?,
+            };
+            let u = snapshot.indicator_at(glam::DVec3::from_array(point))?;
+            if json {
+                let value = serde_json::json!({"version": snapshot.version(), "point": point, "u": u, "level": snapshot.finest_level()});
+                println!("{value}");
+            } else {
+                match u {
+                    Some(u) => println!(
+                        "u = {u:.6} ({}) at version {}",
+                        if u < 0.0 { "inside" } else { "outside" },
+                        snapshot.version()
+                    ),
+                    None => println!("no value: the point is outside the root cube, or nothing is solved yet"),
+                }
+            }
         }
         Command::Render {
             mesh,

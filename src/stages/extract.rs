@@ -10,16 +10,15 @@
 //! is named by the unordered pair of cells at its ends, so the same vertex is produced, and
 //! welded, wherever the edge appears: on both sides of a level change and of a treetop border.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::io::Write;
 use std::path::Path;
-use std::sync::Arc;
 
 use glam::DVec3;
 use rayon::prelude::*;
 
 use super::scene::Scene;
-use super::solve::{LEVEL_STAGES, read_level_values};
+use super::solve::{LEVEL_STAGES, LevelCut};
 use super::treetop::Treetop;
 use crate::format::{CubeKey, MAX_DEPTH};
 use crate::store::{Result, Snapshot, StoreError};
@@ -35,59 +34,6 @@ struct Corner {
     center: DVec3,
     u: f32,
     depth: u8,
-}
-
-/// Sorted leaf keys of a unit and their final u.
-type LeafValues = (Vec<CubeKey>, Vec<f32>);
-
-/// The final indicator of every leaf, per unit, loaded on demand.
-struct FinalLevel<'a, 's> {
-    base: &'a Snapshot<'s>,
-    treetop: &'a Treetop,
-    stage: &'static str,
-    units: BTreeMap<usize, Option<Arc<LeafValues>>>,
-}
-
-impl FinalLevel<'_, '_> {
-    fn unit(&mut self, unit: usize) -> Result<Option<Arc<LeafValues>>> {
-        if let Some(v) = self.units.get(&unit) {
-            return Ok(v.clone());
-        }
-        let segment = self
-            .base
-            .segments(self.stage)
-            .iter()
-            .find(|(_, r)| r.unit == unit as u64)
-            .map(|(n, _)| n.clone());
-        let loaded = match segment {
-            Some(name) => {
-                let values = read_level_values(self.base, &name)?;
-                Some(Arc::new((values.keys, values.u)))
-            }
-            None => None,
-        };
-        self.units.insert(unit, loaded.clone());
-        Ok(loaded)
-    }
-
-    /// The leaf containing the finest cell at full-resolution coordinates `cell`.
-    fn leaf_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, f32)>> {
-        let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
-        let unit = self.treetop.unit_of(probe);
-        let Some(values) = self.unit(unit)? else {
-            return Ok(None);
-        };
-        let (keys, u) = (&values.0, &values.1);
-        let position = keys.partition_point(|k| *k <= probe);
-        if position == 0 {
-            return Ok(None);
-        }
-        let index = position - 1;
-        match (keys.get(index), u.get(index)) {
-            (Some(k), Some(u)) if k.is_ancestor_or_self_of(probe) => Ok(Some((*k, *u))),
-            _ => Ok(None),
-        }
-    }
 }
 
 /// A triangle soup with welded vertices, per unit.
@@ -115,7 +61,7 @@ fn full_side(depth: u8) -> u64 {
 
 fn dual_cells_of_unit(
     scene: &Scene,
-    level: &mut FinalLevel<'_, '_>,
+    level: &mut LevelCut<'_, '_>,
     keys: &[CubeKey],
     values: &[f32],
 ) -> Result<UnitMesh> {
@@ -160,7 +106,7 @@ fn dual_cells_of_unit(
                     };
                     probe[axis] = m.clamp(0, limit as i64 - 1) as u32;
                 }
-                let Some((leaf, u)) = level.leaf_at(probe)? else {
+                let Some((leaf, u)) = level.cube_at(probe)? else {
                     generator_ok = false;
                     break;
                 };
@@ -345,12 +291,7 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, region: Optio
     let meshes: Vec<UnitMesh> = units
         .par_iter()
         .map(|&unit| {
-            let mut level = FinalLevel {
-                base: snapshot,
-                treetop: &treetop,
-                stage,
-                units: BTreeMap::new(),
-            };
+            let mut level = LevelCut::new(snapshot, &treetop, finest);
             match level.unit(unit)? {
                 Some(values) => dual_cells_of_unit(scene, &mut level, &values.0, &values.1),
                 None => Ok(UnitMesh::default()),

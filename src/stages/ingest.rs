@@ -23,7 +23,7 @@ use crate::store::{Plan, Replace, Result, Snapshot, Stage, Store, StoreError, Un
 pub use crate::store::catalog::DEPTH_MAPS;
 
 /// Block size of ingest runs: small, so that merging many runs at once stays within memory.
-pub const RUN_BLOCK_ROWS: u32 = 4096;
+pub const RUN_BLOCK_ROWS: u32 = 1024;
 
 /// A depth is absurd when it exceeds this multiple of the map's median depth.
 const ABSURD_DEPTH_FACTOR: f32 = 1.0e4;
@@ -260,7 +260,9 @@ impl IngestStage {
                             .map(|(_, source)| {
                                 let image = source.load().map_err(input_error)?;
                                 let samples = back_project(source, &image);
-                                let step = (samples.points.len() / 20_000).max(1);
+                                // At most ~200,000 points in total, whatever the number of maps.
+                                let per_map = (200_000 / maps.len().max(1)).max(64);
+                                let step = (samples.points.len() / per_map).max(1);
                                 Ok(samples.points.iter().step_by(step).copied().collect())
                             })
                             .collect::<Result<_>>()?;

@@ -6,6 +6,7 @@ pub mod histograms;
 pub mod ingest;
 pub mod inputs;
 pub mod octree;
+pub mod query;
 pub mod records;
 pub mod scene;
 pub mod solve;

@@ -471,3 +471,63 @@ impl Stage for LevelStage {
         Ok(line)
     }
 }
+
+/// Sorted cut keys of a unit at one level and their u.
+pub type LeafValues = (Vec<CubeKey>, Vec<f32>);
+
+/// The values of one solved level, unit by unit, loaded on demand; answers "which cut cube
+/// contains this point".
+pub struct LevelCut<'a, 's> {
+    snapshot: &'a Snapshot<'s>,
+    treetop: &'a Treetop,
+    stage: &'static str,
+    units: BTreeMap<usize, Option<Arc<LeafValues>>>,
+}
+
+impl<'a, 's> LevelCut<'a, 's> {
+    pub fn new(snapshot: &'a Snapshot<'s>, treetop: &'a Treetop, level: u8) -> LevelCut<'a, 's> {
+        LevelCut {
+            snapshot,
+            treetop,
+            stage: LEVEL_STAGES[usize::from(level.min(MAX_DEPTH))],
+            units: BTreeMap::new(),
+        }
+    }
+
+    pub fn unit(&mut self, unit: usize) -> Result<Option<Arc<LeafValues>>> {
+        if let Some(v) = self.units.get(&unit) {
+            return Ok(v.clone());
+        }
+        let segment = self
+            .snapshot
+            .segments(self.stage)
+            .iter()
+            .find(|(_, r)| r.unit == unit as u64)
+            .map(|(n, _)| n.clone());
+        let loaded = match segment {
+            Some(name) => {
+                let values = read_level_values(self.snapshot, &name)?;
+                Some(Arc::new((values.keys, values.u)))
+            }
+            None => None,
+        };
+        self.units.insert(unit, loaded.clone());
+        Ok(loaded)
+    }
+
+    /// The cut cube containing the finest cell at full-resolution coordinates `cell`, and its u.
+    pub fn cube_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, f32)>> {
+        let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
+        let unit = self.treetop.unit_of(probe);
+        let Some(values) = self.unit(unit)? else {
+            return Ok(None);
+        };
+        let (keys, u) = (&values.0, &values.1);
+        let position = keys.partition_point(|k| *k <= probe);
+        Ok(position
+            .checked_sub(1)
+            .and_then(|i| keys.get(i).zip(u.get(i)))
+            .filter(|(k, _)| k.is_ancestor_or_self_of(probe))
+            .map(|(k, u)| (*k, *u)))
+    }
+}

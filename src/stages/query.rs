@@ -1,0 +1,180 @@
+//! Reading the indicator field from code: an extension of [`Snapshot`] (the store layer knows
+//! nothing of stages, so the field's queries live here).
+//!
+//! ```no_run
+//! use octstore::{IndicatorField, Store};
+//! let store = Store::open_read_only("store")?;
+//! let snapshot = store.latest()?;
+//! if let Some(u) = snapshot.indicator_at(glam::DVec3::new(0.1, 0.2, 0.3))? {
+//!     println!("u = {u} ({})", if u < 0.0 { "inside" } else { "outside" });
+//! }
+//! # Ok::<(), octstore::StoreError>(())
+//! ```
+
+use glam::DVec3;
+use serde::Serialize;
+
+use super::HISTOGRAMS;
+use super::extract::Region;
+use super::histograms::BINS;
+use super::ingest::read_scene;
+use super::scene::Scene;
+use super::solve::{LEVEL_STAGES, LevelCut, read_level_values};
+use super::treetop::Treetop;
+use crate::format::{CubeKey, MAX_DEPTH};
+use crate::store::{Result, Snapshot, StoreError};
+
+/// One cube of a level cut, as `cubes_in` returns it.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct CubeInfo {
+    pub key: String,
+    pub depth: u8,
+    pub center: [f64; 3],
+    pub size: f64,
+    pub u: f32,
+    pub histogram: [f32; BINS],
+}
+
+pub trait IndicatorField {
+    /// The deepest solved level visible in this snapshot.
+    fn finest_level(&self) -> Option<u8>;
+
+    /// u at a point, interpolated by inverse distance over the leaves around the octree corner
+    /// nearest to the point (exact at leaf centres); `None` outside the root or before a solve.
+    fn indicator_at(&self, point: DVec3) -> Result<Option<f32>>;
+
+    /// Cubes of the level-`level` cut that meet `bbox`, with centre, size, u and histogram.
+    fn cubes_in(&self, bbox: &Region, level: u8) -> Result<Vec<CubeInfo>>;
+}
+
+fn scene_of(snapshot: &Snapshot<'_>) -> Result<Scene> {
+    read_scene(snapshot.store())?.ok_or_else(|| StoreError::Stage {
+        stage: "query".into(),
+        unit: "-".into(),
+        message: "the store has no depth maps yet".into(),
+    })
+}
+
+fn full_resolution(scene: &Scene, p: DVec3) -> Option<[i64; 3]> {
+    let q = (p - scene.min()) / scene.root_side * 4294967296.0;
+    if q.cmplt(DVec3::ZERO).any() || q.cmpge(DVec3::splat(4294967296.0)).any() {
+        return None;
+    }
+    Some([q.x as i64, q.y as i64, q.z as i64])
+}
+
+impl IndicatorField for Snapshot<'_> {
+    fn finest_level(&self) -> Option<u8> {
+        (0..=MAX_DEPTH)
+            .rev()
+            .find(|&l| !self.segments(LEVEL_STAGES[usize::from(l)]).is_empty())
+    }
+
+    fn indicator_at(&self, point: DVec3) -> Result<Option<f32>> {
+        let Some(level) = self.finest_level() else {
+            return Ok(None);
+        };
+        let scene = scene_of(self)?;
+        let Some(cell) = full_resolution(&scene, point) else {
+            return Ok(None);
+        };
+        let treetop = Treetop::of(self)?;
+        let mut lookup = LevelCut::new(self, &treetop, level);
+        let Some((leaf, u)) = lookup.cube_at(cell.map(|c| c as u32))? else {
+            return Ok(None);
+        };
+        // The nearest corner of the containing leaf, and the leaves in its 8 octants.
+        let side = 1i64 << (u32::from(MAX_DEPTH) - u32::from(leaf.depth()));
+        let corner = leaf.corner_full_resolution().map(i64::from);
+        let v: [i64; 3] = std::array::from_fn(|a| {
+            if cell[a] - corner[a] >= side / 2 {
+                corner[a] + side
+            } else {
+                corner[a]
+            }
+        });
+        let limit = 1i64 << 32;
+        let mut weights = 0f64;
+        let mut sum = 0f64;
+        let mut seen: Vec<CubeKey> = Vec::new();
+        for octant in 0..8 {
+            let probe: [i64; 3] = std::array::from_fn(|a| v[a] - 1 + ((octant >> a) & 1));
+            if probe.iter().any(|c| *c < 0 || *c >= limit) {
+                continue;
+            }
+            let Some((key, value)) = lookup.cube_at(probe.map(|c| c as u32))? else {
+                continue;
+            };
+            if seen.contains(&key) {
+                continue;
+            }
+            seen.push(key);
+            let distance = (scene.cube_center(key) - point).length();
+            if distance < 1e-12 * scene.root_side {
+                return Ok(Some(value));
+            }
+            let w = 1.0 / (distance * distance);
+            weights += w;
+            sum += w * f64::from(value);
+        }
+        Ok(Some(if weights > 0.0 { (sum / weights) as f32 } else { u }))
+    }
+
+    fn cubes_in(&self, bbox: &Region, level: u8) -> Result<Vec<CubeInfo>> {
+        let scene = scene_of(self)?;
+        let stage = LEVEL_STAGES[usize::from(level.min(MAX_DEPTH))];
+        let treetop = Treetop::of(self)?;
+        let mut out = Vec::new();
+        for (index, unit) in treetop.units.iter().enumerate() {
+            if !unit.top {
+                let side = scene.cube_side(unit.key.depth());
+                let lo = scene.cube_center(unit.key) - DVec3::splat(side * 0.5);
+                if lo.cmpgt(bbox.max).any() || (lo + DVec3::splat(side)).cmplt(bbox.min).any() {
+                    continue;
+                }
+            }
+            let Some((name, _)) = self.segments(stage).iter().find(|(_, r)| r.unit == index as u64) else {
+                continue;
+            };
+            let values = read_level_values(self, name)?;
+            let hist_segment = self
+                .segments(HISTOGRAMS)
+                .iter()
+                .find(|(_, r)| r.first_key == unit.record.first_key)
+                .map(|(n, _)| n.clone());
+            let (hist_keys, hist) = match hist_segment {
+                Some(n) => {
+                    let file = self.open_segment(&n)?;
+                    let reader = file.reader()?;
+                    let keys = reader.read_keys().map_err(|e| file.corruption(e))?;
+                    let (_, h) = reader.read_f32("hist").map_err(|e| file.corruption(e))?;
+                    (keys, h)
+                }
+                None => (Vec::new(), Vec::new()),
+            };
+            for (key, u) in values.keys.iter().zip(&values.u) {
+                let center = scene.cube_center(*key);
+                let half = scene.cube_side(key.depth()) * 0.5;
+                if (center + DVec3::splat(half)).cmplt(bbox.min).any()
+                    || (center - DVec3::splat(half)).cmpgt(bbox.max).any()
+                {
+                    continue;
+                }
+                let histogram = hist_keys
+                    .binary_search(key)
+                    .ok()
+                    .map(|i| std::array::from_fn(|b| hist.get(i * BINS + b).copied().unwrap_or(0.0)))
+                    .unwrap_or([0.0; BINS]);
+                out.push(CubeInfo {
+                    key: format!("{key:?}"),
+                    depth: key.depth(),
+                    center: center.to_array(),
+                    size: 2.0 * half,
+                    u: *u,
+                    histogram,
+                });
+            }
+        }
+        Ok(out)
+    }
+}
