@@ -589,34 +589,13 @@ impl<'a> SegmentReader<'a> {
     /// bytes, verifying every block checksum.
     fn decode_into(&self, column: &ColumnInfo, out: &mut [u8]) -> Result<(), DecodeError> {
         let row_bytes = usize::from(column.width) * column.element_type.size();
-        let mut decompressor =
-            zstd::bulk::Decompressor::new().map_err(|e| corrupt(self.block_region(column, 0), format!("zstd: {e}")))?;
         let mut pos = 0usize;
         for (index, (chunk, block)) in column.chunks.iter().zip(&self.blocks).enumerate() {
-            let region = || self.block_region(column, index);
-            let start = chunk.offset as usize;
-            let compressed = self
-                .bytes
-                .get(start..start + chunk.len as usize)
-                .ok_or_else(|| corrupt(region(), "block out of bounds"))?;
-            let got = xxh3_64(compressed);
-            if got != chunk.checksum {
-                return Err(DecodeError::ChecksumMismatch {
-                    region: region(),
-                    got,
-                    expected: chunk.checksum,
-                });
-            }
             let want = block.rows as usize * row_bytes;
             let target = out
                 .get_mut(pos..pos + want)
-                .ok_or_else(|| corrupt(region(), "block larger than the column"))?;
-            let n = decompressor
-                .decompress_to_buffer(compressed, target)
-                .map_err(|e| corrupt(region(), format!("zstd: {e}")))?;
-            if n != want {
-                return Err(corrupt(region(), format!("decoded {n} bytes, expected {want}")));
-            }
+                .ok_or_else(|| corrupt(self.block_region(column, index), "block larger than the column"))?;
+            self.decode_chunk(column, index, *chunk, target)?;
             pos += want;
         }
         if pos != out.len() {
