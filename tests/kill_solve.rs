@@ -3,9 +3,6 @@
 
 mod common;
 
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
-
 use common::*;
 use glam::DVec3;
 use octstore::scenes::{SceneSpec, Shape};
@@ -31,13 +28,6 @@ fn solve_args(store: &std::path::Path, resume: bool) -> Vec<String> {
         args.push("--resume".into());
     }
     args
-}
-
-fn next(state: &mut u64) -> u64 {
-    *state ^= *state << 13;
-    *state ^= *state >> 7;
-    *state ^= *state << 17;
-    *state
 }
 
 #[test]
@@ -77,54 +67,13 @@ fn sigkill_during_histograms_and_solve_then_resume() {
             std::fs::copy(e.path(), to.join("segments").join(e.file_name())).unwrap();
         }
     };
-    let reference = root.path().join("reference");
-    copy(&reference);
-    let started = Instant::now();
-    let out = Command::new(octstore_bin())
-        .args(solve_args(&reference, false))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", stderr(&out));
-    let full_run = started.elapsed();
-    let expected = fingerprint(&reference);
-
-    let mut state = 0x9E37_79B9_7F4A_7C15_u64;
-    let mut interrupted = 0;
-    for trial in 0..TRIALS {
-        let store = root.path().join(format!("trial-{trial}"));
-        copy(&store);
-        let delay = Duration::from_micros(next(&mut state) % (full_run.as_micros() as u64 + 1));
-        let mut child = Command::new(octstore_bin())
-            .args(solve_args(&store, false))
-            .env("OCTSTORE_LOG", "warn")
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap();
-        std::thread::sleep(delay);
-        child.kill().unwrap();
-        if !child.wait().unwrap().success() {
-            interrupted += 1;
-        }
-        let verify = octstore(&["verify", store.to_str().unwrap()], &[]);
-        assert!(
-            verify.status.success(),
-            "trial {trial} ({delay:?}): {}",
-            stderr(&verify)
-        );
-        let resumed = Command::new(octstore_bin())
-            .args(solve_args(&store, true))
-            .output()
-            .unwrap();
-        assert!(resumed.status.success(), "trial {trial}: {}", stderr(&resumed));
-        assert_same_store(
-            &expected,
-            &fingerprint(&store),
-            &format!("trial {trial}, killed after {delay:?}"),
-        );
+    KillTrials {
+        root: root.path(),
+        trials: TRIALS,
+        seed: 0x9E37_79B9_7F4A_7C15,
+        window_percent: 100,
+        prepare: &copy,
+        args: &solve_args,
     }
-    assert!(
-        interrupted >= TRIALS / 2,
-        "only {interrupted} of {TRIALS} kills landed mid-run"
-    );
+    .run();
 }

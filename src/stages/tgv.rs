@@ -361,6 +361,15 @@ pub fn energy(op: &Operator<'_>, state: &State) -> f64 {
         .sum()
 }
 
+/// Puts the duals inside their (unit) balls; returns the starting energy.
+fn start(op: &Operator<'_>, state: &mut State) -> f64 {
+    for (p, q) in state.p.iter_mut().zip(state.q.iter_mut()) {
+        project(p, 1.0);
+        project(q, 1.0);
+    }
+    energy(op, state)
+}
+
 /// The reference iteration, written with the operator and its adjoint; [`solve`] is its fused
 /// twin and is tested against it.
 pub fn solve_reference(problem: &Problem, state: &mut State, iterations: usize) -> (f64, f64) {
@@ -371,13 +380,7 @@ pub fn solve_reference(problem: &Problem, state: &mut State, iterations: usize) 
         tau_u,
         tau_v,
     } = op.step_sizes();
-    let n = problem.n;
-    // Duals start inside their (unit) balls.
-    for c in 0..n {
-        project(&mut state.p[c], 1.0);
-        project(&mut state.q[c], 1.0);
-    }
-    let before = energy(&op, state);
+    let before = start(&op, state);
     let mut u_bar = state.u.clone();
     let mut v_bar = state.v.clone();
     for _ in 0..iterations {
@@ -439,11 +442,7 @@ pub fn solve(problem: &Problem, state: &mut State, iterations: usize) -> (f64, f
     let op = Operator::new(problem);
     let steps = op.step_sizes();
     let n = problem.n;
-    for c in 0..n {
-        project(&mut state.p[c], 1.0);
-        project(&mut state.q[c], 1.0);
-    }
-    let before = energy(&op, state);
+    let before = start(&op, state);
     let mut u_bar = state.u.clone();
     let mut v_bar = state.v.clone();
     let reverse = &op.reverse;

@@ -65,3 +65,84 @@ pub fn assert_same_store(a: &Fingerprint, b: &Fingerprint, context: &str) {
     }
     assert!(a.catalog == b.catalog, "{context}: catalog content differs");
 }
+
+/// xorshift: a fixed seed makes kill moments reproducible from run to run.
+pub fn xorshift(state: &mut u64) -> u64 {
+    *state ^= *state << 13;
+    *state ^= *state >> 7;
+    *state ^= *state << 17;
+    *state
+}
+
+/// A SIGKILL experiment: run `args(store, false)` uninterrupted once for reference, then per
+/// trial prepare a fresh store, kill the same command at a random moment within
+/// `window_percent` of the reference's duration, require `verify` to pass, resume with
+/// `args(store, true)`, and require the result to equal the reference byte for byte.
+pub struct KillTrials<'a> {
+    pub root: &'a Path,
+    pub trials: u64,
+    pub seed: u64,
+    pub window_percent: u64,
+    pub prepare: &'a dyn Fn(&Path),
+    pub args: &'a dyn Fn(&Path, bool) -> Vec<String>,
+}
+
+impl KillTrials<'_> {
+    pub fn run(&self) {
+        use std::process::Stdio;
+        use std::time::{Duration, Instant};
+        let reference = self.root.join("reference");
+        (self.prepare)(&reference);
+        let started = Instant::now();
+        let out = Command::new(octstore_bin())
+            .args((self.args)(&reference, false))
+            .output()
+            .expect("run octstore");
+        assert!(out.status.success(), "{}", stderr(&out));
+        let window = started.elapsed().as_micros() as u64 * self.window_percent / 100 + 1;
+        let expected = fingerprint(&reference);
+
+        let mut state = self.seed;
+        let mut interrupted = 0;
+        for trial in 0..self.trials {
+            let store = self.root.join(format!("trial-{trial}"));
+            (self.prepare)(&store);
+            let delay = Duration::from_micros(xorshift(&mut state) % window);
+            let mut child = Command::new(octstore_bin())
+                .args((self.args)(&store, false))
+                .env("OCTSTORE_LOG", "warn")
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .expect("spawn octstore");
+            std::thread::sleep(delay);
+            child.kill().expect("SIGKILL"); // SIGKILL on Unix
+            if !child.wait().expect("wait").success() {
+                interrupted += 1;
+            }
+            if store.join("catalog.redb").exists() {
+                let verify = octstore(&["verify", store.to_str().unwrap()], &[]);
+                assert!(
+                    verify.status.success(),
+                    "trial {trial}: verify after kill at {delay:?}: {}",
+                    stderr(&verify)
+                );
+            }
+            let resumed = Command::new(octstore_bin())
+                .args((self.args)(&store, true))
+                .output()
+                .expect("run octstore");
+            assert!(resumed.status.success(), "trial {trial}: resume: {}", stderr(&resumed));
+            assert_same_store(
+                &expected,
+                &fingerprint(&store),
+                &format!("trial {trial}, killed after {delay:?}"),
+            );
+        }
+        assert!(
+            interrupted >= self.trials / 2,
+            "only {interrupted} of {} kills landed mid-run",
+            self.trials
+        );
+    }
+}
