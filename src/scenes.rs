@@ -157,6 +157,25 @@ impl SceneSpec {
             .collect()
     }
 
+    /// Distance along the unit ray `dir` from `origin` to the first surface: a shape, else the
+    /// room's walls (if any).
+    pub fn cast(&self, origin: DVec3, dir: DVec3) -> Option<f64> {
+        let hit = self
+            .shapes
+            .iter()
+            .filter_map(|s| s.hit(origin, dir))
+            .fold(f64::INFINITY, f64::min);
+        if hit.is_finite() {
+            return Some(hit);
+        }
+        let half = self.room?;
+        let room = Shape::Box {
+            min: self.target - DVec3::splat(half),
+            max: self.target + DVec3::splat(half),
+        };
+        room.hit(origin, dir)
+    }
+
     /// Renders camera `index`: z-depth per pixel, NaN where no shape is hit.
     pub fn render(&self, index: usize, pose: &DMat4) -> DepthImage {
         let f = self.focal();
@@ -173,22 +192,7 @@ impl SceneSpec {
                 let dir_world = pose.transform_vector3(local);
                 let scale = dir_world.length();
                 let dir = dir_world / scale;
-                let hit = self
-                    .shapes
-                    .iter()
-                    .filter_map(|s| s.hit(origin, dir))
-                    .fold(f64::INFINITY, f64::min);
-                let hit = match self.room {
-                    Some(half) if !hit.is_finite() => {
-                        let room = Shape::Box {
-                            min: self.target - DVec3::splat(half),
-                            max: self.target + DVec3::splat(half),
-                        };
-                        room.hit(origin, dir).unwrap_or(f64::INFINITY)
-                    }
-                    _ => hit,
-                };
-                let mut z = if hit.is_finite() { hit / scale } else { f64::NAN };
+                let mut z = self.cast(origin, dir).map_or(f64::NAN, |hit| hit / scale);
                 if let (Some(noise), Some(state)) = (&self.noise, rng.as_mut())
                     && z.is_finite()
                 {

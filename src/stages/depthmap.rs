@@ -64,6 +64,12 @@ pub enum ImageFormat {
     Pfm,
     /// NumPy .npy, 2-D little-endian float32 (`<f4`), C order.
     NpyF32,
+    /// COLMAP depth map (`stereo/depth_maps/*.bin`): `width&height&1&` then float32 rows.
+    ColmapBin,
+    /// Scan number `scan` (from 0) of a PTX file, resampled into the spherical grid.
+    Ptx { scan: u32 },
+    /// Point cloud number `scan` (from 0) of an E57 file, resampled into the spherical grid.
+    E57 { scan: u32 },
 }
 
 /// Everything needed to read a depth map again later (the store keeps references, not pixels).
@@ -202,6 +208,8 @@ impl DepthMapSource {
             ImageFormat::Png16 { scale } => read_png16(&self.path, *scale)?,
             ImageFormat::Pfm => read_pfm(&self.path)?,
             ImageFormat::NpyF32 => read_npy(&self.path)?,
+            ImageFormat::ColmapBin => super::colmap::read_colmap_depth(&self.path)?,
+            ImageFormat::Ptx { .. } | ImageFormat::E57 { .. } => super::lidar::read_scan(self)?,
         };
         if image.width != self.width || image.height != self.height {
             return Err(bad(
@@ -236,6 +244,11 @@ pub fn image_size(path: &Path, format: &ImageFormat) -> Result<(u32, u32), Input
             };
             Ok((image.width, image.height))
         }
+        ImageFormat::ColmapBin => super::colmap::colmap_depth_size(path),
+        ImageFormat::Ptx { .. } | ImageFormat::E57 { .. } => Err(bad(
+            path,
+            "the size of a LIDAR scan's grid is decided when it is discovered, not read from a header",
+        )),
     }
 }
 

@@ -150,13 +150,23 @@ pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
 }
 
 /// Content id of a depth map: xxh3 of its file bytes and its registration (path excluded).
+/// The file is streamed: a LIDAR file can be far larger than the memory budget.
 pub fn depth_map_id(source: &DepthMapSource) -> std::result::Result<u64, InputError> {
-    let bytes = std::fs::read(&source.path).map_err(|e| InputError::Io {
+    use std::io::Read;
+    let io = |e| InputError::Io {
         file: source.path.clone(),
         source: e,
-    })?;
+    };
+    let mut file = std::fs::File::open(&source.path).map_err(io)?;
     let mut hasher = Xxh3::new();
-    hasher.update(&bytes);
+    let mut buffer = vec![0u8; 1 << 20];
+    loop {
+        let n = file.read(&mut buffer).map_err(io)?;
+        if n == 0 {
+            break;
+        }
+        hasher.update(buffer.get(..n).unwrap_or_default());
+    }
     let mut without_path = source.clone();
     without_path.path = Default::default();
     hasher.update(&catalog::encode(&without_path));

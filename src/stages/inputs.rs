@@ -89,18 +89,8 @@ pub fn discover(paths: &[PathBuf], options: &DiscoverOptions) -> Result<Vec<Dept
             InputFormat::SevenScenes if path.is_dir() => sources.extend(seven_scenes_folder(path, options)?),
             InputFormat::SevenScenes => sources.push(seven_scenes_frame(path)?),
             InputFormat::Manifest => sources.extend(manifest(path)?),
-            InputFormat::Colmap => {
-                return Err(bad(
-                    path,
-                    "COLMAP workspaces are not supported yet by this build (see the README's input list); convert to a JSON manifest",
-                ));
-            }
-            InputFormat::Lidar => {
-                return Err(bad(
-                    path,
-                    "E57/PTX LIDAR scans are not supported yet by this build; export them as spherical depth maps in a JSON manifest",
-                ));
-            }
+            InputFormat::Colmap => sources.extend(super::colmap::workspace(path)?),
+            InputFormat::Lidar => sources.extend(lidar_file(path)?),
             InputFormat::Auto => unreachable!("detect never returns Auto"),
         }
     }
@@ -111,6 +101,18 @@ pub fn discover(paths: &[PathBuf], options: &DiscoverOptions) -> Result<Vec<Dept
         });
     }
     Ok(sources)
+}
+
+fn lidar_file(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
+    let extension = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_lowercase())
+        .unwrap_or_default();
+    match extension.as_str() {
+        "ptx" => super::lidar::ptx_scans(path),
+        "e57" => super::lidar::e57_scans(path),
+        _ => Err(bad(path, "a LIDAR input is a .ptx or .e57 file")),
+    }
 }
 
 fn read_text(path: &Path) -> Result<String, InputError> {

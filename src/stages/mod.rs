@@ -1,10 +1,12 @@
 //! Pipeline stages. Each is a [`Stage`](crate::store::Stage) run by the store's stage runner.
 
+pub mod colmap;
 pub mod depthmap;
 pub mod extract;
 pub mod histograms;
 pub mod ingest;
 pub mod inputs;
+pub mod lidar;
 pub mod octree;
 pub mod query;
 pub mod records;
