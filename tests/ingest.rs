@@ -386,3 +386,48 @@ fn ingest_cli_reports_and_info_counts() {
     let verify = octstore(&["verify", store.to_str().unwrap()], &[]);
     assert!(verify.status.success(), "{}", stderr(&verify));
 }
+
+/// Key -> (radius sum, radius count) of every cube of `stage`'s segments, summed over segments.
+fn radius_stats(snap: &octstore::Snapshot<'_>, stage: &str) -> std::collections::BTreeMap<octstore::CubeKey, (u64, u32)> {
+    let mut stats = std::collections::BTreeMap::new();
+    for (name, _) in snap.segments(stage) {
+        let file = snap.open_segment(name).unwrap();
+        let reader = file.reader().unwrap();
+        let keys = reader.read_keys().unwrap();
+        let (_, sums) = reader.read_u64("radius_sum").unwrap();
+        let (_, counts) = reader.read_u32("radius_count").unwrap();
+        for ((key, sum), count) in keys.into_iter().zip(sums).zip(counts) {
+            let entry = stats.entry(key).or_insert((0u64, 0u32));
+            entry.0 += sum;
+            entry.1 += count;
+        }
+    }
+    stats
+}
+
+#[test]
+fn merging_more_runs_than_the_fan_in_keeps_every_radius_sum() {
+    use octstore::stages::octree::MERGE_FAN_IN;
+    let dir = tempfile::tempdir().unwrap();
+    let spec = SceneSpec {
+        cameras: 2 * MERGE_FAN_IN + 7,
+        width: 16,
+        height: 12,
+        ..small_scene()
+    };
+    let manifest = spec.write(&dir.path().join("views")).unwrap();
+    let store = build(&dir.path().join("store"), &[vec![manifest]], None, 8, 500);
+    let snap = store.latest().unwrap();
+    assert_eq!(snap.segments(INGEST).len(), spec.cameras, "one run per depth map");
+    let requested = radius_stats(&snap, INGEST);
+    let nodes = radius_stats(&snap, OCTREE);
+    assert!(requested.len() > 500, "{} requested cubes", requested.len());
+    for (key, stats) in &requested {
+        assert_eq!(nodes.get(key), Some(stats), "cube {key:?}");
+    }
+    let with_radius = nodes.values().filter(|(_, count)| *count > 0).count();
+    assert_eq!(with_radius, requested.len(), "nodes the runs never requested carry radii");
+    assert!(store.scratch_dir(OCTREE).unwrap().read_dir().unwrap().all(|e| {
+        !e.unwrap().file_name().to_string_lossy().starts_with("merge-")
+    }), "merge rounds leave no scratch files");
+}

@@ -216,6 +216,111 @@ impl RunCursor {
     }
 }
 
+/// Runs merged at once. Each open ingest run holds one decoded block (1024 records, 32 KiB)
+/// and each scratch run a 64 KiB read buffer, so a merge holds a few MiB however many depth
+/// maps there are.
+pub const MERGE_FAN_IN: usize = 32;
+const SCRATCH_READ_BUFFER: usize = 64 << 10;
+
+/// A sorted run of cube records: an ingest segment or a scratch file of an earlier merge round.
+enum SortedRun {
+    Segment(PathBuf, catalog::SegmentRecord),
+    Scratch(PathBuf),
+}
+
+enum RunReader {
+    Segment(RunCursor),
+    Scratch {
+        path: PathBuf,
+        reader: RecordReader<CubeRecord>,
+        head: Option<CubeRecord>,
+    },
+}
+
+impl RunReader {
+    fn open(run: &SortedRun) -> Result<RunReader> {
+        Ok(match run {
+            SortedRun::Segment(path, record) => RunReader::Segment(RunCursor::open(path.clone(), record.clone())?),
+            SortedRun::Scratch(path) => {
+                let mut reader = RecordReader::open_buffered(path, 0, u64::MAX, SCRATCH_READ_BUFFER)?;
+                let head = reader.next_record()?;
+                RunReader::Scratch {
+                    path: path.clone(),
+                    reader,
+                    head,
+                }
+            }
+        })
+    }
+
+    fn peek(&self) -> Option<CubeRecord> {
+        match self {
+            RunReader::Segment(cursor) => cursor.peek(),
+            RunReader::Scratch { head, .. } => *head,
+        }
+    }
+
+    fn advance(&mut self) -> Result<()> {
+        match self {
+            RunReader::Segment(cursor) => cursor.advance(),
+            RunReader::Scratch { reader, head, .. } => {
+                *head = reader.next_record()?;
+                Ok(())
+            }
+        }
+    }
+
+    fn path(&self) -> &Path {
+        match self {
+            RunReader::Segment(cursor) => &cursor.path,
+            RunReader::Scratch { path, .. } => path,
+        }
+    }
+}
+
+/// k-way merge of sorted runs: every distinct key once, in order, with the radius statistics of
+/// all its occurrences summed.
+fn merge_sorted(runs: &[SortedRun], mut emit: impl FnMut(CubeRecord) -> Result<()>) -> Result<()> {
+    let mut readers: Vec<RunReader> = runs.iter().map(RunReader::open).collect::<Result<_>>()?;
+    let mut heap = BinaryHeap::new();
+    for (index, reader) in readers.iter().enumerate() {
+        if let Some(r) = reader.peek() {
+            heap.push(Reverse((r.key, index)));
+        }
+    }
+    let mut current: Option<CubeRecord> = None;
+    while let Some(Reverse((key, index))) = heap.pop() {
+        let Some(reader) = readers.get_mut(index) else { break };
+        let Some(record) = reader.peek() else { continue };
+        match current.as_mut() {
+            Some(c) if c.key == key => {
+                c.radius_sum += record.radius_sum;
+                c.radius_count += record.radius_count;
+            }
+            _ => {
+                if let Some(done) = current.replace(record) {
+                    emit(done)?;
+                }
+            }
+        }
+        reader.advance()?;
+        if let Some(next) = reader.peek() {
+            if next.key <= key {
+                return Err(StoreError::Stage {
+                    stage: OCTREE.into(),
+                    unit: reader.path().display().to_string(),
+                    message: "run keys are not increasing".into(),
+                });
+            }
+            heap.push(Reverse((next.key, index)));
+        }
+    }
+    if let Some(done) = current.take() {
+        emit(done)?;
+    }
+    Ok(())
+}
+
 /// A treetop unit: one leaf (a contiguous index range) or the treetop's internal nodes.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Eq)]
 pub struct LeafUnit {
@@ -277,67 +382,55 @@ impl OctreeStage {
     }
 
     /// Merges the ingest runs into per-depth request files; returns the requested cube count.
+    /// At most [`MERGE_FAN_IN`] runs are open at once: more are first merged group by group
+    /// into scratch runs, so memory does not grow with the number of depth maps. Radius sums
+    /// are integers, so the grouping does not change a single bit of the result.
     fn merge_runs(
         &self,
         base: &Snapshot<'_>,
         request_files: &mut BTreeMap<u8, (PathBuf, RecordWriter<CubeRecord>)>,
     ) -> Result<u64> {
-        let mut cursors: Vec<RunCursor> = base
+        let mut runs: Vec<SortedRun> = base
             .segments(INGEST)
             .iter()
-            .map(|(name, record)| RunCursor::open(base.store().segment_path(name), record.clone()))
-            .collect::<Result<_>>()?;
-        let mut heap = BinaryHeap::new();
-        for (index, cursor) in cursors.iter().enumerate() {
-            if let Some(r) = cursor.peek() {
-                heap.push(Reverse((r.key, index)));
+            .map(|(name, record)| SortedRun::Segment(base.store().segment_path(name), record.clone()))
+            .collect();
+        let mut round = 0;
+        while runs.len() > MERGE_FAN_IN {
+            let mut merged = Vec::with_capacity(runs.len().div_ceil(MERGE_FAN_IN));
+            for (index, group) in runs.chunks(MERGE_FAN_IN).enumerate() {
+                let path = self.scratch.join(format!("merge-{round}-{index:05}.bin"));
+                let mut writer = RecordWriter::create(&path)?;
+                merge_sorted(group, |record| writer.push(&record))?;
+                writer.finish()?;
+                merged.push(SortedRun::Scratch(path));
             }
+            for run in &runs {
+                if let SortedRun::Scratch(path) = run {
+                    std::fs::remove_file(path).map_err(crate::store::io_error("remove", path))?;
+                }
+            }
+            runs = merged;
+            round += 1;
         }
         let mut requested = 0u64;
-        let mut current: Option<CubeRecord> = None;
-        let emit = |record: CubeRecord, files: &mut BTreeMap<u8, (PathBuf, RecordWriter<CubeRecord>)>| -> Result<()> {
+        merge_sorted(&runs, |record| {
+            requested += 1;
             let depth = record.key.depth();
-            if let std::collections::btree_map::Entry::Vacant(e) = files.entry(depth) {
+            if let std::collections::btree_map::Entry::Vacant(e) = request_files.entry(depth) {
                 let path = self.scratch.join(format!("requests-{depth:02}.bin"));
                 let writer = RecordWriter::create(&path)?;
                 e.insert((path, writer));
             }
-            if let Some((_, writer)) = files.get_mut(&depth) {
+            if let Some((_, writer)) = request_files.get_mut(&depth) {
                 writer.push(&record)?;
             }
             Ok(())
-        };
-        while let Some(Reverse((key, index))) = heap.pop() {
-            let Some(cursor) = cursors.get_mut(index) else { break };
-            let Some(record) = cursor.peek() else { continue };
-            match current.as_mut() {
-                Some(c) if c.key == key => {
-                    c.radius_sum += record.radius_sum;
-                    c.radius_count += record.radius_count;
-                }
-                _ => {
-                    if let Some(done) = current.take() {
-                        emit(done, request_files)?;
-                        requested += 1;
-                    }
-                    current = Some(record);
-                }
+        })?;
+        for run in &runs {
+            if let SortedRun::Scratch(path) = run {
+                std::fs::remove_file(path).map_err(crate::store::io_error("remove", path))?;
             }
-            cursor.advance()?;
-            if let Some(next) = cursor.peek() {
-                if next.key <= key {
-                    return Err(StoreError::Stage {
-                        stage: OCTREE.into(),
-                        unit: cursor.path.display().to_string(),
-                        message: "ingest run keys are not increasing".into(),
-                    });
-                }
-                heap.push(Reverse((next.key, index)));
-            }
-        }
-        if let Some(done) = current.take() {
-            emit(done, request_files)?;
-            requested += 1;
         }
         Ok(requested)
     }

@@ -80,6 +80,11 @@ impl<T: Pod> RecordReader<T> {
 
     /// Records `[first, first + count)` (clamped to the file).
     pub fn open_range(path: &Path, first: u64, count: u64) -> Result<Self> {
+        RecordReader::open_buffered(path, first, count, 1 << 20)
+    }
+
+    /// As [`RecordReader::open_range`], with a read buffer of `buffer_bytes`.
+    pub fn open_buffered(path: &Path, first: u64, count: u64, buffer_bytes: usize) -> Result<Self> {
         let mut file = File::open(path).map_err(io_error("open", path))?;
         let size = size_of::<T>() as u64;
         let len = file.metadata().map_err(io_error("stat", path))?.len() / size;
@@ -87,7 +92,7 @@ impl<T: Pod> RecordReader<T> {
             .map_err(io_error("seek", path))?;
         Ok(RecordReader {
             path: path.to_path_buf(),
-            input: BufReader::with_capacity(1 << 20, file),
+            input: BufReader::with_capacity(buffer_bytes, file),
             remaining: count.min(len.saturating_sub(first)),
             _t: PhantomData,
         })
