@@ -8,7 +8,7 @@ use std::path::Path;
 use common::*;
 use glam::DVec3;
 use octstore::scenes::{SceneSpec, Shape};
-use octstore::stages::extract::{Region, edge_defects, extract, read_ply};
+use octstore::stages::extract::{ExtractOptions, Region, edge_defects, extract, read_ply};
 
 fn sphere() -> SceneSpec {
     let center = DVec3::new(0.2, -0.1, 0.3);
@@ -103,6 +103,21 @@ fn a_closed_object_gives_a_closed_manifold_mesh_on_the_surface() {
         }
     }
     let _ = outward;
+    // One leaf: decimation gets close to the requested ratio and keeps the mesh closed.
+    let small = dir.path().join("small.ply");
+    let out = octstore(
+        &["extract", dir.path().join("store").to_str().unwrap(), "-o", small.to_str().unwrap(), "--decimate", "0.3"],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let small = read_ply(&small).unwrap();
+    assert_eq!(edge_defects(&small), (0, 0));
+    assert!(
+        small.triangles.len() * 100 < mesh.triangles.len() * 40,
+        "{} of {} triangles kept",
+        small.triangles.len(),
+        mesh.triangles.len()
+    );
     assert!(sphere_vertices > 200, "{sphere_vertices} vertices on the sphere");
     // Measured: 754 of 18129 (4.2 %), small blobs in the room's poorly seen upper corners.
     assert!(
@@ -135,6 +150,35 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
         serde_json::from_str(&stdout(&octstore(&["info", store_b.to_str().unwrap(), "--json"], &[]))).unwrap();
     assert_eq!(info["digest"], info_b["digest"]);
     assert_same_store(&fingerprint(&store_a), &fingerprint(&store_b), "1 vs 2 threads");
+
+    // Decimation per leaf never moves a vertex shared with another leaf: still closed and
+    // manifold, every kept vertex is an original one, and threads do not change the bytes.
+    let full = read_ply(&a.path().join("mesh.ply")).unwrap();
+    let mut decimated = Vec::new();
+    for (store, threads) in [(&store_a, "1"), (&store_b, "2")] {
+        let ply = store.with_file_name("decimated.ply");
+        let out = octstore(
+            &["extract", store.to_str().unwrap(), "-o", ply.to_str().unwrap(), "--decimate", "0.3", "--threads", threads],
+            &[],
+        );
+        assert!(out.status.success(), "{}", stderr(&out));
+        decimated.push(std::fs::read(&ply).unwrap());
+    }
+    assert!(decimated[0] == decimated[1], "decimated meshes differ between 1 and 2 threads");
+    let small = read_ply(&a.path().join("decimated.ply")).unwrap();
+    assert_eq!(edge_defects(&small), (0, 0), "decimation opened a seam");
+    assert!(
+        // Many tiny leaves: most vertices lie on a leaf border and stay (measured: 3626 of 6212).
+        small.triangles.len() * 4 < full.triangles.len() * 3 && small.triangles.len() * 10 > full.triangles.len(),
+        "{} of {} triangles kept",
+        small.triangles.len(),
+        full.triangles.len()
+    );
+    let original: std::collections::HashSet<[u32; 3]> =
+        full.positions.iter().map(|p| p.map(f32::to_bits)).collect();
+    assert!(small.positions.iter().all(|p| original.contains(&p.map(f32::to_bits))));
+    let out = octstore(&["extract", store_a.to_str().unwrap(), "-o", "x.ply", "--decimate", "1.5"], &[]);
+    assert!(!out.status.success() && stderr(&out).contains("not a ratio"), "{}", stderr(&out));
 }
 
 #[test]
@@ -201,7 +245,7 @@ fn region_extraction_cuts_cleanly_at_the_box() {
     let opened = octstore::Store::open_read_only(&store).unwrap();
     let scene = octstore::stages::ingest::read_scene(&opened).unwrap().unwrap();
     let finest = octstore::stages::octree_max_depth(&opened).unwrap();
-    let mesh = extract(&opened.latest().unwrap(), &scene, finest, Some(region)).unwrap();
+    let mesh = extract(&opened.latest().unwrap(), &scene, finest, &ExtractOptions { region: Some(region), decimate: None }).unwrap();
     assert_eq!(mesh.triangles.len(), half.triangles.len());
 }
 

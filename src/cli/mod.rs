@@ -122,6 +122,10 @@ pub enum Command {
         /// Extract from this version instead of the latest.
         #[arg(long)]
         version: Option<u64>,
+        /// Keep about this fraction (0..1] of the triangles: quadric-error simplification per
+        /// treetop leaf that never moves a vertex shared with another leaf.
+        #[arg(long, value_parser = parse_ratio)]
+        decimate: Option<f32>,
     },
     /// The indicator u at a point (interpolated), from the latest or a given version.
     Query {
@@ -222,7 +226,7 @@ fn parse_region(text: &str) -> Result<Region, String> {
 pub fn extract_to(
     store: &Store,
     output: &std::path::Path,
-    region: Option<Region>,
+    options: &stages::extract::ExtractOptions,
     version: Option<u64>,
 ) -> Result<Mesh, StoreError> {
     let started = std::time::Instant::now();
@@ -236,7 +240,7 @@ pub fn extract_to(
         None => store.latest()?,
     };
     let finest = stages::octree_max_depth(store)?;
-    let mesh = stages::extract::extract(&snapshot, &scene, finest, region)?;
+    let mesh = stages::extract::extract(&snapshot, &scene, finest, options)?;
     stages::extract::write_mesh(output, &mesh).map_err(crate::store::io_error("write mesh", output))?;
     let (boundary, non_manifold) = stages::extract::edge_defects(&mesh);
     println!(
@@ -250,6 +254,13 @@ pub fn extract_to(
         peak_rss_bytes() as f64 / 1e6
     );
     Ok(mesh)
+}
+
+fn parse_ratio(text: &str) -> Result<f32, String> {
+    match text.trim().parse::<f32>() {
+        Ok(r) if r > 0.0 && r <= 1.0 => Ok(r),
+        _ => Err(format!("'{text}' is not a ratio in (0, 1]")),
+    }
 }
 
 fn parse_root(text: &str) -> Result<([f64; 3], f64), String> {
@@ -501,7 +512,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             for level in 0..=stages::octree_max_depth(&store)? {
                 summary(&store.run_stage(&LevelStage::new(level, scene, params), &run)?);
             }
-            let mesh = extract_to(&store, &out.join("demo.ply"), None, None)?;
+            let mesh = extract_to(&store, &out.join("demo.ply"), &Default::default(), None)?;
             // The preview shows the objects, not the room around them.
             let objects = Region {
                 min: glam::DVec3::new(-0.7, -0.6, -0.45),
@@ -525,9 +536,11 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             output,
             region,
             version,
+            decimate,
         } => {
             let store = Store::open_for_reading(&store)?;
-            extract_to(&store, &output, region, version)?;
+            let options = stages::extract::ExtractOptions { region, decimate };
+            extract_to(&store, &output, &options, version)?;
         }
         Command::Query {
             store,

@@ -257,8 +257,75 @@ pub struct Mesh {
     pub triangles: Vec<[u32; 3]>,
 }
 
-/// Extracts the surface u = 0 of the latest solution, optionally only what lies in `region`.
-pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, region: Option<Region>) -> Result<Mesh> {
+/// What to extract and how.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ExtractOptions {
+    /// Only what lies in this box, cut at its faces.
+    pub region: Option<Region>,
+    /// Keep about this fraction of each treetop leaf's triangles (quadric error simplification;
+    /// vertices shared with another leaf never move, so the whole stays seamless).
+    pub decimate: Option<f32>,
+}
+
+/// Largest error a decimation may introduce, relative to the extent of a leaf's mesh: the
+/// triangle target is not reached where reaching it would cost more.
+pub const DECIMATE_MAX_ERROR: f32 = 0.01;
+
+/// Simplifies each unit's mesh with meshopt, locking the vertices in `shared` (those other units
+/// also have); triangles are kept in the simplifier's deterministic output order.
+fn decimate_units(meshes: &mut [UnitMesh], ratio: f32) {
+    let mut owners: HashMap<(CornerId, CornerId), usize> = HashMap::new();
+    let mut shared: std::collections::HashSet<(CornerId, CornerId)> = Default::default();
+    for (unit, mesh) in meshes.iter().enumerate() {
+        for (edge, ..) in &mesh.vertices {
+            if *owners.entry(*edge).or_insert(unit) != unit {
+                shared.insert(*edge);
+            }
+        }
+    }
+    meshes.par_iter_mut().for_each(|mesh| {
+        if mesh.triangles.is_empty() {
+            return;
+        }
+        let positions: Vec<[f32; 3]> = mesh.vertices.iter().map(|(_, p, _)| p.as_vec3().to_array()).collect();
+        let locks: Vec<bool> = mesh.vertices.iter().map(|(edge, ..)| shared.contains(edge)).collect();
+        let indices: Vec<u32> = mesh.triangles.iter().flatten().copied().collect();
+        let target = ((indices.len() / 3) as f64 * f64::from(ratio.clamp(0.0, 1.0))) as usize * 3;
+        let kept = meshopt::simplify_with_locks_decoder(
+            &indices,
+            &positions,
+            &locks,
+            target,
+            DECIMATE_MAX_ERROR,
+            meshopt::SimplifyOptions::LockBorder,
+            None,
+        );
+        mesh.triangles = kept.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect();
+        // Drop vertices no triangle uses any more, keeping the order of the rest.
+        let mut used = vec![false; mesh.vertices.len()];
+        mesh.triangles.iter().flatten().for_each(|&v| used[v as usize] = true);
+        let mut remap = vec![u32::MAX; mesh.vertices.len()];
+        let mut next = 0u32;
+        for (old, keep) in used.iter().enumerate() {
+            if *keep {
+                remap[old] = next;
+                next += 1;
+            }
+        }
+        let mut index = 0;
+        mesh.vertices.retain(|_| {
+            index += 1;
+            used[index - 1]
+        });
+        for t in &mut mesh.triangles {
+            *t = t.map(|v| remap[v as usize]);
+        }
+    });
+}
+
+/// Extracts the surface u = 0 of the latest solution, optionally only what lies in a region.
+pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &ExtractOptions) -> Result<Mesh> {
+    let region = options.region;
     let treetop = Treetop::of(snapshot)?;
     let stage = LEVEL_STAGES[usize::from(finest)];
     if snapshot.segments(stage).is_empty() {
@@ -288,7 +355,7 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, region: Optio
             }
         })
         .collect();
-    let meshes: Vec<UnitMesh> = units
+    let mut meshes: Vec<UnitMesh> = units
         .par_iter()
         .map(|&unit| {
             let mut level = LevelCut::new(snapshot, &treetop, finest);
@@ -298,6 +365,9 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, region: Optio
             }
         })
         .collect::<Result<_>>()?;
+    if let Some(ratio) = options.decimate {
+        decimate_units(&mut meshes, ratio);
+    }
     // Weld across units by edge identity, in unit order (deterministic).
     let mut index: HashMap<(CornerId, CornerId), u32> = HashMap::new();
     let mut positions: Vec<DVec3> = Vec::new();
