@@ -6,10 +6,12 @@
 //! - [`store`]: the versioned store: redb catalog, segment files, commit protocol, snapshots,
 //!   the stage runner, verify and gc;
 //! - [`stages`]: the pipeline stages that run on the store;
+//! - [`quality`]: ground-truth rendering and mesh evaluation (the quality tools);
 //! - [`cli`]: the `octstore` command line.
 
 pub mod cli;
 pub mod format;
+pub mod quality;
 pub mod render;
 pub mod scenes;
 pub mod stages;

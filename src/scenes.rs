@@ -24,7 +24,7 @@ pub enum Shape {
 
 impl Shape {
     /// Distance along a unit ray to the first hit in front of the origin.
-    fn hit(&self, origin: DVec3, dir: DVec3) -> Option<f64> {
+    pub fn hit(&self, origin: DVec3, dir: DVec3) -> Option<f64> {
         match *self {
             Shape::Sphere { center, radius } => {
                 let oc = origin - center;
@@ -144,15 +144,7 @@ impl SceneSpec {
                         angle.sin() * elevation.cos(),
                         elevation.sin(),
                     ) * self.distance;
-                let forward = (self.target - eye).normalize();
-                let right = forward.cross(DVec3::Z).normalize();
-                let down = forward.cross(right);
-                DMat4::from_cols(
-                    right.extend(0.0),
-                    down.extend(0.0),
-                    forward.extend(0.0),
-                    DVec4::new(eye.x, eye.y, eye.z, 1.0),
-                )
+                look_at(eye, self.target)
             })
             .collect()
     }
@@ -196,11 +188,7 @@ impl SceneSpec {
                 if let (Some(noise), Some(state)) = (&self.noise, rng.as_mut())
                     && z.is_finite()
                 {
-                    if uniform(state) < noise.outliers {
-                        z *= 0.2 + 1.8 * uniform(state);
-                    } else {
-                        z *= 1.0 + noise.relative_sigma * gaussian(state);
-                    }
+                    z = add_noise(z, noise, state);
                 }
                 depth.push(z as f32);
             }
@@ -214,32 +202,70 @@ impl SceneSpec {
 
     /// Renders every camera into `dir` as PFM files plus `scene.json`, the manifest to ingest.
     pub fn write(&self, dir: &Path) -> std::io::Result<std::path::PathBuf> {
-        std::fs::create_dir_all(dir)?;
-        let f = self.focal();
-        let mut entries = Vec::new();
-        for (index, pose) in self.poses().iter().enumerate() {
-            let name = format!("view-{index:03}.pfm");
-            write_pfm(&dir.join(&name), &self.render(index, pose))?;
-            let m = pose.transpose().to_cols_array(); // row-major
-            entries.push(json!({
-                "image": name,
-                "width": self.width,
-                "height": self.height,
-                "intrinsics": {"fx": f, "fy": f, "cx": f64::from(self.width) * 0.5, "cy": f64::from(self.height) * 0.5},
-                "pose": {"camera_to_world": m, "axes": "opencv"},
-                "kind": "photo",
-            }));
-        }
-        let manifest = dir.join("scene.json");
-        std::fs::write(
-            &manifest,
-            serde_json::to_string_pretty(&json!({ "depth_maps": entries })).unwrap_or_default(),
-        )?;
-        Ok(manifest)
+        let views = self
+            .poses()
+            .into_iter()
+            .enumerate()
+            .map(|(index, pose)| (self.render(index, &pose), pose));
+        write_pinhole_views(dir, views, self.focal())
     }
 }
 
-fn splitmix(state: &mut u64) -> u64 {
+/// Writes depth maps as `view-NNN.pfm` plus the manifest `scene.json` that ingests them:
+/// pinhole cameras with focal length `focal` and the principal point at the image centre,
+/// camera-to-world poses with OpenCV axes.
+pub fn write_pinhole_views(
+    dir: &Path,
+    views: impl Iterator<Item = (DepthImage, DMat4)>,
+    focal: f64,
+) -> std::io::Result<std::path::PathBuf> {
+    std::fs::create_dir_all(dir)?;
+    let mut entries = Vec::new();
+    for (index, (image, pose)) in views.enumerate() {
+        let name = format!("view-{index:03}.pfm");
+        write_pfm(&dir.join(&name), &image)?;
+        let m = pose.transpose().to_cols_array(); // row-major
+        entries.push(json!({
+            "image": name,
+            "width": image.width,
+            "height": image.height,
+            "intrinsics": {"fx": focal, "fy": focal, "cx": f64::from(image.width) * 0.5, "cy": f64::from(image.height) * 0.5},
+            "pose": {"camera_to_world": m, "axes": "opencv"},
+            "kind": "photo",
+        }));
+    }
+    let manifest = dir.join("scene.json");
+    std::fs::write(
+        &manifest,
+        serde_json::to_string_pretty(&json!({ "depth_maps": entries })).unwrap_or_default(),
+    )?;
+    Ok(manifest)
+}
+
+/// Camera-to-world pose (OpenCV axes) at `eye` looking at `target`, z up.
+pub fn look_at(eye: DVec3, target: DVec3) -> DMat4 {
+    let forward = (target - eye).normalize();
+    let right = forward.cross(DVec3::Z).normalize_or(DVec3::X);
+    let down = forward.cross(right);
+    DMat4::from_cols(
+        right.extend(0.0),
+        down.extend(0.0),
+        forward.extend(0.0),
+        DVec4::new(eye.x, eye.y, eye.z, 1.0),
+    )
+}
+
+/// Applies a noise model to a depth value: an outlier (a random depth between 0.2 and 2 times
+/// the true one) with probability `noise.outliers`, else Gaussian noise relative to the depth.
+pub fn add_noise(z: f64, noise: &Noise, state: &mut u64) -> f64 {
+    if uniform(state) < noise.outliers {
+        z * (0.2 + 1.8 * uniform(state))
+    } else {
+        z * (1.0 + noise.relative_sigma * gaussian(state))
+    }
+}
+
+pub(crate) fn splitmix(state: &mut u64) -> u64 {
     *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
     let mut z = *state;
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
@@ -247,11 +273,11 @@ fn splitmix(state: &mut u64) -> u64 {
     z ^ (z >> 31)
 }
 
-fn uniform(state: &mut u64) -> f64 {
+pub(crate) fn uniform(state: &mut u64) -> f64 {
     (splitmix(state) >> 11) as f64 / (1u64 << 53) as f64
 }
 
-fn gaussian(state: &mut u64) -> f64 {
+pub(crate) fn gaussian(state: &mut u64) -> f64 {
     let u1 = uniform(state).max(1e-300);
     let u2 = uniform(state);
     (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
