@@ -106,7 +106,14 @@ fn a_closed_object_gives_a_closed_manifold_mesh_on_the_surface() {
     // One leaf: decimation gets close to the requested ratio and keeps the mesh closed.
     let small = dir.path().join("small.ply");
     let out = octstore(
-        &["extract", dir.path().join("store").to_str().unwrap(), "-o", small.to_str().unwrap(), "--decimate", "0.3"],
+        &[
+            "extract",
+            dir.path().join("store").to_str().unwrap(),
+            "-o",
+            small.to_str().unwrap(),
+            "--decimate",
+            "0.3",
+        ],
         &[],
     );
     assert!(out.status.success(), "{}", stderr(&out));
@@ -158,13 +165,25 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
     for (store, threads) in [(&store_a, "1"), (&store_b, "2")] {
         let ply = store.with_file_name("decimated.ply");
         let out = octstore(
-            &["extract", store.to_str().unwrap(), "-o", ply.to_str().unwrap(), "--decimate", "0.3", "--threads", threads],
+            &[
+                "extract",
+                store.to_str().unwrap(),
+                "-o",
+                ply.to_str().unwrap(),
+                "--decimate",
+                "0.3",
+                "--threads",
+                threads,
+            ],
             &[],
         );
         assert!(out.status.success(), "{}", stderr(&out));
         decimated.push(std::fs::read(&ply).unwrap());
     }
-    assert!(decimated[0] == decimated[1], "decimated meshes differ between 1 and 2 threads");
+    assert!(
+        decimated[0] == decimated[1],
+        "decimated meshes differ between 1 and 2 threads"
+    );
     let small = read_ply(&a.path().join("decimated.ply")).unwrap();
     assert_eq!(edge_defects(&small), (0, 0), "decimation opened a seam");
     assert!(
@@ -174,11 +193,17 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
         small.triangles.len(),
         full.triangles.len()
     );
-    let original: std::collections::HashSet<[u32; 3]> =
-        full.positions.iter().map(|p| p.map(f32::to_bits)).collect();
+    let original: std::collections::HashSet<[u32; 3]> = full.positions.iter().map(|p| p.map(f32::to_bits)).collect();
     assert!(small.positions.iter().all(|p| original.contains(&p.map(f32::to_bits))));
-    let out = octstore(&["extract", store_a.to_str().unwrap(), "-o", "x.ply", "--decimate", "1.5"], &[]);
-    assert!(!out.status.success() && stderr(&out).contains("not a ratio"), "{}", stderr(&out));
+    let out = octstore(
+        &["extract", store_a.to_str().unwrap(), "-o", "x.ply", "--decimate", "1.5"],
+        &[],
+    );
+    assert!(
+        !out.status.success() && stderr(&out).contains("not a ratio"),
+        "{}",
+        stderr(&out)
+    );
 }
 
 #[test]
@@ -245,7 +270,16 @@ fn region_extraction_cuts_cleanly_at_the_box() {
     let opened = octstore::Store::open_read_only(&store).unwrap();
     let scene = octstore::stages::ingest::read_scene(&opened).unwrap().unwrap();
     let finest = octstore::stages::octree_max_depth(&opened).unwrap();
-    let mesh = extract(&opened.latest().unwrap(), &scene, finest, &ExtractOptions { region: Some(region), decimate: None }).unwrap();
+    let mesh = extract(
+        &opened.latest().unwrap(),
+        &scene,
+        finest,
+        &ExtractOptions {
+            region: Some(region),
+            decimate: None,
+        },
+    )
+    .unwrap();
     assert_eq!(mesh.triangles.len(), half.triangles.len());
 }
 

@@ -388,7 +388,10 @@ fn ingest_cli_reports_and_info_counts() {
 }
 
 /// Key -> (radius sum, radius count) of every cube of `stage`'s segments, summed over segments.
-fn radius_stats(snap: &octstore::Snapshot<'_>, stage: &str) -> std::collections::BTreeMap<octstore::CubeKey, (u64, u32)> {
+fn radius_stats(
+    snap: &octstore::Snapshot<'_>,
+    stage: &str,
+) -> std::collections::BTreeMap<octstore::CubeKey, (u64, u32)> {
     let mut stats = std::collections::BTreeMap::new();
     for (name, _) in snap.segments(stage) {
         let file = snap.open_segment(name).unwrap();
@@ -426,8 +429,18 @@ fn merging_more_runs_than_the_fan_in_keeps_every_radius_sum() {
         assert_eq!(nodes.get(key), Some(stats), "cube {key:?}");
     }
     let with_radius = nodes.values().filter(|(_, count)| *count > 0).count();
-    assert_eq!(with_radius, requested.len(), "nodes the runs never requested carry radii");
-    assert!(store.scratch_dir(OCTREE).unwrap().read_dir().unwrap().all(|e| {
-        !e.unwrap().file_name().to_string_lossy().starts_with("merge-")
-    }), "merge rounds leave no scratch files");
+    assert_eq!(
+        with_radius,
+        requested.len(),
+        "nodes the runs never requested carry radii"
+    );
+    assert!(
+        store
+            .scratch_dir(OCTREE)
+            .unwrap()
+            .read_dir()
+            .unwrap()
+            .all(|e| { !e.unwrap().file_name().to_string_lossy().starts_with("merge-") }),
+        "merge rounds leave no scratch files"
+    );
 }

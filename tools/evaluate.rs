@@ -19,9 +19,12 @@ struct Args {
     #[arg(long, default_value_t = 0.01)]
     tau: f64,
     /// Keep only reconstruction inside the ground truth's bounds grown by this fraction of its
-    /// diagonal (negative: no crop).
+    /// diagonal.
     #[arg(long, default_value_t = 0.05)]
     crop_margin: f64,
+    /// Measure the whole reconstruction, uncropped.
+    #[arg(long)]
+    no_crop: bool,
     #[arg(long)]
     json: bool,
 }
@@ -35,7 +38,7 @@ fn main() -> ExitCode {
         let options = EvaluateOptions {
             tau: args.tau * (hi - lo).length(),
             spacing: None,
-            crop_margin: (args.crop_margin >= 0.0).then_some(args.crop_margin),
+            crop_margin: (!args.no_crop).then_some(args.crop_margin),
             seed: 1,
         };
         let r = evaluate(&reconstruction, &truth, &options)?;
@@ -44,7 +47,15 @@ fn main() -> ExitCode {
         } else {
             format!(
                 "tau {:.6} | accuracy {:.6} | completeness {:.6} | chamfer {:.6} | precision {:.4} | recall {:.4} | F-score {:.4} | boundary edges {} | non-manifold edges {}",
-                r.tau, r.accuracy, r.completeness, r.chamfer, r.precision, r.recall, r.f_score, r.boundary_edges, r.non_manifold_edges
+                r.tau,
+                r.accuracy,
+                r.completeness,
+                r.chamfer,
+                r.precision,
+                r.recall,
+                r.f_score,
+                r.boundary_edges,
+                r.non_manifold_edges
             )
         })
     };

@@ -138,7 +138,7 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Render a mesh written by `extract` as a shaded PNG.
+    /// Render a mesh (PLY, OFF or OBJ, optionally .gz) as a shaded PNG.
     Render {
         mesh: PathBuf,
         #[arg(short, long)]
@@ -575,7 +575,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             width,
             height,
         } => {
-            let mesh = stages::extract::read_ply(&mesh).map_err(|message| StoreError::Stage {
+            let mesh = crate::quality::meshio::read_mesh(&mesh).map_err(|message| StoreError::Stage {
                 stage: "render".into(),
                 unit: "-".into(),
                 message,

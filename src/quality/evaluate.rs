@@ -241,7 +241,11 @@ mod tests {
 
     #[test]
     fn closest_point_matches_brute_force() {
-        let (a, b, c) = (DVec3::new(0.0, 0.0, 0.0), DVec3::new(1.0, 0.2, 0.0), DVec3::new(0.3, 1.0, 0.4));
+        let (a, b, c) = (
+            DVec3::new(0.0, 0.0, 0.0),
+            DVec3::new(1.0, 0.2, 0.0),
+            DVec3::new(0.3, 1.0, 0.4),
+        );
         let mut state = 9u64;
         for _ in 0..500 {
             let p = DVec3::new(uniform(&mut state), uniform(&mut state), uniform(&mut state)) * 3.0 - 1.0;

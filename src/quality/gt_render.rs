@@ -175,7 +175,10 @@ impl GroundTruth {
         DepthImage {
             width: rig.width,
             height: rig.height,
-            depth: depth.into_iter().map(|d| if d.is_finite() { d as f32 } else { f32::NAN }).collect(),
+            depth: depth
+                .into_iter()
+                .map(|d| if d.is_finite() { d as f32 } else { f32::NAN })
+                .collect(),
         }
     }
 
@@ -195,7 +198,10 @@ impl GroundTruth {
         }
         let radius = noise.missing_radius * f64::from(rig.width);
         for _ in 0..noise.missing_regions {
-            let (ci, cj) = (uniform(&mut state) * f64::from(rig.width), uniform(&mut state) * f64::from(rig.height));
+            let (ci, cj) = (
+                uniform(&mut state) * f64::from(rig.width),
+                uniform(&mut state) * f64::from(rig.height),
+            );
             for j in 0..rig.height {
                 for i in 0..rig.width {
                     let (di, dj) = (f64::from(i) - ci, f64::from(j) - cj);
@@ -243,8 +249,18 @@ mod tests {
         let positions: Vec<[f32; 3]> = (0..8)
             .map(|i| [(i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32])
             .collect();
-        let quads = [[0, 1, 3, 2], [4, 5, 7, 6], [0, 1, 5, 4], [2, 3, 7, 6], [0, 2, 6, 4], [1, 3, 7, 5]];
-        let triangles = quads.iter().flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]).collect();
+        let quads = [
+            [0, 1, 3, 2],
+            [4, 5, 7, 6],
+            [0, 1, 5, 4],
+            [2, 3, 7, 6],
+            [0, 2, 6, 4],
+            [1, 3, 7, 5],
+        ];
+        let triangles = quads
+            .iter()
+            .flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
+            .collect();
         Mesh {
             positions,
             normals: Vec::new(),
@@ -274,7 +290,12 @@ mod tests {
                     assert!(z.is_finite(), "the room leaves no pixel empty");
                     let local = DVec3::new((f64::from(i) - 32.0) / f, (f64::from(j) - 24.0) / f, 1.0) * z;
                     let p = pose.transform_point3(local);
-                    let cube_distance = Shape::Box { min: DVec3::ZERO, max: DVec3::ONE }.signed_distance(p).abs();
+                    let cube_distance = Shape::Box {
+                        min: DVec3::ZERO,
+                        max: DVec3::ONE,
+                    }
+                    .signed_distance(p)
+                    .abs();
                     let wall_distance = (half_room - (p - truth.center).abs().max_element()).abs();
                     assert!(cube_distance.min(wall_distance) < 1e-6, "pixel ({i}, {j}) at {p:?}");
                     on_cube += usize::from(cube_distance < 1e-6);
@@ -309,7 +330,12 @@ mod tests {
         assert!(a.depth.iter().zip(&b.depth).all(|(x, y)| x.to_bits() == y.to_bits()));
         let missing = a.depth.iter().filter(|d| d.is_nan()).count();
         assert!(missing > 300, "{missing} missing pixels");
-        let changed = a.depth.iter().zip(&exact.depth).filter(|(x, y)| x.is_finite() && x != y).count();
+        let changed = a
+            .depth
+            .iter()
+            .zip(&exact.depth)
+            .filter(|(x, y)| x.is_finite() && x != y)
+            .count();
         let kept = a.depth.iter().filter(|d| d.is_finite()).count();
         let rate = changed as f64 / kept as f64;
         assert!((0.08..0.12).contains(&rate), "outlier rate {rate}");

@@ -33,7 +33,10 @@ pub fn read_mesh(path: &Path) -> Result<Mesh, String> {
     } else if name.ends_with(".obj") {
         read_obj(path, &bytes)?
     } else {
-        return Err(err(path, "unknown mesh format (expected .off, .ply or .obj, optionally .gz)"));
+        return Err(err(
+            path,
+            "unknown mesh format (expected .off, .ply or .obj, optionally .gz)",
+        ));
     };
     let count = mesh.positions.len();
     if let Some(bad) = mesh.triangles.iter().flatten().find(|&&v| v as usize >= count) {
@@ -63,8 +66,11 @@ fn read_off(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
         return Err(err(path, "not an OFF file (no OFF magic)"));
     }
     let mut number = |what: &str| -> Result<f64, String> {
-        let t = tokens.next().ok_or_else(|| err(path, format!("truncated OFF: missing {what}")))?;
-        t.parse::<f64>().map_err(|_| err(path, format!("{what}: '{t}' is not a number")))
+        let t = tokens
+            .next()
+            .ok_or_else(|| err(path, format!("truncated OFF: missing {what}")))?;
+        t.parse::<f64>()
+            .map_err(|_| err(path, format!("{what}: '{t}' is not a number")))
     };
     let (nv, nf) = (number("vertex count")?, number("face count")?);
     number("edge count")?;
@@ -74,7 +80,8 @@ fn read_off(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
     }
     let mut mesh = Mesh::default();
     for _ in 0..nv as usize {
-        mesh.positions.push([number("x")? as f32, number("y")? as f32, number("z")? as f32]);
+        mesh.positions
+            .push([number("x")? as f32, number("y")? as f32, number("z")? as f32]);
     }
     let mut polygon = Vec::new();
     for _ in 0..nf as usize {
@@ -117,7 +124,9 @@ fn read_obj(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
                         .and_then(|v| v.parse().ok())
                         .ok_or_else(|| err(path, format!("line {}: bad face index '{t}'", index + 1)))?;
                     let resolved = if v < 0 { mesh.positions.len() as i64 + v } else { v - 1 };
-                    polygon.push(u32::try_from(resolved).map_err(|_| err(path, format!("line {}: bad index {v}", index + 1)))?);
+                    polygon.push(
+                        u32::try_from(resolved).map_err(|_| err(path, format!("line {}: bad index {v}", index + 1)))?,
+                    );
                 }
                 fan(&polygon, &mut mesh.triangles);
             }
@@ -258,7 +267,9 @@ fn read_ply_bytes(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
             ["format", "binary_big_endian", _] => encoding = Some(Encoding::Big),
             ["element", name, count] => elements.push(Element {
                 name: (*name).to_string(),
-                count: count.parse().map_err(|_| err(path, format!("bad element count '{count}'")))?,
+                count: count
+                    .parse()
+                    .map_err(|_| err(path, format!("bad element count '{count}'")))?,
                 properties: Vec::new(),
             }),
             ["property", "list", count, item, name] => {
@@ -295,7 +306,10 @@ fn read_ply_bytes(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
     for element in &elements {
         // Each row needs at least one byte (binary) or two (ASCII): a count beyond that is a lie.
         if element.count > bytes.len() {
-            return Err(err(path, format!("element {} claims {} rows", element.name, element.count)));
+            return Err(err(
+                path,
+                format!("element {} claims {} rows", element.name, element.count),
+            ));
         }
         for _ in 0..element.count {
             let mut position = [0f32; 3];
