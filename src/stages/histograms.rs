@@ -5,6 +5,7 @@
 //! stay far below 2^24 / 16 in f32), so after an incremental ingest a unit whose octree part is
 //! unchanged only receives the new depth maps' votes, and the result equals a from-scratch run.
 
+use redb::ReadableTable;
 use std::collections::{BTreeMap, BTreeSet};
 
 use glam::DVec3;

@@ -28,6 +28,7 @@ pub const META_OCTREE_MAX_DEPTH: &str = "octree_max_depth";
 
 /// Deepest level of the latest octree.
 pub fn octree_max_depth(store: &crate::store::Store) -> crate::store::Result<u8> {
+    use redb::ReadableTable;
     let txn = store.catalog().begin_read()?;
     let meta = txn.open_table(crate::store::catalog::META)?;
     let value = meta

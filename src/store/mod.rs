@@ -127,7 +127,8 @@ impl Catalog {
     }
 }
 
-/// An open store. Writable stores hold redb's exclusive lock on the catalog.
+/// An open store. One process at a time may hold it writable; read-only handles may be opened
+/// alongside, and each reads the versions it pins.
 pub struct Store {
     root: PathBuf,
     catalog: Catalog,
@@ -146,6 +147,15 @@ fn sync_dir(path: &Path) -> Result<()> {
     File::open(path)
         .and_then(|dir| dir.sync_all())
         .map_err(io_error("fsync directory", path))
+}
+
+/// How processes share the catalog: one writer, and any number of read-only processes that open
+/// it while the writer runs and read the versions they pin. Readers and the writer must agree on
+/// the mode: it is part of the on-disk protocol (format-spec.md, "Catalog").
+fn catalog_builder() -> redb::Builder {
+    let mut builder = redb::Builder::new();
+    builder.set_concurrency_mode(redb::ConcurrencyMode::SingleWriter);
+    builder
 }
 
 fn map_open_error(path: &Path, e: redb::DatabaseError) -> StoreError {
@@ -183,7 +193,7 @@ impl Store {
             _ => {}
         }
         {
-            let db = redb::Database::create(&temp_path).map_err(|e| map_open_error(&root, e))?;
+            let db = catalog_builder().create(&temp_path).map_err(|e| map_open_error(&root, e))?;
             let txn = db.begin_write()?;
             {
                 let mut meta = txn.open_table(META)?;
@@ -208,7 +218,7 @@ impl Store {
         }
         fs::rename(&temp_path, &catalog_path).map_err(io_error("rename", &temp_path))?;
         sync_dir(&root)?;
-        let db = redb::Database::open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        let db = catalog_builder().open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
         Ok(Store {
             root,
             catalog: Catalog::Writable(db),
@@ -226,7 +236,7 @@ impl Store {
     pub fn open_with_faults(path: impl AsRef<Path>, faults: IoFaults) -> Result<Store> {
         let root = path.as_ref().to_path_buf();
         let catalog_path = Store::catalog_path_checked(&root)?;
-        let db = redb::Database::open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        let db = catalog_builder().open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
         let store = Store {
             root,
             catalog: Catalog::Writable(db),
@@ -242,11 +252,12 @@ impl Store {
         Ok(store)
     }
 
-    /// Opens a store for reading only. Several readers may share it; a writer excludes them.
+    /// Opens a store for reading only. Any number of readers may share it, also while a writer
+    /// runs: a snapshot pins its version, whose segments stay until `gc` retires the version.
     pub fn open_read_only(path: impl AsRef<Path>) -> Result<Store> {
         let root = path.as_ref().to_path_buf();
         let catalog_path = Store::catalog_path_checked(&root)?;
-        let db = redb::ReadOnlyDatabase::open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        let db = catalog_builder().open_read_only(&catalog_path).map_err(|e| map_open_error(&root, e))?;
         let store = Store {
             root,
             catalog: Catalog::ReadOnly(db),
