@@ -6,11 +6,13 @@
 //! - [`store`]: the versioned store: redb catalog, segment files, commit protocol, snapshots,
 //!   the stage runner, verify and gc;
 //! - [`stages`]: the pipeline stages that run on the store;
+//! - [`pipeline`]: ingest and solve as library calls;
 //! - [`quality`]: ground-truth rendering and mesh evaluation (the quality tools);
 //! - [`cli`]: the `octstore` command line.
 
 pub mod cli;
 pub mod format;
+pub mod pipeline;
 pub mod quality;
 pub mod render;
 pub mod scenes;

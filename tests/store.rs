@@ -345,28 +345,52 @@ fn readers_open_the_store_while_a_writer_commits_and_keep_their_pinned_version()
     let path = dir.path().to_str().unwrap();
     let first = octstore(&["debug-synthetic", path, "--units", "3", "--seed", "1"], &[]);
     assert!(first.status.success(), "{}", stderr(&first));
-    let pinned_digest = Store::open_read_only(dir.path()).unwrap().latest().unwrap().digest(synthetic::NAME);
+    let pinned_digest = Store::open_read_only(dir.path())
+        .unwrap()
+        .latest()
+        .unwrap()
+        .digest(synthetic::NAME);
 
     // A writer that takes a few seconds, committing unit by unit.
     let mut writer = std::process::Command::new(octstore_bin())
-        .args(["debug-synthetic", path, "--units", "40", "--seed", "2", "--delay-ms", "100"])
+        .args([
+            "debug-synthetic",
+            path,
+            "--units",
+            "40",
+            "--seed",
+            "2",
+            "--delay-ms",
+            "100",
+        ])
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
     std::thread::sleep(std::time::Duration::from_millis(800));
-    assert!(writer.try_wait().unwrap().is_none(), "the writer finished too early to test anything");
+    assert!(
+        writer.try_wait().unwrap().is_none(),
+        "the writer finished too early to test anything"
+    );
 
     let reader = Store::open_read_only(dir.path()).expect("a reader opens while the writer runs");
     let snapshot = reader.latest().unwrap();
     let version = snapshot.version();
-    assert_eq!(snapshot.digest(synthetic::NAME), pinned_digest, "the writer's run is not committed yet");
+    assert_eq!(
+        snapshot.digest(synthetic::NAME),
+        pinned_digest,
+        "the writer's run is not committed yet"
+    );
     // Another process reads too.
     let info = octstore(&["info", path, "--json"], &[]);
     assert!(info.status.success(), "{}", stderr(&info));
     // A second writer is still refused.
     let second = octstore(&["debug-synthetic", path], &[]);
-    assert!(stderr(&second).contains("in use by another octstore process"), "{}", stderr(&second));
+    assert!(
+        stderr(&second).contains("in use by another octstore process"),
+        "{}",
+        stderr(&second)
+    );
 
     let status = writer.wait().unwrap();
     assert!(status.success());

@@ -1,5 +1,6 @@
 //! The `octstore` command line.
 
+use crate::pipeline;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -41,12 +42,7 @@ pub struct GlobalOptions {
     pub quiet: bool,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
-pub enum SolveStage {
-    Octree,
-    Histograms,
-    Solution,
-}
+pub use crate::pipeline::SolveUntil as SolveStage;
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
@@ -406,19 +402,13 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             resume,
         } => {
             let discover = DiscoverOptions { format, stride, limit };
-            let sources = stages::inputs::discover(&inputs, &discover).map_err(|e| StoreError::Stage {
-                stage: stages::INGEST.into(),
-                unit: "inputs".into(),
-                message: e.to_string(),
-            })?;
             let store = open_or_create(&store)?;
             let options = IngestOptions {
                 root,
                 root_margin,
                 max_depth,
             };
-            let stage = IngestStage::prepare(&store, sources, &options)?;
-            let report = store.run_stage(&stage, &run_options(&global, resume))?;
+            let report = pipeline::ingest(&store, &inputs, &discover, &options, &run_options(&global, resume))?;
             summary(&report);
         }
         Command::Solve {
@@ -432,38 +422,19 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             iterations,
         } => {
             let store = Store::open(&store)?;
-            let scene = stages::ingest::read_scene(&store)?.ok_or_else(|| StoreError::Stage {
-                stage: stages::OCTREE.into(),
-                unit: "-".into(),
-                message: "the store has no depth maps yet: run `octstore ingest` first".into(),
-            })?;
-            if until >= SolveStage::Octree {
-                let scratch = store.scratch_dir(stages::OCTREE)?;
-                let options = run_options(&global, resume);
-                let leaf_cubes = octree::effective_leaf_cubes(leaf_cubes, global.memory_budget, options.threads);
-                let stage = OctreeStage::new(scene, leaf_cubes, global.memory_budget / 4, scratch.clone());
-                let report = store.run_stage(&stage, &options)?;
-                summary(&report);
-                let _ = std::fs::remove_dir_all(scratch);
-            }
-            if until >= SolveStage::Histograms {
-                let depth_maps = stages::ingest::registered_depth_maps(&store)?;
-                let stage = HistogramsStage::new(scene, depth_maps);
-                summary(&store.run_stage(&stage, &run_options(&global, resume))?);
-            }
-            if until >= SolveStage::Solution {
-                let params = SolveParams {
+            let options = pipeline::SolveOptions {
+                until,
+                leaf_cubes,
+                memory_budget: global.memory_budget,
+                params: SolveParams {
                     alpha1,
                     alpha0,
                     lambda,
                     iterations,
-                };
-                let finest = stages::octree_max_depth(&store)?;
-                for level in 0..=finest {
-                    let stage = LevelStage::new(level, scene, params);
-                    summary(&store.run_stage(&stage, &run_options(&global, resume))?);
-                }
-            }
+                },
+                run: run_options(&global, resume),
+            };
+            pipeline::solve(&store, &options, summary)?;
         }
         Command::Demo { out, iterations } => {
             let started = std::time::Instant::now();

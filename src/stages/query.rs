@@ -1,15 +1,8 @@
 //! Reading the indicator field from code: an extension of [`Snapshot`] (the store layer knows
 //! nothing of stages, so the field's queries live here).
 //!
-//! ```no_run
-//! use octstore::{IndicatorField, Store};
-//! let store = Store::open_read_only("store")?;
-//! let snapshot = store.latest()?;
-//! if let Some(u) = snapshot.indicator_at(glam::DVec3::new(0.1, 0.2, 0.3))? {
-//!     println!("u = {u} ({})", if u < 0.0 { "inside" } else { "outside" });
-//! }
-//! # Ok::<(), octstore::StoreError>(())
-//! ```
+//! [`crate::pipeline`]'s documentation has a runnable example that builds a store and reads
+//! its field.
 
 use glam::DVec3;
 use serde::Serialize;

@@ -193,7 +193,9 @@ impl Store {
             _ => {}
         }
         {
-            let db = catalog_builder().create(&temp_path).map_err(|e| map_open_error(&root, e))?;
+            let db = catalog_builder()
+                .create(&temp_path)
+                .map_err(|e| map_open_error(&root, e))?;
             let txn = db.begin_write()?;
             {
                 let mut meta = txn.open_table(META)?;
@@ -218,7 +220,9 @@ impl Store {
         }
         fs::rename(&temp_path, &catalog_path).map_err(io_error("rename", &temp_path))?;
         sync_dir(&root)?;
-        let db = catalog_builder().open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        let db = catalog_builder()
+            .open(&catalog_path)
+            .map_err(|e| map_open_error(&root, e))?;
         Ok(Store {
             root,
             catalog: Catalog::Writable(db),
@@ -236,7 +240,9 @@ impl Store {
     pub fn open_with_faults(path: impl AsRef<Path>, faults: IoFaults) -> Result<Store> {
         let root = path.as_ref().to_path_buf();
         let catalog_path = Store::catalog_path_checked(&root)?;
-        let db = catalog_builder().open(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        let db = catalog_builder()
+            .open(&catalog_path)
+            .map_err(|e| map_open_error(&root, e))?;
         let store = Store {
             root,
             catalog: Catalog::Writable(db),
@@ -257,7 +263,9 @@ impl Store {
     pub fn open_read_only(path: impl AsRef<Path>) -> Result<Store> {
         let root = path.as_ref().to_path_buf();
         let catalog_path = Store::catalog_path_checked(&root)?;
-        let db = catalog_builder().open_read_only(&catalog_path).map_err(|e| map_open_error(&root, e))?;
+        let db = catalog_builder()
+            .open_read_only(&catalog_path)
+            .map_err(|e| map_open_error(&root, e))?;
         let store = Store {
             root,
             catalog: Catalog::ReadOnly(db),
