@@ -344,4 +344,32 @@ fn the_indicator_field_can_be_read_from_code_and_the_cli() {
     assert!(out.status.success(), "{}", stderr(&out));
     let json: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
     assert!(json["u"].as_f64().unwrap() < 0.0, "{json}");
+    // Level and leaf listings, from code and from the command line.
+    let store = octstore::Store::open_read_only(&store_path).unwrap();
+    let snapshot = store.latest().unwrap();
+    let levels = snapshot.levels();
+    assert_eq!(levels, (0..=level).collect::<Vec<u8>>());
+    let leaves = snapshot.leaves().unwrap();
+    let info: serde_json::Value = serde_json::from_str(&stdout(&octstore(
+        &["info", store_path.to_str().unwrap(), "--json"],
+        &[],
+    )))
+    .unwrap();
+    assert_eq!(leaves.len() as u64, info["treetop_leaves"].as_u64().unwrap());
+    let cubes: u64 = leaves.iter().map(|l| l.cubes).sum();
+    assert!(
+        cubes > 0 && cubes <= info["cubes"].as_u64().unwrap(),
+        "{cubes} vs {info}"
+    );
+    let out = octstore(&["query", store_path.to_str().unwrap(), "--leaves"], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let json: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
+    assert_eq!(json["leaves"].as_array().unwrap().len(), leaves.len());
+    assert_eq!(json["levels"].as_array().unwrap().len(), levels.len());
+    let out = octstore(&["query", store_path.to_str().unwrap()], &[]);
+    assert!(
+        !out.status.success() && stderr(&out).contains("--point"),
+        "{}",
+        stderr(&out)
+    );
 }

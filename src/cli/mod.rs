@@ -127,12 +127,18 @@ pub enum Command {
     Query {
         store: PathBuf,
         /// x,y,z in world coordinates.
-        #[arg(long, value_parser = parse_point)]
-        point: [f64; 3],
+        #[arg(long, value_parser = parse_point, required_unless_present_any = ["levels", "leaves"])]
+        point: Option<[f64; 3]>,
         #[arg(long)]
         version: Option<u64>,
         #[arg(long)]
         json: bool,
+        /// List the solved levels (JSON).
+        #[arg(long)]
+        levels: bool,
+        /// List the treetop leaves: key, depth, min corner, size, cubes (JSON).
+        #[arg(long)]
+        leaves: bool,
     },
     /// Render a mesh (PLY, OFF or OBJ, optionally .gz) as a shaded PNG.
     Render {
@@ -518,12 +524,30 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             point,
             version,
             json,
+            levels,
+            leaves,
         } => {
             use crate::IndicatorField;
             let store = Store::open_for_reading(&store)?;
             let snapshot = match version {
                 Some(v) => store.snapshot(v)?,
                 None => store.latest()?,
+            };
+            if leaves || levels {
+                let value = serde_json::json!({
+                    "version": snapshot.version(),
+                    "levels": snapshot.levels(),
+                    "leaves": if leaves { Some(snapshot.leaves()?) } else { None },
+                });
+                println!("{}", serde_json::to_string_pretty(&value).unwrap_or_default());
+                return Ok(ExitCode::SUCCESS);
+            }
+            let Some(point) = point else {
+                return Err(StoreError::Stage {
+                    stage: "query".into(),
+                    unit: "-".into(),
+                    message: "give --point x,y,z (or --levels / --leaves)".into(),
+                });
             };
             let u = snapshot.indicator_at(glam::DVec3::from_array(point))?;
             if json {

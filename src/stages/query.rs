@@ -28,9 +28,27 @@ pub struct CubeInfo {
     pub histogram: [f32; BINS],
 }
 
+/// One treetop leaf, as `leaves` lists it.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct LeafInfo {
+    pub key: String,
+    pub depth: u8,
+    /// Minimum corner and side of the leaf's cube, in world units.
+    pub min: [f64; 3],
+    pub size: f64,
+    /// Octree cubes in the leaf.
+    pub cubes: u64,
+}
+
 pub trait IndicatorField {
     /// The deepest solved level visible in this snapshot.
     fn finest_level(&self) -> Option<u8>;
+
+    /// Every solved level visible in this snapshot, coarse to fine.
+    fn levels(&self) -> Vec<u8>;
+
+    /// The treetop leaves of the snapshot's octree, in key order.
+    fn leaves(&self) -> Result<Vec<LeafInfo>>;
 
     /// u at a point, interpolated by inverse distance over the leaves around the octree corner
     /// nearest to the point (exact at leaf centres); `None` outside the root or before a solve.
@@ -61,6 +79,32 @@ impl IndicatorField for Snapshot<'_> {
         (0..=MAX_DEPTH)
             .rev()
             .find(|&l| !self.segments(LEVEL_STAGES[usize::from(l)]).is_empty())
+    }
+
+    fn levels(&self) -> Vec<u8> {
+        (0..=MAX_DEPTH)
+            .filter(|&l| !self.segments(LEVEL_STAGES[usize::from(l)]).is_empty())
+            .collect()
+    }
+
+    fn leaves(&self) -> Result<Vec<LeafInfo>> {
+        let scene = scene_of(self)?;
+        let treetop = Treetop::of(self)?;
+        Ok(treetop
+            .units
+            .iter()
+            .filter(|unit| !unit.top)
+            .map(|unit| {
+                let size = scene.cube_side(unit.key.depth());
+                LeafInfo {
+                    key: format!("{:?}", unit.key),
+                    depth: unit.key.depth(),
+                    min: (scene.cube_center(unit.key) - DVec3::splat(size * 0.5)).to_array(),
+                    size,
+                    cubes: unit.record.rows,
+                }
+            })
+            .collect())
     }
 
     fn indicator_at(&self, point: DVec3) -> Result<Option<f32>> {
