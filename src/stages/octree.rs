@@ -17,6 +17,7 @@ use std::collections::{BTreeMap, BTreeSet, BinaryHeap};
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
+use rayon::prelude::*;
 use redb::{ReadableTable, WriteTransaction};
 use serde::{Deserialize, Serialize};
 
@@ -397,14 +398,20 @@ impl OctreeStage {
             .collect();
         let mut round = 0;
         while runs.len() > MERGE_FAN_IN {
-            let mut merged = Vec::with_capacity(runs.len().div_ceil(MERGE_FAN_IN));
-            for (index, group) in runs.chunks(MERGE_FAN_IN).enumerate() {
-                let path = self.scratch.join(format!("merge-{round}-{index:05}.bin"));
-                let mut writer = RecordWriter::create(&path)?;
-                merge_sorted(group, |record| writer.push(&record))?;
-                writer.finish()?;
-                merged.push(SortedRun::Scratch(path));
-            }
+            // Groups are independent: merge them in parallel (each holds a few MiB), collecting
+            // the outputs in group order, so the next round is the same whatever the threads.
+            let groups: Vec<&[SortedRun]> = runs.chunks(MERGE_FAN_IN).collect();
+            let merged: Vec<SortedRun> = groups
+                .par_iter()
+                .enumerate()
+                .map(|(index, group)| {
+                    let path = self.scratch.join(format!("merge-{round}-{index:05}.bin"));
+                    let mut writer = RecordWriter::create(&path)?;
+                    merge_sorted(group, |record| writer.push(&record))?;
+                    writer.finish()?;
+                    Ok(SortedRun::Scratch(path))
+                })
+                .collect::<Result<_>>()?;
             for run in &runs {
                 if let SortedRun::Scratch(path) = run {
                     std::fs::remove_file(path).map_err(crate::store::io_error("remove", path))?;
