@@ -43,9 +43,9 @@ use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps};
 use crate::stages::inputs::{DiscoverOptions, discover};
 use crate::stages::octree::{OctreeStage, effective_leaf_cubes};
-use crate::stages::solve::{LevelStage, SolveParams};
-use crate::stages::{INGEST, OCTREE, octree_max_depth};
-use crate::store::{Result, RunOptions, RunReport, Store, StoreError};
+use crate::stages::solve::{LEVEL_STAGES, LevelStage, SolveParams};
+use crate::stages::{HISTOGRAMS, INGEST, OCTREE, octree_max_depth};
+use crate::store::{Result, RunOptions, RunReport, Stage, Store, StoreError};
 
 /// How far `solve` goes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
@@ -122,4 +122,131 @@ pub fn solve(store: &Store, options: &SolveOptions, mut on_report: impl FnMut(&R
         }
     }
     Ok(())
+}
+
+/// The stage a cluster run works on, by its catalog name: `histograms` or `solution-LL`. The
+/// octree is one global merge and is built by a single process (`solve --until octree`).
+pub fn cluster_stage(store: &Store, name: &str, params: SolveParams) -> Result<Box<dyn Stage>> {
+    let scene = read_scene(store)?.ok_or_else(|| StoreError::Stage {
+        stage: name.into(),
+        unit: "-".into(),
+        message: "the store has no depth maps yet: run `octstore ingest` first".into(),
+    })?;
+    if name == HISTOGRAMS {
+        return Ok(Box::new(HistogramsStage::new(scene, registered_depth_maps(store)?)));
+    }
+    if let Some(level) = LEVEL_STAGES.iter().position(|s| *s == name) {
+        return Ok(Box::new(LevelStage::new(level as u8, scene, params)));
+    }
+    let hint = if name == OCTREE {
+        "the octree is one global merge: build it with `octstore solve STORE --until octree`"
+    } else {
+        "cluster stages are `histograms` and `solution-00` to `solution-32`"
+    };
+    Err(StoreError::Stage {
+        stage: name.into(),
+        unit: "-".into(),
+        message: hint.into(),
+    })
+}
+
+/// Options of the generated Slurm job chain.
+#[derive(Clone, Debug)]
+pub struct SlurmOptions {
+    pub chunks: u32,
+    pub partition: Option<String>,
+    /// Extra `#SBATCH` options, verbatim (for example `--time=01:00:00`).
+    pub sbatch_args: Vec<String>,
+    /// The `octstore` binary the jobs run (the same on every node).
+    pub binary: PathBuf,
+    pub params: SolveParams,
+    pub memory_budget: u64,
+}
+
+/// One job of the chain: its name, whether it is an array of `chunks` tasks, and its script.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SlurmJob {
+    pub name: String,
+    pub array: Option<u32>,
+    pub script: String,
+}
+
+fn shell_quote(text: &str) -> String {
+    if !text.is_empty()
+        && text
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "/._-=:,+@".contains(c))
+    {
+        text.to_string()
+    } else {
+        format!("'{}'", text.replace('\'', r"'\''"))
+    }
+}
+
+/// The whole pipeline after ingest as a chain of Slurm jobs, each to run after the previous one
+/// succeeds: the octree (one task), then per stage (histograms, each solution level) a plan
+/// job, an array of `chunks` work tasks and a commit job. `levels` is the deepest level the
+/// chain solves (the scene's maximum depth: levels past the octree's finest have no units).
+pub fn slurm_jobs(store: &std::path::Path, levels: u8, options: &SlurmOptions) -> Vec<SlurmJob> {
+    let store = shell_quote(&store.display().to_string());
+    let bin = shell_quote(&options.binary.display().to_string());
+    let p = options.params;
+    let solver = format!(
+        "--alpha1 {} --alpha0 {} --lambda {} --iterations {}",
+        p.alpha1, p.alpha0, p.lambda, p.iterations
+    );
+    let budget = format!("--memory-budget {} --quiet", options.memory_budget);
+    let header = |name: &str, array: Option<u32>| {
+        let mut lines = vec!["#!/bin/bash".to_string(), format!("#SBATCH --job-name=octstore-{name}")];
+        if let Some(tasks) = array {
+            lines.push(format!("#SBATCH --array=0-{}", tasks.saturating_sub(1)));
+        }
+        if let Some(partition) = &options.partition {
+            lines.push(format!("#SBATCH --partition={partition}"));
+        }
+        lines.extend(options.sbatch_args.iter().map(|a| format!("#SBATCH {a}")));
+        lines.push("set -euo pipefail".into());
+        lines.join("\n")
+    };
+    let mut jobs = vec![SlurmJob {
+        name: "octree".into(),
+        array: None,
+        script: format!(
+            "{}\n{bin} {budget} solve {store} --until octree\n",
+            header("octree", None)
+        ),
+    }];
+    let stages = std::iter::once(HISTOGRAMS.to_string())
+        .chain((0..=levels.min(crate::format::MAX_DEPTH)).map(|l| LEVEL_STAGES[usize::from(l)].to_string()));
+    for stage in stages {
+        let name = format!("{stage}-plan");
+        jobs.push(SlurmJob {
+            script: format!(
+                "{}\n{bin} {budget} plan {store} --stage {stage} --chunks {} {solver}\n",
+                header(&name, None),
+                options.chunks
+            ),
+            name,
+            array: None,
+        });
+        let name = format!("{stage}-work");
+        jobs.push(SlurmJob {
+            script: format!(
+                "{}\n{bin} {budget} work {store} --stage {stage} --chunk \"$SLURM_ARRAY_TASK_ID\"\n",
+                header(&name, Some(options.chunks))
+            ),
+            name,
+            array: Some(options.chunks),
+        });
+        let name = format!("{stage}-commit");
+        jobs.push(SlurmJob {
+            script: format!(
+                "{}\n{bin} {budget} commit {store} --stage {stage}\n",
+                header(&name, None)
+            ),
+            name,
+            array: None,
+        });
+    }
+    jobs
 }

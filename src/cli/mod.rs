@@ -44,6 +44,34 @@ pub struct GlobalOptions {
 
 pub use crate::pipeline::SolveUntil as SolveStage;
 
+/// Solver parameters of a cluster plan (the same as `solve`'s).
+#[derive(clap::Args, Debug, Clone, Copy)]
+pub struct SolverArgs {
+    /// TGV weight of |grad u - v| (times the cube side).
+    #[arg(long, default_value_t = SolveParams::default().alpha1)]
+    alpha1: f32,
+    /// TGV weight of |E(v)| (times the cube side squared).
+    #[arg(long, default_value_t = SolveParams::default().alpha0)]
+    alpha0: f32,
+    /// Weight of the histogram data term.
+    #[arg(long, default_value_t = SolveParams::default().lambda)]
+    lambda: f32,
+    /// Primal-dual iterations per level.
+    #[arg(long, default_value_t = SolveParams::default().iterations)]
+    iterations: u32,
+}
+
+impl SolverArgs {
+    fn params(self) -> SolveParams {
+        SolveParams {
+            alpha1: self.alpha1,
+            alpha0: self.alpha0,
+            lambda: self.lambda,
+            iterations: self.iterations,
+        }
+    }
+}
+
 #[derive(Subcommand, Debug)]
 pub enum Command {
     /// Register depth maps and write their cubes (one sorted run per depth map). Run it again
@@ -97,6 +125,48 @@ pub enum Command {
         /// Treetop leaves hold fewer cubes than this.
         #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
         leaf_cubes: u64,
+    },
+    /// Cluster run, step 1: split a stage's pending units into chunks and record the plan.
+    Plan {
+        store: PathBuf,
+        /// `histograms` or `solution-LL`.
+        #[arg(long)]
+        stage: String,
+        #[arg(long, default_value_t = 16)]
+        chunks: u32,
+        #[command(flatten)]
+        solver: SolverArgs,
+    },
+    /// Cluster run, step 2: compute one chunk of the recorded plan (read-only on the catalog;
+    /// writes only segment files; safe to retry or to run twice).
+    Work {
+        store: PathBuf,
+        #[arg(long)]
+        stage: String,
+        #[arg(long)]
+        chunk: u32,
+    },
+    /// Cluster run, step 3: verify every chunk's output and commit the stage as one version.
+    Commit {
+        store: PathBuf,
+        #[arg(long)]
+        stage: String,
+    },
+    /// Submit the pipeline after ingest to Slurm as job arrays chained with afterok.
+    Slurm {
+        store: PathBuf,
+        #[arg(long, default_value_t = 16)]
+        chunks: u32,
+        #[arg(long)]
+        partition: Option<String>,
+        /// Extra sbatch option for every job, e.g. --sbatch-arg=--time=02:00:00 (repeatable).
+        #[arg(long = "sbatch-arg", allow_hyphen_values = true)]
+        sbatch_args: Vec<String>,
+        /// Print the job scripts instead of submitting them.
+        #[arg(long)]
+        dry_run: bool,
+        #[command(flatten)]
+        solver: SolverArgs,
     },
     /// Render the built-in synthetic scene, then ingest, solve and extract it (no files needed).
     Demo {
@@ -256,6 +326,56 @@ pub fn extract_to(
         peak_rss_bytes() as f64 / 1e6
     );
     Ok(mesh)
+}
+
+/// The stage of a recorded cluster plan, rebuilt with the plan's solver parameters.
+fn cluster_stage_of_plan(store: &Store, stage: &str) -> Result<Box<dyn crate::store::Stage>, StoreError> {
+    let plan = store.cluster_plan(stage)?.ok_or_else(|| StoreError::Stage {
+        stage: stage.into(),
+        unit: "plan".into(),
+        message: "no cluster plan: run `octstore plan` first".into(),
+    })?;
+    let params: SolveParams = crate::store::catalog::decode("cluster plan args", &plan.args)?;
+    pipeline::cluster_stage(store, stage, params)
+}
+
+/// Submits the chain with `sbatch --parsable`, each job after the previous one succeeded, and
+/// prints the job ids.
+fn submit_slurm_jobs(store: &std::path::Path, jobs: &[pipeline::SlurmJob]) -> Result<(), StoreError> {
+    let scripts = store.join("slurm");
+    std::fs::create_dir_all(&scripts).map_err(crate::store::io_error("create directory", &scripts))?;
+    let mut previous: Option<String> = None;
+    for job in jobs {
+        let path = scripts.join(format!("{}.sh", job.name));
+        std::fs::write(&path, &job.script).map_err(crate::store::io_error("write job script", &path))?;
+        let mut command = std::process::Command::new("sbatch");
+        command
+            .arg("--parsable")
+            .arg(format!("--output={}/%x-%A_%a.out", scripts.display()));
+        if let Some(id) = &previous {
+            command.arg(format!("--dependency=afterok:{id}"));
+        }
+        let output = command
+            .arg(&path)
+            .output()
+            .map_err(crate::store::io_error("run sbatch", &path))?;
+        if !output.status.success() {
+            return Err(StoreError::Stage {
+                stage: "slurm".into(),
+                unit: job.name.clone(),
+                message: format!("sbatch failed: {}", String::from_utf8_lossy(&output.stderr).trim()),
+            });
+        }
+        let id = String::from_utf8_lossy(&output.stdout)
+            .trim()
+            .split(';')
+            .next()
+            .unwrap_or_default()
+            .to_string();
+        println!("{} {id}", job.name);
+        previous = Some(id);
+    }
+    Ok(())
 }
 
 fn parse_ratio(text: &str) -> Result<f32, String> {
@@ -441,6 +561,84 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 run: run_options(&global, resume),
             };
             pipeline::solve(&store, &options, summary)?;
+        }
+        Command::Plan {
+            store,
+            stage,
+            chunks,
+            solver,
+        } => {
+            let store = Store::open(&store)?;
+            let params = solver.params();
+            let runnable = pipeline::cluster_stage(&store, &stage, params)?;
+            let plan = store.plan_cluster_run(runnable.as_ref(), chunks, crate::store::catalog::encode(&params))?;
+            println!(
+                "plan {stage}: {} pending unit(s) in {} chunk(s), base version {}, target {}",
+                plan.units.len(),
+                plan.chunks,
+                plan.base_version,
+                plan.target()
+            );
+            for chunk in 0..plan.chunks {
+                println!("  chunk {chunk}: {} unit(s)", plan.chunk_units(chunk).len());
+            }
+        }
+        Command::Work { store, stage, chunk } => {
+            let store = Store::open_read_only(&store)?;
+            let runnable = cluster_stage_of_plan(&store, &stage)?;
+            let started = std::time::Instant::now();
+            let report = store.work_cluster_chunk(runnable.as_ref(), chunk)?;
+            println!(
+                "work {stage} chunk {chunk}: {} unit(s), {} already done | {:.2}s | peak memory {:.0} MB",
+                report.units,
+                report.skipped,
+                started.elapsed().as_secs_f64(),
+                peak_rss_bytes() as f64 / 1e6
+            );
+        }
+        Command::Commit { store, stage } => {
+            let store = Store::open(&store)?;
+            let runnable = cluster_stage_of_plan(&store, &stage)?;
+            let report = store.commit_cluster_run(runnable.as_ref(), &run_options(&global, false))?;
+            summary(&report);
+        }
+        Command::Slurm {
+            store,
+            chunks,
+            partition,
+            sbatch_args,
+            dry_run,
+            solver,
+        } => {
+            let opened = Store::open_read_only(&store)?;
+            let scene = stages::ingest::read_scene(&opened)?.ok_or_else(|| StoreError::Stage {
+                stage: "slurm".into(),
+                unit: "-".into(),
+                message: "the store has no depth maps yet: run `octstore ingest` first".into(),
+            })?;
+            drop(opened);
+            let options = pipeline::SlurmOptions {
+                chunks,
+                partition,
+                sbatch_args,
+                binary: std::env::current_exe().map_err(crate::store::io_error("locate octstore", &store))?,
+                params: solver.params(),
+                memory_budget: global.memory_budget,
+            };
+            let store_path = std::path::absolute(&store).map_err(crate::store::io_error("resolve", &store))?;
+            let jobs = pipeline::slurm_jobs(&store_path, scene.max_depth, &options);
+            if dry_run {
+                for job in &jobs {
+                    println!(
+                        "# ---- {}{}",
+                        job.name,
+                        if job.array.is_some() { " (array)" } else { "" }
+                    );
+                    println!("{}", job.script);
+                }
+            } else {
+                submit_slurm_jobs(&store_path, &jobs)?;
+            }
         }
         Command::Demo { out, iterations } => {
             let started = std::time::Instant::now();

@@ -9,6 +9,7 @@
 //! write transaction that records the unit and its segments.
 
 pub mod catalog;
+pub mod cluster;
 pub mod failpoint;
 pub mod runner;
 pub mod snapshot;
@@ -36,6 +37,8 @@ pub const SEGMENTS_DIR: &str = "segments";
 /// Scratch space of stages (sorted runs, level sets); never part of a version, emptied on every
 /// writable open.
 pub const SCRATCH_DIR: &str = "tmp";
+/// Segment files that cluster workers wrote and `commit` has not yet adopted (`cluster.rs`).
+pub const CHUNKS_DIR: &str = "chunks";
 const SEGMENT_SUFFIX: &str = ".seg";
 const TEMP_SUFFIX: &str = ".tmp";
 
@@ -143,7 +146,7 @@ fn unix_millis() -> u64 {
         .unwrap_or(0)
 }
 
-fn sync_dir(path: &Path) -> Result<()> {
+pub(crate) fn sync_dir(path: &Path) -> Result<()> {
     File::open(path)
         .and_then(|dir| dir.sync_all())
         .map_err(io_error("fsync directory", path))
@@ -419,10 +422,42 @@ impl Store {
         self.writable()?;
         let final_path = self.segment_path(name);
         let temp_path = self.segment_path(&format!("{name}{TEMP_SUFFIX}"));
-        let result = self.write_segment_steps(&temp_path, &final_path, columns, block_rows);
+        self.write_segment_at(&temp_path, &final_path, columns, block_rows)
+    }
+
+    /// Writes a segment into `dir` (a cluster chunk folder) through a temporary name unique to
+    /// this process and thread, so that two workers given the same chunk never share a file
+    /// being written; both rename identical bytes into place.
+    pub(crate) fn write_segment_in(
+        &self,
+        dir: &Path,
+        name: &str,
+        columns: &[Column],
+        block_rows: u32,
+    ) -> Result<SegmentSummary> {
+        let temp_name = format!(
+            "{name}.{}-{:?}{TEMP_SUFFIX}",
+            std::process::id(),
+            std::thread::current().id()
+        )
+        .replace(
+            |c: char| !c.is_ascii_alphanumeric() && c != '.' && c != '-' && c != '_',
+            "",
+        );
+        self.write_segment_at(&dir.join(temp_name), &dir.join(name), columns, block_rows)
+    }
+
+    fn write_segment_at(
+        &self,
+        temp_path: &Path,
+        final_path: &Path,
+        columns: &[Column],
+        block_rows: u32,
+    ) -> Result<SegmentSummary> {
+        let result = self.write_segment_steps(temp_path, final_path, columns, block_rows);
         if result.is_err() {
             // Best effort: debris left here is also removed on the next open.
-            let _ = fs::remove_file(&temp_path);
+            let _ = fs::remove_file(temp_path);
         }
         result
     }
@@ -473,7 +508,7 @@ impl Store {
         failpoint::hit("segment.after_fsync");
         fs::rename(temp_path, final_path).map_err(io_error("rename", temp_path))?;
         failpoint::hit("segment.after_rename");
-        if let Err(e) = sync_dir(&self.segments_dir()) {
+        if let Err(e) = sync_dir(final_path.parent().unwrap_or(&self.root)) {
             self.poisoned.store(true, Ordering::SeqCst);
             return Err(e);
         }

@@ -130,7 +130,11 @@ struct FinishingRun<'a> {
 }
 
 /// A unit whose segments are written and fsynced, waiting for its catalog commit.
-type ProducedUnit = (u64, Vec<(String, SegmentRecord)>, Vec<u8>);
+pub(crate) type ProducedUnit = (u64, Vec<(String, SegmentRecord)>, Vec<u8>);
+
+/// Makes a unit's segment files in the segments folder: by running it, or (cluster commit) by
+/// adopting files that workers wrote. Arguments: the base snapshot, the target version, the unit.
+pub(crate) type Producer<'p> = dyn Fn(&Snapshot<'_>, u64, &UnitSpec) -> Result<ProducedUnit> + Sync + 'p;
 
 pub fn segment_name(stage: &str, version: u64, unit: u64, part: usize) -> String {
     format!("{stage}-v{version:08}-u{unit:010}-p{part:03}.seg")
@@ -139,6 +143,18 @@ pub fn segment_name(stage: &str, version: u64, unit: u64, part: usize) -> String
 impl Store {
     /// Runs (or resumes) one stage over its units and commits it as a new version.
     pub fn run_stage(&self, stage: &dyn Stage, options: &RunOptions) -> Result<RunReport> {
+        self.run_stage_with(stage, options, &|base, target, unit| {
+            self.produce_unit(stage, base, target, unit)
+        })
+    }
+
+    /// [`Store::run_stage`] with the units' segment files made by `producer`.
+    pub(crate) fn run_stage_with(
+        &self,
+        stage: &dyn Stage,
+        options: &RunOptions,
+        producer: &Producer<'_>,
+    ) -> Result<RunReport> {
         let started = Instant::now();
         let db = self.writable()?;
         let name = stage.name();
@@ -227,7 +243,7 @@ impl Store {
         }
         let bar = progress_bar(options.progress, name, plan.units.len() as u64, resumed_units as u64);
 
-        let outcome = self.run_pending(stage, &base, target, &pending, options.threads.max(1), &bar);
+        let outcome = self.run_pending(name, producer, &base, target, &pending, options.threads.max(1), &bar);
         bar.finish_and_clear();
         if let Err(error) = outcome {
             // Bad input cannot be fixed by resuming: abandon the run so the catalog is exactly
@@ -252,16 +268,17 @@ impl Store {
         Ok(report)
     }
 
+    #[expect(clippy::too_many_arguments, reason = "one call site; the run's state, spelled out")]
     fn run_pending(
         &self,
-        stage: &dyn Stage,
+        name: &str,
+        producer: &Producer<'_>,
         base: &Snapshot<'_>,
         target: u64,
         pending: &[&UnitSpec],
         threads: usize,
         bar: &indicatif::ProgressBar,
     ) -> Result<()> {
-        let name = stage.name();
         let next = AtomicUsize::new(0);
         let stop = AtomicBool::new(false);
         // Bounded: at most `threads` finished units wait for their commit, which bounds memory.
@@ -275,7 +292,7 @@ impl Store {
                         let Some(unit) = pending.get(next.fetch_add(1, Ordering::SeqCst)) else {
                             break;
                         };
-                        let result = self.produce_unit(stage, base, target, unit);
+                        let result = producer(base, target, unit);
                         if tx.send(result).is_err() {
                             break;
                         }
@@ -297,7 +314,7 @@ impl Store {
         })
     }
 
-    fn produce_unit(
+    pub(crate) fn produce_unit(
         &self,
         stage: &dyn Stage,
         base: &Snapshot<'_>,
@@ -477,6 +494,17 @@ impl Store {
         txn.commit()?;
         self.remove_debris()?;
         Ok(())
+    }
+
+    /// Units of the stage's run in progress that are committed.
+    pub(crate) fn units_done(&self, stage: &str) -> Result<BTreeSet<u64>> {
+        let txn = self.catalog().begin_read()?;
+        let done = txn.open_table(UNITS_DONE)?;
+        let mut units = BTreeSet::new();
+        for entry in done.range((stage, 0)..=(stage, u64::MAX))? {
+            units.insert(entry?.0.value().1);
+        }
+        Ok(units)
     }
 
     pub fn run_in_progress(&self, stage: &str) -> Result<bool> {

@@ -1,0 +1,415 @@
+//! Cluster runs: a stage's pending units split into chunks that independent worker processes
+//! (Slurm array tasks on nodes sharing the store's filesystem) compute, and one commit that
+//! records them as a version.
+//!
+//! - `plan` (the only writer besides `commit`) records a [`ClusterPlan`] in `meta` under
+//!   `cluster_plan/STAGE`: the base version, the stage's input fingerprint, its units in plan
+//!   order and the chunk count.
+//! - `work` opens the catalog read-only, checks that the store is still at the plan's base, and
+//!   computes its chunk's units. Each unit's segments are written into `chunks/STAGE-vTARGET/`
+//!   under their final names (temporary name, fsync, rename, directory fsync), then a unit
+//!   manifest `uUNIT.unit` (same protocol) that lists them with their records and the unit's
+//!   extra bytes. A unit whose manifest is present and whose files verify is skipped, so a
+//!   retried or duplicated chunk is harmless: stages are deterministic, so two workers write
+//!   identical bytes.
+//! - `commit` checks every unit's manifest and every segment's checksums, reports the chunks
+//!   that are missing or damaged (and then changes nothing), or else moves the files into
+//!   `segments/` and commits them through the stage runner, unit by unit, exactly as a
+//!   single-process run would: the result is byte-identical to `octstore solve`.
+//!
+//! Manifest file: magic `OCTUNIT1` (8 bytes), bincode [`UnitManifest`], xxh3-64 of everything
+//! before it (8 bytes LE).
+
+use std::collections::BTreeMap;
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use redb::ReadableTable;
+use serde::{Deserialize, Serialize};
+
+use super::catalog::{self, META, SegmentRecord};
+use super::runner::{ProducedUnit, Stage, UnitSpec};
+use super::{CHUNKS_DIR, Result, RunOptions, RunReport, Store, StoreError, io_error, sync_dir};
+use crate::format::segment::SegmentReader;
+
+const MANIFEST_MAGIC: &[u8; 8] = b"OCTUNIT1";
+const CHECKSUM_LEN: usize = size_of::<u64>();
+
+/// The work of one cluster run of a stage.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct ClusterPlan {
+    pub stage: String,
+    /// The version the workers read; the commit creates `base_version + 1`.
+    pub base_version: u64,
+    /// The stage's params followed by its input digest at the base version.
+    pub fingerprint: Vec<u8>,
+    /// Unit ids in plan order; chunk i takes a contiguous slice.
+    pub units: Vec<u64>,
+    pub chunks: u32,
+    /// Opaque to the store: what the caller needs to rebuild the same stage (solver params).
+    pub args: Vec<u8>,
+}
+
+impl ClusterPlan {
+    pub fn target(&self) -> u64 {
+        self.base_version + 1
+    }
+
+    /// The units of chunk `chunk` (empty past the last chunk).
+    pub fn chunk_units(&self, chunk: u32) -> &[u64] {
+        let (n, k) = (self.units.len() as u64, u64::from(self.chunks.max(1)));
+        let (lo, hi) = (n * u64::from(chunk) / k, n * (u64::from(chunk) + 1) / k);
+        self.units.get(lo as usize..hi.min(n) as usize).unwrap_or_default()
+    }
+
+    fn chunk_of(&self, unit: u64) -> u32 {
+        (0..self.chunks)
+            .find(|&c| self.chunk_units(c).contains(&unit))
+            .unwrap_or(0)
+    }
+}
+
+/// What a worker wrote for one unit.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+struct UnitManifest {
+    unit: u64,
+    segments: Vec<(String, SegmentRecord)>,
+    extra: Vec<u8>,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct WorkReport {
+    pub units: usize,
+    /// Units already complete from an earlier attempt.
+    pub skipped: usize,
+}
+
+fn plan_key(stage: &str) -> String {
+    format!("cluster_plan/{stage}")
+}
+
+fn manifest_name(unit: u64) -> String {
+    format!("u{unit:010}.unit")
+}
+
+fn cluster_error(stage: &str, unit: impl Into<String>, message: impl Into<String>) -> StoreError {
+    StoreError::Stage {
+        stage: stage.into(),
+        unit: unit.into(),
+        message: message.into(),
+    }
+}
+
+fn encode_manifest(manifest: &UnitManifest) -> Vec<u8> {
+    let mut bytes = MANIFEST_MAGIC.to_vec();
+    bytes.extend(catalog::encode(manifest));
+    let checksum = xxhash_rust::xxh3::xxh3_64(&bytes);
+    bytes.extend(checksum.to_le_bytes());
+    bytes
+}
+
+/// Decodes a manifest; `None` for anything damaged (a worker that died mid-write leaves no
+/// manifest at all, thanks to the rename, but disks fail too).
+fn decode_manifest(bytes: &[u8]) -> Option<UnitManifest> {
+    let split = bytes.len().checked_sub(CHECKSUM_LEN)?;
+    let (body, tail) = (bytes.get(..split)?, bytes.get(split..)?);
+    let expected = u64::from_le_bytes(tail.try_into().ok()?);
+    if xxhash_rust::xxh3::xxh3_64(body) != expected || body.get(..MANIFEST_MAGIC.len())? != MANIFEST_MAGIC {
+        return None;
+    }
+    catalog::decode("unit manifest", body.get(MANIFEST_MAGIC.len()..)?).ok()
+}
+
+/// Whether a written segment file matches its record: length, file checksum, every block.
+fn segment_is_intact(path: &Path, record: &SegmentRecord) -> bool {
+    let Ok(bytes) = fs::read(path) else { return false };
+    if bytes.len() as u64 != record.bytes || xxhash_rust::xxh3::xxh3_64(&bytes) != record.file_checksum {
+        return false;
+    }
+    SegmentReader::parse(&bytes).and_then(|r| r.verify()).is_ok()
+}
+
+impl Store {
+    fn chunk_dir(&self, plan: &ClusterPlan) -> PathBuf {
+        self.root()
+            .join(CHUNKS_DIR)
+            .join(format!("{}-v{:08}", plan.stage, plan.target()))
+    }
+
+    /// The recorded cluster plan of `stage`, if any.
+    pub fn cluster_plan(&self, stage: &str) -> Result<Option<ClusterPlan>> {
+        let txn = self.catalog().begin_read()?;
+        let meta = txn.open_table(META)?;
+        let value = meta.get(plan_key(stage).as_str())?;
+        value.map(|v| catalog::decode("meta", v.value())).transpose()
+    }
+
+    /// Plans a cluster run of `stage` in `chunks` chunks and records it (replacing an earlier
+    /// plan of the stage). An up-to-date stage gets a plan with no units.
+    pub fn plan_cluster_run(&self, stage: &dyn Stage, chunks: u32, args: Vec<u8>) -> Result<ClusterPlan> {
+        let db = self.writable()?;
+        let name = stage.name();
+        if self.run_in_progress(name)? {
+            // A single-process run was interrupted: the cluster run replaces it.
+            self.abandon_run(name)?;
+        }
+        let base = self.latest()?;
+        let mut fingerprint = stage.params();
+        fingerprint.extend(stage.input_digest(&base));
+        let up_to_date = self.stage_fingerprint(name)?.as_deref() == Some(fingerprint.as_slice());
+        let units = if up_to_date {
+            Vec::new()
+        } else {
+            stage.plan(&base)?.units.iter().map(|u| u.id).collect()
+        };
+        let plan = ClusterPlan {
+            stage: name.to_string(),
+            base_version: base.version(),
+            fingerprint,
+            units,
+            chunks: chunks.max(1),
+            args,
+        };
+        // Chunk folders of other plans of this stage are stale.
+        let current = self.chunk_dir(&plan);
+        let root = self.root().join(CHUNKS_DIR);
+        if let Ok(entries) = fs::read_dir(&root) {
+            for entry in entries.flatten() {
+                let path = entry.path();
+                let file_name = entry.file_name().to_string_lossy().into_owned();
+                if path != current && file_name.starts_with(&format!("{name}-v")) {
+                    fs::remove_dir_all(&path).map_err(io_error("remove stale chunks", &path))?;
+                }
+            }
+        }
+        fs::create_dir_all(&current).map_err(io_error("create directory", &current))?;
+        let txn = db.begin_write()?;
+        txn.open_table(META)?
+            .insert(plan_key(name).as_str(), catalog::encode(&plan).as_slice())?;
+        txn.commit()?;
+        Ok(plan)
+    }
+
+    /// Checks that the store is still where `plan` was made; returns the base snapshot's units.
+    fn check_plan(&self, stage: &dyn Stage, plan: &ClusterPlan) -> Result<BTreeMap<u64, UnitSpec>> {
+        let name = stage.name();
+        let base = self.latest()?;
+        let mut fingerprint = stage.params();
+        fingerprint.extend(stage.input_digest(&base));
+        if base.version() != plan.base_version || fingerprint != plan.fingerprint {
+            return Err(cluster_error(
+                name,
+                "plan",
+                format!(
+                    "the store changed since the plan was made (version {} now, {} then, or other inputs): run `octstore plan` again",
+                    base.version(),
+                    plan.base_version
+                ),
+            ));
+        }
+        if plan.units.is_empty() {
+            return Ok(BTreeMap::new());
+        }
+        Ok(stage.plan(&base)?.units.into_iter().map(|u| (u.id, u)).collect())
+    }
+
+    fn recorded_plan(&self, name: &str) -> Result<ClusterPlan> {
+        self.cluster_plan(name)?
+            .ok_or_else(|| cluster_error(name, "plan", "no cluster plan: run `octstore plan` first"))
+    }
+
+    /// Computes chunk `chunk` of the recorded plan into the chunk folder. Needs only read access
+    /// to the catalog; safe to repeat and to run twice at once.
+    pub fn work_cluster_chunk(&self, stage: &dyn Stage, chunk: u32) -> Result<WorkReport> {
+        let name = stage.name();
+        let plan = self.recorded_plan(name)?;
+        if chunk >= plan.chunks {
+            return Err(cluster_error(
+                name,
+                format!("chunk {chunk}"),
+                format!("the plan has chunks 0 to {}", plan.chunks - 1),
+            ));
+        }
+        let specs = self.check_plan(stage, &plan)?;
+        let dir = self.chunk_dir(&plan);
+        fs::create_dir_all(&dir).map_err(io_error("create directory", &dir))?;
+        let base = self.latest()?;
+        let mut skipped = 0;
+        let units = plan.chunk_units(chunk);
+        for &unit in units {
+            if self.read_unit_manifest(&dir, unit).is_some() {
+                skipped += 1;
+                continue;
+            }
+            let spec = specs
+                .get(&unit)
+                .ok_or_else(|| cluster_error(name, format!("unit {unit}"), "not part of the stage's plan"))?;
+            let output = stage.run_unit(&base, spec)?;
+            let mut segments = Vec::with_capacity(output.segments.len());
+            for (part, columns) in output.segments.iter().enumerate() {
+                let file = super::runner::segment_name(name, plan.target(), unit, part);
+                let summary = self.write_segment_in(&dir, &file, columns, output.block_rows)?;
+                segments.push((
+                    file,
+                    SegmentRecord {
+                        stage: name.to_string(),
+                        unit,
+                        part: part as u32,
+                        rows: summary.rows,
+                        bytes: summary.bytes,
+                        file_checksum: summary.file_checksum,
+                        content_digest: summary.content_digest,
+                        first_key: summary.first_key.raw(),
+                        last_key: summary.last_key.raw(),
+                        created: plan.target(),
+                        dropped: None,
+                    },
+                ));
+            }
+            let manifest = UnitManifest {
+                unit,
+                segments,
+                extra: output.extra,
+            };
+            self.write_unit_manifest(&dir, &manifest)?;
+        }
+        Ok(WorkReport {
+            units: units.len(),
+            skipped,
+        })
+    }
+
+    fn write_unit_manifest(&self, dir: &Path, manifest: &UnitManifest) -> Result<()> {
+        let name = manifest_name(manifest.unit);
+        let temp = dir.join(format!("{name}.{}.tmp", std::process::id()));
+        let path = dir.join(&name);
+        let write = || -> std::io::Result<()> {
+            let file = fs::File::create(&temp)?;
+            std::io::Write::write_all(&mut &file, &encode_manifest(manifest))?;
+            file.sync_all()
+        };
+        write().map_err(io_error("write unit manifest", &temp))?;
+        fs::rename(&temp, &path).map_err(io_error("rename", &temp))?;
+        sync_dir(dir)
+    }
+
+    /// A unit's manifest, if it is intact and every segment it lists is too.
+    fn read_unit_manifest(&self, dir: &Path, unit: u64) -> Option<UnitManifest> {
+        let bytes = fs::read(dir.join(manifest_name(unit))).ok()?;
+        let manifest = decode_manifest(&bytes).filter(|m| m.unit == unit)?;
+        manifest
+            .segments
+            .iter()
+            .all(|(file, record)| segment_is_intact(&dir.join(file), record))
+            .then_some(manifest)
+    }
+
+    /// Records the recorded plan's chunk outputs as one version. Fails, changing nothing, when
+    /// a chunk is missing or damaged, and names those chunks.
+    pub fn commit_cluster_run(&self, stage: &dyn Stage, options: &RunOptions) -> Result<RunReport> {
+        let name = stage.name();
+        self.writable()?;
+        let plan = self.recorded_plan(name)?;
+        self.check_plan(stage, &plan)?;
+        let dir = self.chunk_dir(&plan);
+        // Units that an interrupted commit already adopted are in the catalog, not the folder.
+        let adopted = if self.run_in_progress(name)? {
+            self.units_done(name)?
+        } else {
+            Default::default()
+        };
+        let mut manifests = BTreeMap::new();
+        let mut missing = std::collections::BTreeSet::new();
+        for &unit in plan.units.iter().filter(|u| !adopted.contains(u)) {
+            match self.read_unit_manifest(&dir, unit) {
+                Some(m) => {
+                    manifests.insert(unit, m);
+                }
+                None => {
+                    missing.insert(plan.chunk_of(unit));
+                }
+            }
+        }
+        if !missing.is_empty() {
+            let list: Vec<String> = missing.iter().map(u32::to_string).collect();
+            return Err(cluster_error(
+                name,
+                "commit",
+                format!(
+                    "chunk(s) {} of {} are missing or damaged: run `octstore work STORE --stage {name} --chunk N` for each, then commit again",
+                    list.join(", "),
+                    plan.chunks
+                ),
+            ));
+        }
+        let adopt = |_: &super::Snapshot<'_>, target: u64, unit: &UnitSpec| -> Result<ProducedUnit> {
+            let manifest = manifests
+                .get(&unit.id)
+                .ok_or_else(|| cluster_error(name, unit.label.clone(), "no worker output for this unit"))?;
+            if target != plan.target() {
+                return Err(cluster_error(name, unit.label.clone(), "the target version moved"));
+            }
+            for (file, _) in &manifest.segments {
+                let from = dir.join(file);
+                let to = self.segment_path(file);
+                fs::rename(&from, &to).map_err(io_error("adopt segment", &from))?;
+            }
+            sync_dir(&self.segments_dir())?;
+            Ok((unit.id, manifest.segments.clone(), manifest.extra.clone()))
+        };
+        let run = RunOptions {
+            // An interrupted commit continues where it stopped.
+            resume: true,
+            threads: 1,
+            progress: options.progress,
+        };
+        let report = self.run_stage_with(stage, &run, &adopt)?;
+        let txn = self.writable()?.begin_write()?;
+        txn.open_table(META)?.remove(plan_key(name).as_str())?;
+        txn.commit()?;
+        // The manifests are spent; the folder is rebuilt by the next plan.
+        let _ = fs::remove_dir_all(&dir);
+        Ok(report)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chunks_partition_the_units_in_order() {
+        for (n, k) in [(0usize, 3u32), (1, 4), (10, 3), (17, 17), (5, 8)] {
+            let plan = ClusterPlan {
+                stage: "s".into(),
+                base_version: 1,
+                fingerprint: Vec::new(),
+                units: (0..n as u64).collect(),
+                chunks: k,
+                args: Vec::new(),
+            };
+            let all: Vec<u64> = (0..k).flat_map(|c| plan.chunk_units(c).to_vec()).collect();
+            assert_eq!(all, plan.units, "{n} units in {k} chunks");
+            assert!(plan.chunk_units(k).is_empty());
+        }
+    }
+
+    #[test]
+    fn damaged_manifests_are_rejected() {
+        let manifest = UnitManifest {
+            unit: 3,
+            segments: Vec::new(),
+            extra: vec![1, 2, 3],
+        };
+        let bytes = encode_manifest(&manifest);
+        assert_eq!(decode_manifest(&bytes), Some(manifest));
+        for i in 0..bytes.len() {
+            let mut flipped = bytes.clone();
+            flipped[i] ^= 0x10;
+            assert_eq!(decode_manifest(&flipped), None, "flip at {i}");
+        }
+        for cut in 0..bytes.len() {
+            assert_eq!(decode_manifest(&bytes[..cut]), None, "cut at {cut}");
+        }
+    }
+}

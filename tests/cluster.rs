@@ -1,0 +1,205 @@
+//! Cluster runs without a cluster: plan, work and commit as separate processes, with more
+//! chunks than cores, a duplicated chunk, a chunk that is missing at the first commit and a
+//! damaged chunk output. The result must equal a single-process `solve` byte for byte.
+
+mod common;
+
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+
+use common::*;
+use glam::DVec3;
+use octstore::scenes::{SceneSpec, Shape};
+
+fn scene() -> SceneSpec {
+    let center = DVec3::new(0.2, -0.1, 0.3);
+    SceneSpec {
+        shapes: vec![Shape::Sphere { center, radius: 0.5 }],
+        cameras: 8,
+        distance: 2.2,
+        target: center,
+        width: 40,
+        height: 30,
+        fov_degrees: 45.0,
+        noise: None,
+        room: Some(2.6),
+    }
+}
+
+fn run(args: &[&str]) -> String {
+    let out = octstore(args, &[]);
+    assert!(out.status.success(), "{args:?}: {}", stderr(&out));
+    stdout(&out)
+}
+
+fn spawn_work(store: &str, stage: &str, chunk: u32) -> Child {
+    Command::new(octstore_bin())
+        .args([
+            "work",
+            store,
+            "--stage",
+            stage,
+            "--chunk",
+            &chunk.to_string(),
+            "--threads",
+            "1",
+        ])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let target = to.join(entry.file_name());
+        if entry.file_type().unwrap().is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), target).unwrap();
+        }
+    }
+}
+
+#[test]
+fn plan_work_commit_equals_a_single_process_solve() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = scene().write(&dir.path().join("input")).unwrap();
+    let cluster = dir.path().join("cluster");
+    let single = dir.path().join("single");
+    let c = cluster.to_str().unwrap();
+    run(&["ingest", c, manifest.to_str().unwrap(), "--max-depth", "6", "--quiet"]);
+    run(&["solve", c, "--until", "octree", "--leaf-cubes", "400", "--quiet"]);
+    copy_dir(&cluster, &single);
+    let s = single.to_str().unwrap();
+    run(&["solve", s, "--iterations", "30", "--leaf-cubes", "400", "--quiet"]);
+
+    let chunks = 5u32;
+    let mut stages = vec!["histograms".to_string()];
+    stages.extend((0..=6).map(|l| format!("solution-{l:02}")));
+    for (index, stage) in stages.iter().enumerate() {
+        let plan = run(&[
+            "plan",
+            c,
+            "--stage",
+            stage,
+            "--chunks",
+            &chunks.to_string(),
+            "--iterations",
+            "30",
+        ]);
+        assert!(plan.contains(&format!("in {chunks} chunk(s)")), "{plan}");
+        // All chunks at once, chunk 1 twice; on the histogram stage chunk 3 comes late.
+        let late = (index == 0).then_some(3u32);
+        let mut workers: Vec<(u32, Child)> = (0..chunks)
+            .filter(|c| Some(*c) != late)
+            .map(|chunk| (chunk, spawn_work(c, stage, chunk)))
+            .collect();
+        workers.push((1, spawn_work(c, stage, 1)));
+        for (chunk, worker) in workers {
+            let out = worker.wait_with_output().unwrap();
+            assert!(
+                out.status.success(),
+                "{stage} chunk {chunk}: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        if let Some(chunk) = late {
+            let before = fingerprint(&cluster);
+            let out = octstore(&["commit", c, "--stage", stage], &[]);
+            assert!(!out.status.success(), "commit with a missing chunk succeeded");
+            assert!(
+                stderr(&out).contains(&format!("chunk(s) {chunk} of {chunks}")),
+                "{}",
+                stderr(&out)
+            );
+            assert_same_store(&before, &fingerprint(&cluster), "a failed commit changed the store");
+            // A retried chunk fills the gap; a repeated one is a no-op.
+            run(&["work", c, "--stage", stage, "--chunk", &chunk.to_string()]);
+            let again = run(&["work", c, "--stage", stage, "--chunk", &chunk.to_string()]);
+            assert!(again.contains("already done"), "{again}");
+            assert!(!again.contains(" 0 already done"), "{again}");
+        }
+        if index == 1 {
+            // A damaged output is found and named, then redone.
+            let chunk_dir = std::fs::read_dir(cluster.join("chunks"))
+                .unwrap()
+                .next()
+                .unwrap()
+                .unwrap()
+                .path();
+            let segment = std::fs::read_dir(&chunk_dir)
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .find(|p| p.extension().is_some_and(|e| e == "seg"))
+                .unwrap();
+            let mut bytes = std::fs::read(&segment).unwrap();
+            let middle = bytes.len() / 2;
+            bytes[middle] ^= 0x40;
+            std::fs::write(&segment, bytes).unwrap();
+            let out = octstore(&["commit", c, "--stage", stage], &[]);
+            assert!(
+                !out.status.success() && stderr(&out).contains("missing or damaged"),
+                "{}",
+                stderr(&out)
+            );
+            for chunk in 0..chunks {
+                run(&["work", c, "--stage", stage, "--chunk", &chunk.to_string()]);
+            }
+        }
+        run(&["commit", c, "--stage", stage, "--quiet"]);
+    }
+    assert_same_store(
+        &fingerprint(&single),
+        &fingerprint(&cluster),
+        "cluster vs single process",
+    );
+    let mesh_single = dir.path().join("single.ply");
+    let mesh_cluster = dir.path().join("cluster.ply");
+    run(&["extract", s, "-o", mesh_single.to_str().unwrap()]);
+    run(&["extract", c, "-o", mesh_cluster.to_str().unwrap()]);
+    assert!(std::fs::read(mesh_single).unwrap() == std::fs::read(mesh_cluster).unwrap());
+}
+
+#[test]
+fn cluster_errors_are_clear() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = scene().write(&dir.path().join("input")).unwrap();
+    let store = dir.path().join("store");
+    let s = store.to_str().unwrap();
+    run(&["ingest", s, manifest.to_str().unwrap(), "--max-depth", "5", "--quiet"]);
+    run(&["solve", s, "--until", "octree", "--quiet"]);
+    let out = octstore(&["work", s, "--stage", "histograms", "--chunk", "0"], &[]);
+    assert!(stderr(&out).contains("no cluster plan"), "{}", stderr(&out));
+    let out = octstore(&["plan", s, "--stage", "octree"], &[]);
+    assert!(stderr(&out).contains("--until octree"), "{}", stderr(&out));
+    run(&["plan", s, "--stage", "histograms", "--chunks", "2"]);
+    let out = octstore(&["work", s, "--stage", "histograms", "--chunk", "2"], &[]);
+    assert!(stderr(&out).contains("chunks 0 to 1"), "{}", stderr(&out));
+    // The store moves on under the plan: workers refuse.
+    run(&["solve", s, "--until", "histograms", "--quiet"]);
+    let out = octstore(&["work", s, "--stage", "histograms", "--chunk", "0"], &[]);
+    assert!(stderr(&out).contains("changed since the plan"), "{}", stderr(&out));
+    // The generated Slurm chain.
+    let out = run(&[
+        "slurm",
+        s,
+        "--chunks",
+        "4",
+        "--partition",
+        "big",
+        "--sbatch-arg=--time=01:00:00",
+        "--dry-run",
+    ]);
+    assert!(
+        out.contains("#SBATCH --array=0-3") && out.contains("#SBATCH --partition=big"),
+        "{out}"
+    );
+    assert!(
+        out.contains("#SBATCH --time=01:00:00") && out.contains("--chunk \"$SLURM_ARRAY_TASK_ID\""),
+        "{out}"
+    );
+    assert!(out.contains("commit") && out.contains("solution-05-plan"), "{out}");
+}
