@@ -161,6 +161,8 @@ pub struct SlurmOptions {
     pub binary: PathBuf,
     pub params: SolveParams,
     pub memory_budget: u64,
+    /// Treetop leaf size of the octree job.
+    pub leaf_cubes: u64,
 }
 
 /// One job of the chain: its name, whether it is an array of `chunks` tasks, and its script.
@@ -212,8 +214,9 @@ pub fn slurm_jobs(store: &std::path::Path, levels: u8, options: &SlurmOptions) -
         name: "octree".into(),
         array: None,
         script: format!(
-            "{}\n{bin} {budget} solve {store} --until octree\n",
-            header("octree", None)
+            "{}\n{bin} {budget} solve {store} --until octree --leaf-cubes {}\n",
+            header("octree", None),
+            options.leaf_cubes
         ),
     }];
     let stages = std::iter::once(HISTOGRAMS.to_string())

@@ -165,6 +165,9 @@ pub enum Command {
         /// Print the job scripts instead of submitting them.
         #[arg(long)]
         dry_run: bool,
+        /// Treetop leaves of the octree job hold fewer cubes than this.
+        #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
+        leaf_cubes: u64,
         #[command(flatten)]
         solver: SolverArgs,
     },
@@ -608,6 +611,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             partition,
             sbatch_args,
             dry_run,
+            leaf_cubes,
             solver,
         } => {
             let opened = Store::open_read_only(&store)?;
@@ -624,6 +628,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 binary: std::env::current_exe().map_err(crate::store::io_error("locate octstore", &store))?,
                 params: solver.params(),
                 memory_budget: global.memory_budget,
+                leaf_cubes,
             };
             let store_path = std::path::absolute(&store).map_err(crate::store::io_error("resolve", &store))?;
             let jobs = pipeline::slurm_jobs(&store_path, scene.max_depth, &options);
