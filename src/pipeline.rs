@@ -39,12 +39,15 @@
 
 use std::path::PathBuf;
 
+use crate::stages::extract::{ExtractOptions, Mesh, UnitMesh, assemble, extract_units, unit_mesh, write_mesh};
 use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps};
 use crate::stages::inputs::{DiscoverOptions, discover};
 use crate::stages::octree::{OctreeStage, effective_leaf_cubes};
 use crate::stages::solve::{LEVEL_STAGES, LevelStage, SolveParams};
+use crate::stages::treetop::Treetop;
 use crate::stages::{HISTOGRAMS, INGEST, OCTREE, octree_max_depth};
+use crate::store::cluster::{ClusterPlan, WorkReport, decode_chunk_file, encode_chunk_file};
 use crate::store::{Result, RunOptions, RunReport, Stage, Store, StoreError};
 
 /// How far `solve` goes.
@@ -163,6 +166,8 @@ pub struct SlurmOptions {
     pub memory_budget: u64,
     /// Treetop leaf size of the octree job.
     pub leaf_cubes: u64,
+    /// Extract the mesh into this file at the end of the chain.
+    pub output: Option<PathBuf>,
 }
 
 /// One job of the chain: its name, whether it is an array of `chunks` tasks, and its script.
@@ -220,12 +225,17 @@ pub fn slurm_jobs(store: &std::path::Path, levels: u8, options: &SlurmOptions) -
         ),
     }];
     let stages = std::iter::once(HISTOGRAMS.to_string())
-        .chain((0..=levels.min(crate::format::MAX_DEPTH)).map(|l| LEVEL_STAGES[usize::from(l)].to_string()));
+        .chain((0..=levels.min(crate::format::MAX_DEPTH)).map(|l| LEVEL_STAGES[usize::from(l)].to_string()))
+        .chain(options.output.as_ref().map(|_| EXTRACT.to_string()));
     for stage in stages {
         let name = format!("{stage}-plan");
+        let plan_args = match (&options.output, stage == EXTRACT) {
+            (Some(output), true) => format!("--output {}", shell_quote(&output.display().to_string())),
+            _ => solver.clone(),
+        };
         jobs.push(SlurmJob {
             script: format!(
-                "{}\n{bin} {budget} plan {store} --stage {stage} --chunks {} {solver}\n",
+                "{}\n{bin} {budget} plan {store} --stage {stage} --chunks {} {plan_args}\n",
                 header(&name, None),
                 options.chunks
             ),
@@ -252,4 +262,143 @@ pub fn slurm_jobs(store: &std::path::Path, levels: u8, options: &SlurmOptions) -
         });
     }
     jobs
+}
+
+/// Cluster name of the extraction: its units are treetop leaves, its result a mesh file.
+pub const EXTRACT: &str = "extract";
+const UNIT_MESH_MAGIC: &[u8; 8] = b"OCTMESH1";
+
+/// What an extraction plan records: how to extract, and where the mesh goes.
+#[derive(serde::Serialize, serde::Deserialize, Clone, Debug, PartialEq)]
+struct ExtractPlanArgs {
+    options: ExtractOptions,
+    output: PathBuf,
+}
+
+fn extract_fingerprint(snapshot: &crate::Snapshot<'_>, finest: u8, args: &ExtractPlanArgs) -> Vec<u8> {
+    let mut fingerprint = crate::store::catalog::encode(args);
+    fingerprint.extend(snapshot.digest(LEVEL_STAGES[usize::from(finest)]).to_le_bytes());
+    fingerprint.extend(snapshot.digest(OCTREE).to_le_bytes());
+    fingerprint
+}
+
+/// Plans a chunked extraction of the latest solution into `output`.
+pub fn plan_extract(store: &Store, chunks: u32, options: ExtractOptions, output: PathBuf) -> Result<ClusterPlan> {
+    let scene = read_scene(store)?.ok_or_else(|| StoreError::Stage {
+        stage: EXTRACT.into(),
+        unit: "-".into(),
+        message: "the store has no depth maps yet".into(),
+    })?;
+    let snapshot = store.latest()?;
+    let finest = octree_max_depth(store)?;
+    let units = extract_units(&snapshot, &scene, finest, options.region)?;
+    let args = ExtractPlanArgs { options, output };
+    let plan = ClusterPlan {
+        stage: EXTRACT.into(),
+        base_version: snapshot.version(),
+        fingerprint: extract_fingerprint(&snapshot, finest, &args),
+        units: units.into_iter().map(|u| u as u64).collect(),
+        chunks: chunks.max(1),
+        args: crate::store::catalog::encode(&args),
+    };
+    drop(snapshot);
+    store.record_cluster_plan(&plan)?;
+    Ok(plan)
+}
+
+/// The extraction plan, checked against the store it was made for.
+fn checked_extract_plan(store: &Store) -> Result<(ClusterPlan, ExtractPlanArgs, u8)> {
+    let plan = store.recorded_plan(EXTRACT)?;
+    let args: ExtractPlanArgs = crate::store::catalog::decode("cluster plan args", &plan.args)?;
+    let snapshot = store.latest()?;
+    let finest = octree_max_depth(store)?;
+    if snapshot.version() != plan.base_version || extract_fingerprint(&snapshot, finest, &args) != plan.fingerprint {
+        return Err(StoreError::Stage {
+            stage: EXTRACT.into(),
+            unit: "plan".into(),
+            message: "the store changed since the plan was made: run `octstore plan` again".into(),
+        });
+    }
+    Ok((plan, args, finest))
+}
+
+fn unit_mesh_name(unit: u64) -> String {
+    format!("u{unit:010}.mesh")
+}
+
+/// Extracts chunk `chunk`'s units into the chunk folder (read-only on the catalog; safe to
+/// repeat and to run twice).
+pub fn work_extract(store: &Store, chunk: u32) -> Result<WorkReport> {
+    let (plan, _, finest) = checked_extract_plan(store)?;
+    if chunk >= plan.chunks {
+        return Err(StoreError::Stage {
+            stage: EXTRACT.into(),
+            unit: format!("chunk {chunk}"),
+            message: format!("the plan has chunks 0 to {}", plan.chunks - 1),
+        });
+    }
+    let scene = read_scene(store)?.ok_or_else(|| StoreError::Stage {
+        stage: EXTRACT.into(),
+        unit: "-".into(),
+        message: "the store has no depth maps yet".into(),
+    })?;
+    let snapshot = store.latest()?;
+    let treetop = Treetop::of(&snapshot)?;
+    let dir = store.chunk_dir(&plan);
+    std::fs::create_dir_all(&dir).map_err(crate::store::io_error("create directory", &dir))?;
+    let units = plan.chunk_units(chunk);
+    let mut skipped = 0;
+    for &unit in units {
+        let name = unit_mesh_name(unit);
+        let done = std::fs::read(dir.join(&name))
+            .ok()
+            .and_then(|b| decode_chunk_file::<UnitMesh>(UNIT_MESH_MAGIC, &b))
+            .is_some();
+        if done {
+            skipped += 1;
+            continue;
+        }
+        let mesh = unit_mesh(&snapshot, &treetop, &scene, finest, unit as usize)?;
+        store.write_chunk_file(&dir, &name, &encode_chunk_file(UNIT_MESH_MAGIC, &mesh))?;
+    }
+    Ok(WorkReport {
+        units: units.len(),
+        skipped,
+    })
+}
+
+/// Welds every unit's piece into the planned mesh file, exactly as `octstore extract` would;
+/// names the missing or damaged chunks instead when there are any.
+pub fn commit_extract(store: &Store) -> Result<(Mesh, PathBuf)> {
+    let (plan, args, _) = checked_extract_plan(store)?;
+    let dir = store.chunk_dir(&plan);
+    let mut meshes = Vec::with_capacity(plan.units.len());
+    let mut missing = std::collections::BTreeSet::new();
+    for &unit in &plan.units {
+        let mesh = std::fs::read(dir.join(unit_mesh_name(unit)))
+            .ok()
+            .and_then(|b| decode_chunk_file::<UnitMesh>(UNIT_MESH_MAGIC, &b));
+        match mesh {
+            Some(mesh) => meshes.push(mesh),
+            None => {
+                missing.insert(plan.chunk_of(unit));
+            }
+        }
+    }
+    if !missing.is_empty() {
+        let list: Vec<String> = missing.iter().map(u32::to_string).collect();
+        return Err(StoreError::Stage {
+            stage: EXTRACT.into(),
+            unit: "commit".into(),
+            message: format!(
+                "chunk(s) {} of {} are missing or damaged: run `octstore work STORE --stage extract --chunk N` for each, then commit again",
+                list.join(", "),
+                plan.chunks
+            ),
+        });
+    }
+    let mesh = assemble(meshes, &args.options);
+    write_mesh(&args.output, &mesh).map_err(crate::store::io_error("write mesh", &args.output))?;
+    store.remove_cluster_plan(&plan)?;
+    Ok((mesh, args.output))
 }

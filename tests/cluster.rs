@@ -156,11 +156,42 @@ fn plan_work_commit_equals_a_single_process_solve() {
         &fingerprint(&cluster),
         "cluster vs single process",
     );
+    // Chunked extraction welds the same mesh as `extract`, byte for byte.
     let mesh_single = dir.path().join("single.ply");
     let mesh_cluster = dir.path().join("cluster.ply");
     run(&["extract", s, "-o", mesh_single.to_str().unwrap()]);
-    run(&["extract", c, "-o", mesh_cluster.to_str().unwrap()]);
+    run(&[
+        "plan",
+        c,
+        "--stage",
+        "extract",
+        "--chunks",
+        "3",
+        "-o",
+        mesh_cluster.to_str().unwrap(),
+    ]);
+    let mut workers: Vec<Child> = (0..3).map(|chunk| spawn_work(c, "extract", chunk)).collect();
+    workers.push(spawn_work(c, "extract", 2));
+    for worker in workers {
+        let out = worker.wait_with_output().unwrap();
+        assert!(
+            out.status.success(),
+            "extract: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let committed = run(&["commit", c, "--stage", "extract"]);
+    assert!(
+        committed.contains(" 0 boundary edges, 0 non-manifold edges"),
+        "{committed}"
+    );
     assert!(std::fs::read(mesh_single).unwrap() == std::fs::read(mesh_cluster).unwrap());
+    let out = octstore(&["commit", c, "--stage", "extract"], &[]);
+    assert!(
+        stderr(&out).contains("no cluster plan"),
+        "a spent plan: {}",
+        stderr(&out)
+    );
 }
 
 #[test]

@@ -286,7 +286,9 @@ fn a_slurm_run_equals_a_single_process_solve() {
             "20",
             "--leaf-cubes",
             "2000",
+            "-o",
         ])
+        .arg(work.path().join("cluster.ply"))
         .env(
             "PATH",
             format!(
@@ -311,5 +313,12 @@ fn a_slurm_run_equals_a_single_process_solve() {
         &fingerprint(&single),
         &fingerprint(&store),
         "Slurm run vs single process",
+    );
+    let single_mesh = work.path().join("single.ply");
+    run(&["extract", s, "-o", single_mesh.to_str().unwrap()]);
+    let cluster_mesh = std::fs::read(work.path().join("cluster.ply")).expect("the chain's extract job wrote the mesh");
+    assert!(
+        std::fs::read(single_mesh).unwrap() == cluster_mesh,
+        "Slurm mesh vs single-process mesh"
     );
 }

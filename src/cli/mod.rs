@@ -129,13 +129,22 @@ pub enum Command {
     /// Cluster run, step 1: split a stage's pending units into chunks and record the plan.
     Plan {
         store: PathBuf,
-        /// `histograms` or `solution-LL`.
+        /// `histograms`, `solution-LL` or `extract`.
         #[arg(long)]
         stage: String,
         #[arg(long, default_value_t = 16)]
         chunks: u32,
         #[command(flatten)]
         solver: SolverArgs,
+        /// extract: the mesh file the commit writes.
+        #[arg(short, long, required_if_eq("stage", "extract"))]
+        output: Option<PathBuf>,
+        /// extract: only what lies in this box.
+        #[arg(long, value_parser = parse_region)]
+        region: Option<Region>,
+        /// extract: keep about this fraction of each leaf's triangles.
+        #[arg(long, value_parser = parse_ratio)]
+        decimate: Option<f32>,
     },
     /// Cluster run, step 2: compute one chunk of the recorded plan (read-only on the catalog;
     /// writes only segment files; safe to retry or to run twice).
@@ -168,6 +177,9 @@ pub enum Command {
         /// Treetop leaves of the octree job hold fewer cubes than this.
         #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
         leaf_cubes: u64,
+        /// Also extract the mesh into this file, chunked like the other stages.
+        #[arg(short, long)]
+        output: Option<PathBuf>,
         #[command(flatten)]
         solver: SolverArgs,
     },
@@ -570,8 +582,25 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             stage,
             chunks,
             solver,
+            output,
+            region,
+            decimate,
         } => {
             let store = Store::open(&store)?;
+            if stage == pipeline::EXTRACT {
+                let output = output.unwrap_or_else(|| PathBuf::from("mesh.ply"));
+                let output = std::path::absolute(&output).map_err(crate::store::io_error("resolve", &output))?;
+                let options = stages::extract::ExtractOptions { region, decimate };
+                let plan = pipeline::plan_extract(&store, chunks, options, output.clone())?;
+                println!(
+                    "plan extract: {} unit(s) in {} chunk(s) at version {} -> {}",
+                    plan.units.len(),
+                    plan.chunks,
+                    plan.base_version,
+                    output.display()
+                );
+                return Ok(ExitCode::SUCCESS);
+            }
             let params = solver.params();
             let runnable = pipeline::cluster_stage(&store, &stage, params)?;
             let plan = store.plan_cluster_run(runnable.as_ref(), chunks, crate::store::catalog::encode(&params))?;
@@ -588,9 +617,13 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
         }
         Command::Work { store, stage, chunk } => {
             let store = Store::open_read_only(&store)?;
-            let runnable = cluster_stage_of_plan(&store, &stage)?;
             let started = std::time::Instant::now();
-            let report = store.work_cluster_chunk(runnable.as_ref(), chunk)?;
+            let report = if stage == pipeline::EXTRACT {
+                pipeline::work_extract(&store, chunk)?
+            } else {
+                let runnable = cluster_stage_of_plan(&store, &stage)?;
+                store.work_cluster_chunk(runnable.as_ref(), chunk)?
+            };
             println!(
                 "work {stage} chunk {chunk}: {} unit(s), {} already done | {:.2}s | peak memory {:.0} MB",
                 report.units,
@@ -601,6 +634,22 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
         }
         Command::Commit { store, stage } => {
             let store = Store::open(&store)?;
+            if stage == pipeline::EXTRACT {
+                let started = std::time::Instant::now();
+                let (mesh, output) = pipeline::commit_extract(&store)?;
+                let (boundary, non_manifold) = stages::extract::edge_defects(&mesh);
+                println!(
+                    "extract    {} vertices, {} triangles, {} boundary edges, {} non-manifold edges -> {} | {:.2}s | peak memory {:.0} MB",
+                    mesh.positions.len(),
+                    mesh.triangles.len(),
+                    boundary,
+                    non_manifold,
+                    output.display(),
+                    started.elapsed().as_secs_f64(),
+                    peak_rss_bytes() as f64 / 1e6
+                );
+                return Ok(ExitCode::SUCCESS);
+            }
             let runnable = cluster_stage_of_plan(&store, &stage)?;
             let report = store.commit_cluster_run(runnable.as_ref(), &run_options(&global, false))?;
             summary(&report);
@@ -612,6 +661,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             sbatch_args,
             dry_run,
             leaf_cubes,
+            output,
             solver,
         } => {
             let opened = Store::open_read_only(&store)?;
@@ -629,6 +679,9 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 params: solver.params(),
                 memory_budget: global.memory_budget,
                 leaf_cubes,
+                output: output
+                    .map(|o| std::path::absolute(&o).map_err(crate::store::io_error("resolve", &o)))
+                    .transpose()?,
             };
             let store_path = std::path::absolute(&store).map_err(crate::store::io_error("resolve", &store))?;
             let jobs = pipeline::slurm_jobs(&store_path, scene.max_depth, &options);

@@ -37,7 +37,7 @@ struct Corner {
 }
 
 /// A triangle soup with welded vertices, per unit.
-#[derive(Default)]
+#[derive(Default, Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct UnitMesh {
     /// Edge identity (sorted corner pair) and position of each vertex.
     pub vertices: Vec<((CornerId, CornerId), DVec3, DVec3)>,
@@ -243,7 +243,7 @@ fn dual_cells_of_unit(
 }
 
 /// An axis-aligned box in world coordinates.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Region {
     pub min: DVec3,
     pub max: DVec3,
@@ -258,7 +258,7 @@ pub struct Mesh {
 }
 
 /// What to extract and how.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ExtractOptions {
     /// Only what lies in this box, cut at its faces.
     pub region: Option<Region>,
@@ -325,7 +325,17 @@ fn decimate_units(meshes: &mut [UnitMesh], ratio: f32) {
 
 /// Extracts the surface u = 0 of the latest solution, optionally only what lies in a region.
 pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &ExtractOptions) -> Result<Mesh> {
-    let region = options.region;
+    let units = extract_units(snapshot, scene, finest, options.region)?;
+    let treetop = Treetop::of(snapshot)?;
+    let meshes: Vec<UnitMesh> = units
+        .par_iter()
+        .map(|&unit| unit_mesh(snapshot, &treetop, scene, finest, unit))
+        .collect::<Result<_>>()?;
+    Ok(assemble(meshes, options))
+}
+
+/// The treetop units whose dual cells can reach the region (all leaves without one), in order.
+pub fn extract_units(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, region: Option<Region>) -> Result<Vec<usize>> {
     let treetop = Treetop::of(snapshot)?;
     let stage = LEVEL_STAGES[usize::from(finest)];
     if snapshot.segments(stage).is_empty() {
@@ -335,7 +345,7 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &Ext
             message: format!("no solution at level {finest}: run `octstore solve` first"),
         });
     }
-    let units: Vec<usize> = (0..treetop.units.len())
+    Ok((0..treetop.units.len())
         .filter(|&i| {
             let Some(unit) = treetop.units.get(i) else { return false };
             if unit.top {
@@ -354,17 +364,26 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &Ext
                 }
             }
         })
-        .collect();
-    let mut meshes: Vec<UnitMesh> = units
-        .par_iter()
-        .map(|&unit| {
-            let mut level = LevelCut::new(snapshot, &treetop, finest);
-            match level.unit(unit)? {
-                Some(values) => dual_cells_of_unit(scene, &mut level, &values.0, &values.1),
-                None => Ok(UnitMesh::default()),
-            }
-        })
-        .collect::<Result<_>>()?;
+        .collect())
+}
+
+/// The surface pieces that treetop unit `unit` generates.
+pub fn unit_mesh(
+    snapshot: &Snapshot<'_>,
+    treetop: &Treetop,
+    scene: &Scene,
+    finest: u8,
+    unit: usize,
+) -> Result<UnitMesh> {
+    let mut level = LevelCut::new(snapshot, treetop, finest);
+    match level.unit(unit)? {
+        Some(values) => dual_cells_of_unit(scene, &mut level, &values.0, &values.1),
+        None => Ok(UnitMesh::default()),
+    }
+}
+
+/// Decimates (if asked), welds the units' pieces in unit order, and cuts at the region.
+pub fn assemble(mut meshes: Vec<UnitMesh>, options: &ExtractOptions) -> Mesh {
     if let Some(ratio) = options.decimate {
         decimate_units(&mut meshes, ratio);
     }
@@ -401,10 +420,10 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &Ext
             .collect(),
         triangles,
     };
-    if let Some(r) = region {
+    if let Some(r) = options.region {
         mesh = clip(&mesh, r);
     }
-    Ok(mesh)
+    mesh
 }
 
 /// Cuts a mesh at a box: triangles are clipped against its six planes (new vertices on the box

@@ -62,7 +62,8 @@ impl ClusterPlan {
         self.units.get(lo as usize..hi.min(n) as usize).unwrap_or_default()
     }
 
-    fn chunk_of(&self, unit: u64) -> u32 {
+    /// The chunk that holds `unit`.
+    pub fn chunk_of(&self, unit: u64) -> u32 {
         (0..self.chunks)
             .find(|&c| self.chunk_units(c).contains(&unit))
             .unwrap_or(0)
@@ -100,24 +101,33 @@ fn cluster_error(stage: &str, unit: impl Into<String>, message: impl Into<String
     }
 }
 
-fn encode_manifest(manifest: &UnitManifest) -> Vec<u8> {
-    let mut bytes = MANIFEST_MAGIC.to_vec();
-    bytes.extend(catalog::encode(manifest));
+/// A chunk file: an 8-byte magic, the bincode payload, and the xxh3-64 of both (u64 LE).
+pub fn encode_chunk_file<T: Serialize>(magic: &[u8; 8], payload: &T) -> Vec<u8> {
+    let mut bytes = magic.to_vec();
+    bytes.extend(catalog::encode(payload));
     let checksum = xxhash_rust::xxh3::xxh3_64(&bytes);
     bytes.extend(checksum.to_le_bytes());
     bytes
 }
 
-/// Decodes a manifest; `None` for anything damaged (a worker that died mid-write leaves no
-/// manifest at all, thanks to the rename, but disks fail too).
-fn decode_manifest(bytes: &[u8]) -> Option<UnitManifest> {
+/// Decodes a chunk file; `None` for anything damaged (a worker that died mid-write leaves no
+/// file at all, thanks to the rename, but disks fail too).
+pub fn decode_chunk_file<T: serde::de::DeserializeOwned>(magic: &[u8; 8], bytes: &[u8]) -> Option<T> {
     let split = bytes.len().checked_sub(CHECKSUM_LEN)?;
     let (body, tail) = (bytes.get(..split)?, bytes.get(split..)?);
     let expected = u64::from_le_bytes(tail.try_into().ok()?);
-    if xxhash_rust::xxh3::xxh3_64(body) != expected || body.get(..MANIFEST_MAGIC.len())? != MANIFEST_MAGIC {
+    if xxhash_rust::xxh3::xxh3_64(body) != expected || body.get(..magic.len())? != magic {
         return None;
     }
-    catalog::decode("unit manifest", body.get(MANIFEST_MAGIC.len()..)?).ok()
+    catalog::decode("chunk file", body.get(magic.len()..)?).ok()
+}
+
+fn encode_manifest(manifest: &UnitManifest) -> Vec<u8> {
+    encode_chunk_file(MANIFEST_MAGIC, manifest)
+}
+
+fn decode_manifest(bytes: &[u8]) -> Option<UnitManifest> {
+    decode_chunk_file(MANIFEST_MAGIC, bytes)
 }
 
 /// Whether a written segment file matches its record: length, file checksum, every block.
@@ -130,7 +140,8 @@ fn segment_is_intact(path: &Path, record: &SegmentRecord) -> bool {
 }
 
 impl Store {
-    fn chunk_dir(&self, plan: &ClusterPlan) -> PathBuf {
+    /// Where the workers of `plan` write.
+    pub fn chunk_dir(&self, plan: &ClusterPlan) -> PathBuf {
         self.root()
             .join(CHUNKS_DIR)
             .join(format!("{}-v{:08}", plan.stage, plan.target()))
@@ -147,7 +158,7 @@ impl Store {
     /// Plans a cluster run of `stage` in `chunks` chunks and records it (replacing an earlier
     /// plan of the stage). An up-to-date stage gets a plan with no units.
     pub fn plan_cluster_run(&self, stage: &dyn Stage, chunks: u32, args: Vec<u8>) -> Result<ClusterPlan> {
-        let db = self.writable()?;
+        self.writable()?;
         let name = stage.name();
         if self.run_in_progress(name)? {
             // A single-process run was interrupted: the cluster run replaces it.
@@ -170,8 +181,16 @@ impl Store {
             chunks: chunks.max(1),
             args,
         };
+        self.record_cluster_plan(&plan)?;
+        Ok(plan)
+    }
+
+    /// Records `plan` (replacing an earlier plan of its stage) and prepares its chunk folder.
+    pub fn record_cluster_plan(&self, plan: &ClusterPlan) -> Result<()> {
+        let db = self.writable()?;
+        let name = plan.stage.as_str();
         // Chunk folders of other plans of this stage are stale.
-        let current = self.chunk_dir(&plan);
+        let current = self.chunk_dir(plan);
         let root = self.root().join(CHUNKS_DIR);
         if let Ok(entries) = fs::read_dir(&root) {
             for entry in entries.flatten() {
@@ -185,9 +204,33 @@ impl Store {
         fs::create_dir_all(&current).map_err(io_error("create directory", &current))?;
         let txn = db.begin_write()?;
         txn.open_table(META)?
-            .insert(plan_key(name).as_str(), catalog::encode(&plan).as_slice())?;
+            .insert(plan_key(name).as_str(), catalog::encode(plan).as_slice())?;
         txn.commit()?;
-        Ok(plan)
+        Ok(())
+    }
+
+    /// Forgets the plan of `stage` and its chunk folder (after its commit).
+    pub fn remove_cluster_plan(&self, plan: &ClusterPlan) -> Result<()> {
+        let txn = self.writable()?.begin_write()?;
+        txn.open_table(META)?.remove(plan_key(&plan.stage).as_str())?;
+        txn.commit()?;
+        // The files are spent; a failure to remove them costs only disk.
+        let _ = fs::remove_dir_all(self.chunk_dir(plan));
+        Ok(())
+    }
+
+    /// Writes a chunk file: temporary name unique to this process, fsync, rename, dir fsync.
+    pub fn write_chunk_file(&self, dir: &Path, name: &str, bytes: &[u8]) -> Result<()> {
+        let temp = dir.join(format!("{name}.{}.tmp", std::process::id()));
+        let path = dir.join(name);
+        let write = || -> std::io::Result<()> {
+            let file = fs::File::create(&temp)?;
+            std::io::Write::write_all(&mut &file, bytes)?;
+            file.sync_all()
+        };
+        write().map_err(io_error("write chunk file", &temp))?;
+        fs::rename(&temp, &path).map_err(io_error("rename", &temp))?;
+        sync_dir(dir)
     }
 
     /// Checks that the store is still where `plan` was made; returns the base snapshot's units.
@@ -213,7 +256,8 @@ impl Store {
         Ok(stage.plan(&base)?.units.into_iter().map(|u| (u.id, u)).collect())
     }
 
-    fn recorded_plan(&self, name: &str) -> Result<ClusterPlan> {
+    /// The recorded plan of `name`, or an error that says to plan first.
+    pub fn recorded_plan(&self, name: &str) -> Result<ClusterPlan> {
         self.cluster_plan(name)?
             .ok_or_else(|| cluster_error(name, "plan", "no cluster plan: run `octstore plan` first"))
     }
@@ -280,17 +324,7 @@ impl Store {
     }
 
     fn write_unit_manifest(&self, dir: &Path, manifest: &UnitManifest) -> Result<()> {
-        let name = manifest_name(manifest.unit);
-        let temp = dir.join(format!("{name}.{}.tmp", std::process::id()));
-        let path = dir.join(&name);
-        let write = || -> std::io::Result<()> {
-            let file = fs::File::create(&temp)?;
-            std::io::Write::write_all(&mut &file, &encode_manifest(manifest))?;
-            file.sync_all()
-        };
-        write().map_err(io_error("write unit manifest", &temp))?;
-        fs::rename(&temp, &path).map_err(io_error("rename", &temp))?;
-        sync_dir(dir)
+        self.write_chunk_file(dir, &manifest_name(manifest.unit), &encode_manifest(manifest))
     }
 
     /// A unit's manifest, if it is intact and every segment it lists is too.
@@ -364,11 +398,7 @@ impl Store {
             progress: options.progress,
         };
         let report = self.run_stage_with(stage, &run, &adopt)?;
-        let txn = self.writable()?.begin_write()?;
-        txn.open_table(META)?.remove(plan_key(name).as_str())?;
-        txn.commit()?;
-        // The manifests are spent; the folder is rebuilt by the next plan.
-        let _ = fs::remove_dir_all(&dir);
+        self.remove_cluster_plan(&plan)?;
         Ok(report)
     }
 }
