@@ -301,6 +301,7 @@ impl Stage for HistogramsStage {
         let unit_center = self.scene.cube_center(plan.key);
         let unit_radius = self.scene.cube_side(plan.key.depth()) * 0.87 + radii.iter().copied().fold(0.0, f64::max);
         let mut voted = already.clone();
+        let mut votes = 0u64;
         for (id, record) in &self.depth_maps {
             if already.contains(id) {
                 continue;
@@ -323,6 +324,7 @@ impl Stage for HistogramsStage {
                     && let Some(h) = hist.get_mut(index * BINS + bin)
                 {
                     *h += weight;
+                    votes += 1;
                 }
             }
         }
@@ -335,19 +337,22 @@ impl Stage for HistogramsStage {
                 Column::keys(keys),
                 Column::new("hist", BINS as u16, ColumnValues::F32(hist)),
             ]],
-            extra: catalog::encode(&(plan.key, state)),
+            extra: catalog::encode(&(plan.key, state, votes)),
             block_rows: 0,
         })
     }
 
     fn finish(&self, txn: &WriteTransaction, _base: &Snapshot<'_>, units: &[(u64, UnitRecord)]) -> Result<String> {
         let mut table = txn.open_table(UNIT_STATE)?;
+        let mut votes = 0u64;
         for (_, record) in units {
-            let (key, state): (CubeKey, HistogramState) = catalog::decode("units_done", &record.extra)?;
+            let (key, state, unit_votes): (CubeKey, HistogramState, u64) =
+                catalog::decode("units_done", &record.extra)?;
             table.insert((HISTOGRAMS, key), catalog::encode(&state).as_slice())?;
+            votes += unit_votes;
         }
         Ok(format!(
-            "{} unit(s) voted by {} depth map(s)",
+            "{} unit(s) voted by {} depth map(s): {votes} votes",
             units.len(),
             self.depth_maps.len()
         ))
