@@ -172,7 +172,9 @@ impl Cluster {
     }
 
     /// Waits for job `id`; panics with the job's state and logs if it did not complete.
-    fn wait(&self, name: &str, id: &str, deadline: Instant, store: &Path) {
+    /// Waits for job `id`; an error (with the job's state, output and the daemon logs) if it
+    /// failed, can never run, or is still running at the deadline.
+    fn wait(&self, name: &str, id: &str, deadline: Instant, store: &Path) -> Result<(), String> {
         loop {
             let out = self.command("scontrol").args(["show", "job", id]).output().unwrap();
             let text = String::from_utf8_lossy(&out.stdout).into_owned();
@@ -195,27 +197,28 @@ impl Cluster {
                 "DEADLINE",
             ];
             if let Some(state) = states.iter().find(|s| failed.contains(s)) {
-                panic!(
+                return Err(format!(
                     "job {name} ({id}) ended {state}\n{}\n{}",
                     job_outputs(store, name),
                     self.log_tail()
-                );
+                ));
             }
             if reason == "DependencyNeverSatisfied" {
-                panic!(
+                return Err(format!(
                     "job {name} ({id}) can never run: an earlier job failed\n{}",
                     self.log_tail()
-                );
+                ));
             }
             if !states.is_empty() && states.iter().all(|s| *s == "COMPLETED") {
-                return;
+                return Ok(());
             }
-            let state = states.first().copied().unwrap_or("UNKNOWN");
-            assert!(
-                Instant::now() < deadline,
-                "job {name} ({id}) still {state} ({reason}) at the deadline\n{}",
-                self.log_tail()
-            );
+            if Instant::now() >= deadline {
+                let state = states.first().copied().unwrap_or("UNKNOWN");
+                return Err(format!(
+                    "job {name} ({id}) still {state} ({reason}) at the deadline\n{}",
+                    self.log_tail()
+                ));
+            }
             std::thread::sleep(Duration::from_millis(200));
         }
     }
@@ -307,7 +310,9 @@ fn a_slurm_run_equals_a_single_process_solve() {
     assert!(jobs.len() > 10, "{}", stdout(&submit));
     let deadline = Instant::now() + Duration::from_secs(600);
     for (name, id) in &jobs {
-        cluster.wait(name, id, deadline, &store);
+        if let Err(message) = cluster.wait(name, id, deadline, &store) {
+            panic!("{message}");
+        }
     }
     assert_same_store(
         &fingerprint(&single),
@@ -321,4 +326,34 @@ fn a_slurm_run_equals_a_single_process_solve() {
         std::fs::read(single_mesh).unwrap() == cluster_mesh,
         "Slurm mesh vs single-process mesh"
     );
+
+    // A chunk that fails is reported with its output, and what depends on it never hangs.
+    let failing = format!("{} work {c} --stage histograms --chunk 0", octstore_bin().display());
+    let submitted = cluster
+        .command("sbatch")
+        .args(["--parsable", "--job-name=octstore-failing"])
+        .arg(format!("--output={}/slurm/octstore-failing-%j.out", store.display()))
+        .arg(format!("--wrap={failing}"))
+        .output()
+        .unwrap();
+    let id = stdout(&submitted).trim().to_string();
+    let dependent = cluster
+        .command("sbatch")
+        .args(["--parsable", "--job-name=octstore-after", "--wrap=true"])
+        .arg(format!("--dependency=afterok:{id}"))
+        .output()
+        .unwrap();
+    let dependent = stdout(&dependent).trim().to_string();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let error = cluster
+        .wait("failing", &id, deadline, &store)
+        .expect_err("a failing chunk passed");
+    assert!(
+        error.contains("ended FAILED") && error.contains("no cluster plan"),
+        "{error}"
+    );
+    let error = cluster
+        .wait("after", &dependent, deadline, &store)
+        .expect_err("a job after a failed one passed");
+    assert!(error.contains("can never run"), "{error}");
 }
