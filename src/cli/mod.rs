@@ -100,8 +100,8 @@ pub enum Command {
         #[arg(long)]
         resume: bool,
     },
-    /// Bring everything derived up to date: octree, treetop (and, later, histograms and the
-    /// TGV solution).
+    /// Bring everything derived up to date: the octree and its treetop, the histograms, then
+    /// the TGV solution level by level.
     Solve {
         store: PathBuf,
         /// Continue an interrupted run from its last committed unit.
