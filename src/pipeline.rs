@@ -81,6 +81,15 @@ impl Default for SolveOptions {
     }
 }
 
+/// The store's scene, or an error for `stage` that says to ingest first.
+fn required_scene(store: &Store, stage: &str) -> Result<crate::stages::scene::Scene> {
+    read_scene(store)?.ok_or_else(|| StoreError::Stage {
+        stage: stage.into(),
+        unit: "-".into(),
+        message: "the store has no depth maps yet: run `octstore ingest` first".into(),
+    })
+}
+
 /// Registers the depth maps named by `inputs` and writes their cubes, as one new version.
 pub fn ingest(
     store: &Store,
@@ -101,11 +110,7 @@ pub fn ingest(
 /// Runs the pending stages up to `options.until`: the octree, the histograms, then every level
 /// of the solution coarse to fine. `on_report` sees each stage's report as it finishes.
 pub fn solve(store: &Store, options: &SolveOptions, mut on_report: impl FnMut(&RunReport)) -> Result<()> {
-    let scene = read_scene(store)?.ok_or_else(|| StoreError::Stage {
-        stage: OCTREE.into(),
-        unit: "-".into(),
-        message: "the store has no depth maps yet: run `octstore ingest` first".into(),
-    })?;
+    let scene = required_scene(store, OCTREE)?;
     if options.until >= SolveUntil::Octree {
         let scratch = store.scratch_dir(OCTREE)?;
         let leaf_cubes = effective_leaf_cubes(options.leaf_cubes, options.memory_budget, options.run.threads);
@@ -130,11 +135,7 @@ pub fn solve(store: &Store, options: &SolveOptions, mut on_report: impl FnMut(&R
 /// The stage a cluster run works on, by its catalog name: `histograms` or `solution-LL`. The
 /// octree is one global merge and is built by a single process (`solve --until octree`).
 pub fn cluster_stage(store: &Store, name: &str, params: SolveParams) -> Result<Box<dyn Stage>> {
-    let scene = read_scene(store)?.ok_or_else(|| StoreError::Stage {
-        stage: name.into(),
-        unit: "-".into(),
-        message: "the store has no depth maps yet: run `octstore ingest` first".into(),
-    })?;
+    let scene = required_scene(store, name)?;
     if name == HISTOGRAMS {
         return Ok(Box::new(HistogramsStage::new(scene, registered_depth_maps(store)?)));
     }
@@ -284,11 +285,7 @@ fn extract_fingerprint(snapshot: &crate::Snapshot<'_>, finest: u8, args: &Extrac
 
 /// Plans a chunked extraction of the latest solution into `output`.
 pub fn plan_extract(store: &Store, chunks: u32, options: ExtractOptions, output: PathBuf) -> Result<ClusterPlan> {
-    let scene = read_scene(store)?.ok_or_else(|| StoreError::Stage {
-        stage: EXTRACT.into(),
-        unit: "-".into(),
-        message: "the store has no depth maps yet".into(),
-    })?;
+    let scene = required_scene(store, EXTRACT)?;
     let snapshot = store.latest()?;
     let finest = octree_max_depth(store)?;
     let units = extract_units(&snapshot, &scene, finest, options.region)?;
@@ -330,18 +327,8 @@ fn unit_mesh_name(unit: u64) -> String {
 /// repeat and to run twice).
 pub fn work_extract(store: &Store, chunk: u32) -> Result<WorkReport> {
     let (plan, _, finest) = checked_extract_plan(store)?;
-    if chunk >= plan.chunks {
-        return Err(StoreError::Stage {
-            stage: EXTRACT.into(),
-            unit: format!("chunk {chunk}"),
-            message: format!("the plan has chunks 0 to {}", plan.chunks - 1),
-        });
-    }
-    let scene = read_scene(store)?.ok_or_else(|| StoreError::Stage {
-        stage: EXTRACT.into(),
-        unit: "-".into(),
-        message: "the store has no depth maps yet".into(),
-    })?;
+    plan.check_chunk(chunk)?;
+    let scene = required_scene(store, EXTRACT)?;
     let snapshot = store.latest()?;
     let treetop = Treetop::of(&snapshot)?;
     let dir = store.chunk_dir(&plan);
@@ -386,16 +373,7 @@ pub fn commit_extract(store: &Store) -> Result<(Mesh, PathBuf)> {
         }
     }
     if !missing.is_empty() {
-        let list: Vec<String> = missing.iter().map(u32::to_string).collect();
-        return Err(StoreError::Stage {
-            stage: EXTRACT.into(),
-            unit: "commit".into(),
-            message: format!(
-                "chunk(s) {} of {} are missing or damaged: run `octstore work STORE --stage extract --chunk N` for each, then commit again",
-                list.join(", "),
-                plan.chunks
-            ),
-        });
+        return Err(plan.missing_chunks_error(&missing));
     }
     let mesh = assemble(meshes, &args.options);
     write_mesh(&args.output, &mesh).map_err(crate::store::io_error("write mesh", &args.output))?;

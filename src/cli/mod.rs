@@ -110,18 +110,8 @@ pub enum Command {
         /// Run the pending stages up to and including this one.
         #[arg(long, value_enum, default_value = "solution")]
         until: SolveStage,
-        /// TGV weight of |grad u - v| (times the cube side).
-        #[arg(long, default_value_t = SolveParams::default().alpha1)]
-        alpha1: f32,
-        /// TGV weight of |E(v)| (times the cube side squared).
-        #[arg(long, default_value_t = SolveParams::default().alpha0)]
-        alpha0: f32,
-        /// Weight of the histogram data term.
-        #[arg(long, default_value_t = SolveParams::default().lambda)]
-        lambda: f32,
-        /// Primal-dual iterations per level.
-        #[arg(long, default_value_t = SolveParams::default().iterations)]
-        iterations: u32,
+        #[command(flatten)]
+        solver: SolverArgs,
         /// Treetop leaves hold fewer cubes than this.
         #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
         leaf_cubes: u64,
@@ -557,22 +547,14 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             resume,
             until,
             leaf_cubes,
-            alpha1,
-            alpha0,
-            lambda,
-            iterations,
+            solver,
         } => {
             let store = Store::open(&store)?;
             let options = pipeline::SolveOptions {
                 until,
                 leaf_cubes,
                 memory_budget: global.memory_budget,
-                params: SolveParams {
-                    alpha1,
-                    alpha0,
-                    lambda,
-                    iterations,
-                },
+                params: solver.params(),
                 run: run_options(&global, resume),
             };
             pipeline::solve(&store, &options, summary)?;

@@ -360,14 +360,11 @@ pub fn read_colmap_depth(path: &Path) -> Result<DepthImage, InputError> {
     let data = bytes
         .get(start..start + count * 4)
         .ok_or_else(|| bad(path, format!("truncated COLMAP depth map: {count} floats expected")))?;
-    let depth = data
-        .chunks_exact(4)
-        .map(|c| {
-            let v = f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
-            if v.is_finite() && v > 0.0 { v } else { f32::NAN }
-        })
-        .collect();
-    Ok(DepthImage { width, height, depth })
+    Ok(DepthImage {
+        width,
+        height,
+        depth: super::depthmap::depths_from_f32_le(data),
+    })
 }
 
 /// Writes a COLMAP depth map (tests and tools produce inputs with it).

@@ -386,14 +386,21 @@ pub fn read_npy(path: &Path) -> Result<DepthImage, InputError> {
     let data = bytes
         .get(start..start + count * 4)
         .ok_or_else(|| bad(path, format!("truncated .npy: {count} floats expected")))?;
-    let depth = data
-        .chunks_exact(4)
+    Ok(DepthImage {
+        width,
+        height,
+        depth: depths_from_f32_le(data),
+    })
+}
+
+/// Little-endian float32 depths; values that are not finite and positive become NaN (invalid).
+pub(crate) fn depths_from_f32_le(data: &[u8]) -> Vec<f32> {
+    data.chunks_exact(4)
         .map(|c| {
             let v = f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
             if v.is_finite() && v > 0.0 { v } else { f32::NAN }
         })
-        .collect();
-    Ok(DepthImage { width, height, depth })
+        .collect()
 }
 
 /// Writes a little-endian grey PFM (tools and tests use it to produce inputs).

@@ -90,6 +90,29 @@ pub struct SegmentRecord {
 }
 
 impl SegmentRecord {
+    /// The record of a freshly written segment: part `part` of `unit`, first seen by `created`.
+    pub fn written(
+        stage: &str,
+        unit: u64,
+        part: usize,
+        summary: &crate::format::segment::SegmentSummary,
+        created: u64,
+    ) -> SegmentRecord {
+        SegmentRecord {
+            stage: stage.to_string(),
+            unit,
+            part: part as u32,
+            rows: summary.rows,
+            bytes: summary.bytes,
+            file_checksum: summary.file_checksum,
+            content_digest: summary.content_digest,
+            first_key: summary.first_key.raw(),
+            last_key: summary.last_key.raw(),
+            created,
+            dropped: None,
+        }
+    }
+
     pub fn visible_at(&self, version: u64) -> bool {
         self.created <= version && self.dropped.is_none_or(|d| version < d)
     }

@@ -62,6 +62,33 @@ impl ClusterPlan {
         self.units.get(lo as usize..hi.min(n) as usize).unwrap_or_default()
     }
 
+    /// The error of a commit that found chunks missing or damaged.
+    pub fn missing_chunks_error(&self, missing: &std::collections::BTreeSet<u32>) -> StoreError {
+        let list: Vec<String> = missing.iter().map(u32::to_string).collect();
+        cluster_error(
+            &self.stage,
+            "commit",
+            format!(
+                "chunk(s) {} of {} are missing or damaged: run `octstore work STORE --stage {} --chunk N` for each, then commit again",
+                list.join(", "),
+                self.chunks,
+                self.stage
+            ),
+        )
+    }
+
+    /// Checks that `chunk` is one of the plan's.
+    pub fn check_chunk(&self, chunk: u32) -> Result<()> {
+        if chunk >= self.chunks {
+            return Err(cluster_error(
+                &self.stage,
+                format!("chunk {chunk}"),
+                format!("the plan has chunks 0 to {}", self.chunks - 1),
+            ));
+        }
+        Ok(())
+    }
+
     /// The chunk that holds `unit`.
     pub fn chunk_of(&self, unit: u64) -> u32 {
         (0..self.chunks)
@@ -267,13 +294,7 @@ impl Store {
     pub fn work_cluster_chunk(&self, stage: &dyn Stage, chunk: u32) -> Result<WorkReport> {
         let name = stage.name();
         let plan = self.recorded_plan(name)?;
-        if chunk >= plan.chunks {
-            return Err(cluster_error(
-                name,
-                format!("chunk {chunk}"),
-                format!("the plan has chunks 0 to {}", plan.chunks - 1),
-            ));
-        }
+        plan.check_chunk(chunk)?;
         let specs = self.check_plan(stage, &plan)?;
         let dir = self.chunk_dir(&plan);
         fs::create_dir_all(&dir).map_err(io_error("create directory", &dir))?;
@@ -293,22 +314,8 @@ impl Store {
             for (part, columns) in output.segments.iter().enumerate() {
                 let file = super::runner::segment_name(name, plan.target(), unit, part);
                 let summary = self.write_segment_in(&dir, &file, columns, output.block_rows)?;
-                segments.push((
-                    file,
-                    SegmentRecord {
-                        stage: name.to_string(),
-                        unit,
-                        part: part as u32,
-                        rows: summary.rows,
-                        bytes: summary.bytes,
-                        file_checksum: summary.file_checksum,
-                        content_digest: summary.content_digest,
-                        first_key: summary.first_key.raw(),
-                        last_key: summary.last_key.raw(),
-                        created: plan.target(),
-                        dropped: None,
-                    },
-                ));
+                let record = SegmentRecord::written(name, unit, part, &summary, plan.target());
+                segments.push((file, record));
             }
             let manifest = UnitManifest {
                 unit,
@@ -365,16 +372,7 @@ impl Store {
             }
         }
         if !missing.is_empty() {
-            let list: Vec<String> = missing.iter().map(u32::to_string).collect();
-            return Err(cluster_error(
-                name,
-                "commit",
-                format!(
-                    "chunk(s) {} of {} are missing or damaged: run `octstore work STORE --stage {name} --chunk N` for each, then commit again",
-                    list.join(", "),
-                    plan.chunks
-                ),
-            ));
+            return Err(plan.missing_chunks_error(&missing));
         }
         let adopt = |_: &super::Snapshot<'_>, target: u64, unit: &UnitSpec| -> Result<ProducedUnit> {
             let manifest = manifests

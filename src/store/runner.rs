@@ -326,22 +326,8 @@ impl Store {
         for (part, columns) in output.segments.iter().enumerate() {
             let file = segment_name(stage.name(), target, unit.id, part);
             let summary = self.write_segment_file(&file, columns, output.block_rows)?;
-            written.push((
-                file,
-                SegmentRecord {
-                    stage: stage.name().to_string(),
-                    unit: unit.id,
-                    part: part as u32,
-                    rows: summary.rows,
-                    bytes: summary.bytes,
-                    file_checksum: summary.file_checksum,
-                    content_digest: summary.content_digest,
-                    first_key: summary.first_key.raw(),
-                    last_key: summary.last_key.raw(),
-                    created: target,
-                    dropped: None,
-                },
-            ));
+            let record = SegmentRecord::written(stage.name(), unit.id, part, &summary, target);
+            written.push((file, record));
         }
         Ok((unit.id, written, output.extra))
     }
