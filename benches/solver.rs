@@ -57,7 +57,10 @@ fn main() {
         lambda: 0.1,
     };
     let mut state = State::zeros(cubes);
-    let iterations = 20;
+    let iterations: usize = std::env::var("OCTSTORE_BENCH_ITERATIONS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(200);
     let started = Instant::now();
     let (before, after) = solve(&problem, &mut state, iterations);
     let seconds = started.elapsed().as_secs_f64();

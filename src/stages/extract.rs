@@ -37,6 +37,9 @@ struct Corner {
 }
 
 /// A triangle soup with welded vertices, per unit.
+/// A surface vertex's identity: the cut edge it lies on, as its sorted corner pair.
+type VertexId = (CornerId, CornerId);
+
 #[derive(Default, Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct UnitMesh {
     /// Edge identity (sorted corner pair) and position of each vertex.
@@ -272,8 +275,50 @@ pub struct ExtractOptions {
 pub const DECIMATE_MAX_ERROR: f32 = 0.01;
 
 /// Simplifies each unit's mesh with meshopt, locking the vertices in `shared` (those other units
-/// also have); triangles are kept in the simplifier's deterministic output order.
+/// also have); triangles are kept in the simplifier's deterministic output order. meshopt does
+/// not promise a manifold result (two sheets of one leaf can be collapsed onto a common edge),
+/// so a unit whose simplified piece takes part in an edge with more than two triangles keeps
+/// its original piece, until no such edge is left.
 fn decimate_units(meshes: &mut [UnitMesh], ratio: f32) {
+    let originals = meshes.to_vec();
+    simplify_units(meshes, ratio);
+    let mut reverted = vec![false; meshes.len()];
+    loop {
+        let mut edge_users: HashMap<[VertexId; 2], (u32, Vec<usize>)> = HashMap::new();
+        for (unit, mesh) in meshes.iter().enumerate() {
+            for triangle in &mesh.triangles {
+                let ids = triangle.map(|v| mesh.vertices.get(v as usize).map(|(edge, ..)| *edge));
+                let [Some(a), Some(b), Some(c)] = ids else {
+                    continue;
+                };
+                for (x, y) in [(a, b), (b, c), (c, a)] {
+                    let entry = edge_users.entry(if x < y { [x, y] } else { [y, x] }).or_default();
+                    entry.0 += 1;
+                    entry.1.push(unit);
+                }
+            }
+        }
+        let mut changed = false;
+        for (count, users) in edge_users.values() {
+            if *count > 2 {
+                for &unit in users {
+                    if !reverted[unit] {
+                        reverted[unit] = true;
+                        if let (Some(mesh), Some(original)) = (meshes.get_mut(unit), originals.get(unit)) {
+                            *mesh = original.clone();
+                        }
+                        changed = true;
+                    }
+                }
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+}
+
+fn simplify_units(meshes: &mut [UnitMesh], ratio: f32) {
     let mut owners: HashMap<(CornerId, CornerId), usize> = HashMap::new();
     let mut shared: std::collections::HashSet<(CornerId, CornerId)> = Default::default();
     for (unit, mesh) in meshes.iter().enumerate() {

@@ -75,6 +75,14 @@ impl Pyramid {
         Pyramid { source, levels }
     }
 
+    /// Bytes the decoded levels take.
+    pub fn bytes(&self) -> u64 {
+        self.levels
+            .iter()
+            .map(|level| (level.depth.len() * std::mem::size_of::<f32>()) as u64)
+            .sum()
+    }
+
     /// Algorithm 1 for one voxel: the bin it votes into, if any.
     pub fn vote(&self, world_to_camera: &glam::DMat4, center: DVec3, radius: f64) -> Option<usize> {
         let local = world_to_camera.transform_point3(center);
@@ -173,11 +181,80 @@ struct UnitPlan {
     previous: Option<(String, BTreeSet<u64>)>,
 }
 
+/// Bytes of decoded pyramids kept between units when the caller sets no budget.
+pub const DEFAULT_PYRAMID_CACHE_BYTES: u64 = 128 << 20;
+
+/// Decoded pyramids shared by the workers, least recently used first out, bounded in bytes.
+/// Units run in key order, so neighbouring units (which see mostly the same depth maps) reuse
+/// each other's decodes. A pyramid is the same whether cached or decoded again, so the cache
+/// changes time, never results.
+struct PyramidCache {
+    capacity: u64,
+    state: std::sync::Mutex<CacheState>,
+}
+
+#[derive(Default)]
+struct CacheState {
+    entries: std::collections::HashMap<u64, (std::sync::Arc<Pyramid>, u64)>,
+    bytes: u64,
+    clock: u64,
+    hits: u64,
+    misses: u64,
+}
+
+impl PyramidCache {
+    fn get_or_load(&self, id: u64, load: impl FnOnce() -> Result<Pyramid>) -> Result<std::sync::Arc<Pyramid>> {
+        {
+            let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+            state.clock += 1;
+            let now = state.clock;
+            if let Some((pyramid, used)) = state.entries.get_mut(&id) {
+                *used = now;
+                let pyramid = pyramid.clone();
+                state.hits += 1;
+                return Ok(pyramid);
+            }
+            state.misses += 1;
+        }
+        // Decoded outside the lock: two workers may decode the same map once each.
+        let pyramid = std::sync::Arc::new(load()?);
+        let size = pyramid.bytes();
+        if size > self.capacity {
+            return Ok(pyramid);
+        }
+        let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        while state.bytes + size > self.capacity {
+            let Some(oldest) = state
+                .entries
+                .iter()
+                .min_by_key(|(_, (_, used))| *used)
+                .map(|(id, _)| *id)
+            else {
+                break;
+            };
+            if let Some((evicted, _)) = state.entries.remove(&oldest) {
+                state.bytes = state.bytes.saturating_sub(evicted.bytes());
+            }
+        }
+        let now = state.clock;
+        if state.entries.insert(id, (pyramid.clone(), now)).is_none() {
+            state.bytes += size;
+        }
+        Ok(pyramid)
+    }
+
+    fn counts(&self) -> (u64, u64) {
+        let state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        (state.hits, state.misses)
+    }
+}
+
 pub struct HistogramsStage {
     pub scene: Scene,
     /// All registered depth maps, by id.
     pub depth_maps: Vec<(u64, DepthMapRecord)>,
     units: std::sync::OnceLock<Vec<UnitPlan>>,
+    cache: PyramidCache,
 }
 
 impl HistogramsStage {
@@ -186,7 +263,17 @@ impl HistogramsStage {
             scene,
             depth_maps,
             units: std::sync::OnceLock::new(),
+            cache: PyramidCache {
+                capacity: DEFAULT_PYRAMID_CACHE_BYTES,
+                state: std::sync::Mutex::default(),
+            },
         }
+    }
+
+    /// Bounds the bytes of decoded pyramids kept between units (0 keeps none).
+    pub fn with_cache_bytes(mut self, bytes: u64) -> HistogramsStage {
+        self.cache.capacity = bytes;
+        self
     }
 
     fn all_ids(&self) -> BTreeSet<u64> {
@@ -312,12 +399,14 @@ impl Stage for HistogramsStage {
             if !Pyramid::may_see(source, &world_to_camera, unit_center, unit_radius) {
                 continue;
             }
-            let image = source.load().map_err(|e| StoreError::Stage {
-                stage: HISTOGRAMS.into(),
-                unit: unit.label.clone(),
-                message: e.to_string(),
+            let pyramid = self.cache.get_or_load(*id, || {
+                let image = source.load().map_err(|e| StoreError::Stage {
+                    stage: HISTOGRAMS.into(),
+                    unit: unit.label.clone(),
+                    message: e.to_string(),
+                })?;
+                Ok(Pyramid::new(source.clone(), image))
             })?;
-            let pyramid = Pyramid::new(source.clone(), image);
             let weight = quantized_weight(source.weight);
             for (index, (center, radius)) in centers.iter().zip(&radii).enumerate() {
                 if let Some(bin) = pyramid.vote(&world_to_camera, *center, *radius)
@@ -351,6 +440,9 @@ impl Stage for HistogramsStage {
             table.insert((HISTOGRAMS, key), catalog::encode(&state).as_slice())?;
             votes += unit_votes;
         }
+        // Logged, not recorded: the counts depend on scheduling, and the catalog must not.
+        let (hits, misses) = self.cache.counts();
+        tracing::info!("histograms: {misses} depth-map decodes, {hits} reused from the cache");
         Ok(format!(
             "{} unit(s) voted by {} depth map(s): {votes} votes",
             units.len(),

@@ -12,7 +12,7 @@ use super::extract::Region;
 use super::histograms::BINS;
 use super::ingest::read_scene;
 use super::scene::Scene;
-use super::solve::{LEVEL_STAGES, LevelCut, read_level_values};
+use super::solve::{LEVEL_STAGES, LevelCut};
 use super::treetop::Treetop;
 use crate::format::{CubeKey, MAX_DEPTH};
 use crate::store::{Result, Snapshot, StoreError};
@@ -159,8 +159,8 @@ impl IndicatorField for Snapshot<'_> {
 
     fn cubes_in(&self, bbox: &Region, level: u8) -> Result<Vec<CubeInfo>> {
         let scene = scene_of(self)?;
-        let stage = LEVEL_STAGES[usize::from(level.min(MAX_DEPTH))];
         let treetop = Treetop::of(self)?;
+        let mut level_cut = LevelCut::new(self, &treetop, level);
         let mut out = Vec::new();
         for (index, unit) in treetop.units.iter().enumerate() {
             if !unit.top {
@@ -170,10 +170,9 @@ impl IndicatorField for Snapshot<'_> {
                     continue;
                 }
             }
-            let Some((name, _)) = self.segments(stage).iter().find(|(_, r)| r.unit == index as u64) else {
+            let Some(values) = level_cut.unit(index)? else {
                 continue;
             };
-            let values = read_level_values(self, name)?;
             let hist_segment = self
                 .segments(HISTOGRAMS)
                 .iter()
@@ -189,7 +188,7 @@ impl IndicatorField for Snapshot<'_> {
                 }
                 None => (Vec::new(), Vec::new()),
             };
-            for (key, u) in values.keys.iter().zip(&values.u) {
+            for (key, u) in values.0.iter().zip(&values.1) {
                 let center = scene.cube_center(*key);
                 let half = scene.cube_side(key.depth()) * 0.5;
                 if (center + DVec3::splat(half)).cmplt(bbox.min).any()

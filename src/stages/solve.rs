@@ -136,6 +136,33 @@ pub fn read_level_values(snapshot: &Snapshot<'_>, segment: &str) -> Result<Level
     })
 }
 
+/// A level's segments by group. A level unit solves a group of consecutive treetop units (small
+/// leaves are batched); its id is the index of its first treetop unit, so treetop unit i's values
+/// are in the last group starting at or before i (or nowhere: then that group lacks its keys).
+pub struct LevelSegments {
+    by_first_unit: BTreeMap<u64, String>,
+}
+
+impl LevelSegments {
+    pub fn of(snapshot: &Snapshot<'_>, stage: &str) -> LevelSegments {
+        LevelSegments {
+            by_first_unit: snapshot
+                .segments(stage)
+                .iter()
+                .map(|(name, record)| (record.unit, name.clone()))
+                .collect(),
+        }
+    }
+
+    /// The group that may hold treetop unit `unit`: its id and segment.
+    pub fn group_of(&self, unit: usize) -> Option<(u64, &str)> {
+        self.by_first_unit
+            .range(..=unit as u64)
+            .next_back()
+            .map(|(id, name)| (*id, name.as_str()))
+    }
+}
+
 /// Previous-level (u, v, p, q) of one cube.
 type Inherited = (f32, [f32; 3], [f32; 3], [f32; 6]);
 
@@ -143,9 +170,10 @@ type Inherited = (f32, [f32; 3], [f32; 3], [f32; 6]);
 struct Neighbourhood<'a, 's> {
     base: &'a Snapshot<'s>,
     treetop: &'a Treetop,
-    previous_level: Option<&'static str>,
+    previous_level: Option<LevelSegments>,
     keys: BTreeMap<usize, Arc<UnitKeys>>,
-    values: BTreeMap<usize, Option<Arc<LevelValues>>>,
+    /// Previous-level values by group id.
+    values: BTreeMap<u64, Arc<LevelValues>>,
 }
 
 impl Neighbourhood<'_, '_> {
@@ -173,28 +201,23 @@ impl Neighbourhood<'_, '_> {
     }
 
     fn previous(&mut self, key: CubeKey) -> Result<Option<Inherited>> {
-        let Some(stage) = self.previous_level else {
+        let Some(segments) = &self.previous_level else {
             return Ok(None);
         };
-        let unit = self.treetop.unit_of(key);
-        if !self.values.contains_key(&unit) {
-            let segment = self
-                .base
-                .segments(stage)
-                .iter()
-                .find(|(_, r)| r.unit == unit as u64)
-                .map(|(n, _)| n.clone());
-            let loaded = match segment {
-                Some(name) => Some(Arc::new(read_level_values(self.base, &name)?)),
-                None => None,
-            };
-            self.values.insert(unit, loaded);
-        }
-        Ok(self
-            .values
-            .get(&unit)
-            .and_then(|v| v.as_ref())
-            .and_then(|v| v.find(key).map(|i| (v.u[i], v.v[i], v.p[i], v.q[i]))))
+        let Some((group, name)) = segments.group_of(self.treetop.unit_of(key)) else {
+            return Ok(None);
+        };
+        let values = match self.values.get(&group) {
+            Some(values) => values.clone(),
+            None => {
+                let loaded = Arc::new(read_level_values(self.base, name)?);
+                self.values.insert(group, loaded.clone());
+                loaded
+            }
+        };
+        Ok(values
+            .find(key)
+            .map(|i| (values.u[i], values.v[i], values.p[i], values.q[i])))
     }
 }
 
@@ -203,6 +226,8 @@ pub struct LevelStage {
     pub scene: Scene,
     pub params: SolveParams,
     treetop: std::sync::OnceLock<Treetop>,
+    /// Treetop units solved together, by group id (the first member's index).
+    groups: std::sync::OnceLock<BTreeMap<u64, Vec<usize>>>,
 }
 
 #[derive(Serialize, Deserialize, Default, Clone, Copy)]
@@ -219,7 +244,39 @@ impl LevelStage {
             scene,
             params,
             treetop: std::sync::OnceLock::new(),
+            groups: std::sync::OnceLock::new(),
         }
+    }
+
+    /// Batches consecutive treetop units into groups of at most `cap` cut cubes, counting each
+    /// unit at its bound: no more cubes than it has, and no more than 8^(level - depth) for a
+    /// leaf at `depth` (the cut tiles the leaf's cube with cubes of depth at most `level`). The
+    /// grouping depends only on the octree, so every process (and a cluster's workers) derives
+    /// the same one. Units whose leaf lies below the level have no cut cubes and are left out.
+    pub fn groups(treetop: &Treetop, level: u8) -> Vec<Vec<usize>> {
+        let cap = treetop.units.iter().map(|u| u.record.rows).max().unwrap_or(0).max(64);
+        let mut groups: Vec<Vec<usize>> = Vec::new();
+        let mut load = 0u64;
+        for (index, unit) in treetop.units.iter().enumerate() {
+            let depth = CubeKey::from_raw(unit.record.first_key).depth();
+            if depth > level {
+                continue;
+            }
+            let below = u32::from(level - depth);
+            let bound = if below >= 21 { u64::MAX } else { 8u64.pow(below) };
+            let cubes = bound.min(unit.record.rows);
+            match groups.last_mut() {
+                Some(group) if load.saturating_add(cubes) <= cap => {
+                    group.push(index);
+                    load += cubes;
+                }
+                _ => {
+                    groups.push(vec![index]);
+                    load = cubes;
+                }
+            }
+        }
+        groups
     }
 
     fn previous_stage(&self) -> Option<&'static str> {
@@ -255,53 +312,67 @@ impl LevelStage {
             message: "units run before planning".into(),
         })?;
         let level = self.level;
+        let members = self
+            .groups
+            .get()
+            .and_then(|groups| groups.get(&(unit_index as u64)))
+            .cloned()
+            .unwrap_or_else(|| vec![unit_index]);
         let mut hood = Neighbourhood {
             base,
             treetop,
-            previous_level: self.previous_stage(),
+            previous_level: self.previous_stage().map(|stage| LevelSegments::of(base, stage)),
             keys: BTreeMap::new(),
             values: BTreeMap::new(),
         };
-        let own = hood.unit_keys(unit_index)?;
-        let cut: Vec<usize> = (0..own.keys.len())
-            .filter(|&i| {
-                let d = own.keys[i].depth();
-                d == level || (d < level && own.is_leaf(i))
-            })
+        let histogram_segments: BTreeMap<u128, String> = base
+            .segments(HISTOGRAMS)
+            .iter()
+            .map(|(name, record)| (record.first_key, name.clone()))
             .collect();
-        if cut.is_empty() {
-            return Ok(None);
-        }
-        let keys: Vec<CubeKey> = cut.iter().map(|&i| own.keys[i]).collect();
-        let n = keys.len();
-        let index_of = |k: CubeKey| keys.binary_search(&k).ok();
-
-        // Histograms of the cut cubes, aligned with the unit's octree rows.
-        let hist_all = {
-            let unit = treetop.units.get(unit_index).map(|u| u.record.first_key);
-            let name = base
-                .segments(HISTOGRAMS)
-                .iter()
-                .find(|(_, r)| Some(r.first_key) == unit)
-                .map(|(n, _)| n.clone())
+        // The cut cubes of every member with their histograms, then sorted by key (the internal
+        // unit's cubes interleave with the leaves').
+        let mut cut: Vec<(CubeKey, [f32; BINS])> = Vec::new();
+        for &member in &members {
+            let own = hood.unit_keys(member)?;
+            let rows: Vec<usize> = (0..own.keys.len())
+                .filter(|&i| {
+                    let d = own.keys[i].depth();
+                    d == level || (d < level && own.is_leaf(i))
+                })
+                .collect();
+            if rows.is_empty() {
+                continue;
+            }
+            let first_key = treetop.units.get(member).map(|u| u.record.first_key);
+            let name = first_key
+                .and_then(|k| histogram_segments.get(&k))
                 .ok_or_else(|| StoreError::Stage {
                     stage: LEVEL_STAGES[usize::from(level)].into(),
-                    unit: format!("unit {unit_index}"),
+                    unit: format!("unit {member}"),
                     message: "no histograms for this unit: run the histograms stage first".into(),
                 })?;
-            let file = base.open_segment(&name)?;
+            let file = base.open_segment(name)?;
             let (_, h) = file.reader()?.read_f32("hist").map_err(|e| file.corruption(e))?;
             if h.len() != own.keys.len() * BINS {
                 return Err(file.corruption(crate::format::DecodeError::MissingColumn(
                     "hist rows matching the octree unit".into(),
                 )));
             }
-            h
-        };
-        let hist: Vec<[f32; BINS]> = cut
-            .iter()
-            .map(|&i| std::array::from_fn(|b| hist_all[i * BINS + b]))
-            .collect();
+            cut.extend(rows.iter().map(|&i| {
+                (
+                    own.keys[i],
+                    std::array::from_fn(|b| h.get(i * BINS + b).copied().unwrap_or(0.0)),
+                )
+            }));
+        }
+        if cut.is_empty() {
+            return Ok(None);
+        }
+        cut.sort_by_key(|(key, _)| *key);
+        let (keys, hist): (Vec<CubeKey>, Vec<[f32; BINS]>) = cut.into_iter().unzip();
+        let n = keys.len();
+        let index_of = |k: CubeKey| keys.binary_search(&k).ok();
 
         // Lengths in units of the root side: the discrete problem, and so every iterate, is then
         // the same for a scaled or translated scene.
@@ -402,17 +473,34 @@ impl Stage for LevelStage {
 
     fn plan(&self, base: &Snapshot<'_>) -> Result<Plan> {
         let treetop = Treetop::of(base)?;
-        let units = treetop
-            .units
+        let groups = Self::groups(&treetop, self.level);
+        let units = groups
             .iter()
-            .enumerate()
-            .filter(|(_, u)| CubeKey::from_raw(u.record.first_key).depth() <= self.level)
-            .map(|(index, u)| UnitSpec {
-                id: index as u64,
-                label: format!("level {} leaf {:?}", self.level, u.key),
+            .filter_map(|members| {
+                let (first, last) = (*members.first()?, *members.last()?);
+                let key = |i: usize| treetop.units.get(i).map(|u| u.key);
+                Some(UnitSpec {
+                    id: first as u64,
+                    label: if members.len() == 1 {
+                        format!("level {} leaf {:?}", self.level, key(first)?)
+                    } else {
+                        format!(
+                            "level {} leaves {:?} to {:?} ({} units)",
+                            self.level,
+                            key(first)?,
+                            key(last)?,
+                            members.len()
+                        )
+                    },
+                })
             })
             .collect();
+        let by_id = groups
+            .into_iter()
+            .filter_map(|members| Some((*members.first()? as u64, members)))
+            .collect();
         let _ = self.treetop.set(treetop);
+        let _ = self.groups.set(by_id);
         Ok(Plan {
             units,
             replace: Replace::All,
@@ -480,7 +568,8 @@ pub type LeafValues = (Vec<CubeKey>, Vec<f32>);
 pub struct LevelCut<'a, 's> {
     snapshot: &'a Snapshot<'s>,
     treetop: &'a Treetop,
-    stage: &'static str,
+    segments: LevelSegments,
+    groups: BTreeMap<u64, Arc<LeafValues>>,
     units: BTreeMap<usize, Option<Arc<LeafValues>>>,
 }
 
@@ -489,37 +578,55 @@ impl<'a, 's> LevelCut<'a, 's> {
         LevelCut {
             snapshot,
             treetop,
-            stage: LEVEL_STAGES[usize::from(level.min(MAX_DEPTH))],
+            segments: LevelSegments::of(snapshot, LEVEL_STAGES[usize::from(level.min(MAX_DEPTH))]),
+            groups: BTreeMap::new(),
             units: BTreeMap::new(),
         }
     }
 
+    /// The values of the group that may hold treetop unit `unit`.
+    fn group(&mut self, unit: usize) -> Result<Option<Arc<LeafValues>>> {
+        let Some((id, name)) = self.segments.group_of(unit) else {
+            return Ok(None);
+        };
+        if let Some(values) = self.groups.get(&id) {
+            return Ok(Some(values.clone()));
+        }
+        let values = read_level_values(self.snapshot, name)?;
+        let loaded = Arc::new((values.keys, values.u));
+        self.groups.insert(id, loaded.clone());
+        Ok(Some(loaded))
+    }
+
+    /// The cut cubes of treetop unit `unit` and their u; `None` when it has none.
     pub fn unit(&mut self, unit: usize) -> Result<Option<Arc<LeafValues>>> {
         if let Some(v) = self.units.get(&unit) {
             return Ok(v.clone());
         }
-        let segment = self
-            .snapshot
-            .segments(self.stage)
-            .iter()
-            .find(|(_, r)| r.unit == unit as u64)
-            .map(|(n, _)| n.clone());
-        let loaded = match segment {
-            Some(name) => {
-                let values = read_level_values(self.snapshot, &name)?;
-                Some(Arc::new((values.keys, values.u)))
+        let own = match self.group(unit)? {
+            Some(group) => {
+                let (keys, u): (Vec<CubeKey>, Vec<f32>) = group
+                    .0
+                    .iter()
+                    .zip(&group.1)
+                    .filter(|(key, _)| self.treetop.unit_of(**key) == unit)
+                    .map(|(key, u)| (*key, *u))
+                    .unzip();
+                (!keys.is_empty()).then(|| Arc::new((keys, u)))
             }
             None => None,
         };
-        self.units.insert(unit, loaded.clone());
-        Ok(loaded)
+        self.units.insert(unit, own.clone());
+        Ok(own)
     }
 
     /// The cut cube containing the finest cell at full-resolution coordinates `cell`, and its u.
     pub fn cube_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, f32)>> {
         let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
         let unit = self.treetop.unit_of(probe);
-        let Some(values) = self.unit(unit)? else {
+        // The group's cut tiles its units' cubes, so the one ancestor of the probe among its
+        // keys is the answer.
+        let Some(values) = self.group(unit)? else {
             return Ok(None);
         };
         let (keys, u) = (&values.0, &values.1);

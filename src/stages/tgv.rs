@@ -14,6 +14,7 @@
 //! order: results do not depend on the thread count. Step sizes are the diagonal
 //! preconditioning of Pock and Chambolle (2011), alpha = 1.
 
+use glam::{Mat4, Vec4};
 use rayon::prelude::*;
 
 use super::histograms::{BINS, bin_center};
@@ -298,51 +299,87 @@ impl<'a> Operator<'a> {
     }
 }
 
-/// prox of tau lambda sum_b h_b |u - f_b| at u_tilde (Li and Osher; Zach 2008): the median of
-/// the 8 bin centres and the 9 values w_i = u_tilde + tau lambda (sum_{b >= i} h_b - sum_{b < i} h_b),
-/// then clamped to [-1, 1]. Without votes it is the identity (then the clamp).
+/// prox of tau lambda sum_b h_b |u - f_b| at u_tilde (Li and Osher; Zach 2008), clamped to
+/// [-1, 1]. On the open interval between centres f_{i-1} and f_i the optimality condition gives
+/// w_i = u_tilde + tau lambda (sum_{b >= i} h_b - sum_{b < i} h_b). The w_i do not increase in i
+/// while the intervals ascend, so clamp(w_i, f_{i-1}, f_i) equals f_i before the minimiser's
+/// interval, the minimiser inside it, and f_{i-1} after it: the minimiser is the sum of the 9
+/// clamps minus the sum of the centres, which is 0. Branch-free; without votes it is the
+/// identity (then the clamp).
 pub fn prox_histogram(u_tilde: f32, tau_lambda: f32, hist: &[f32; BINS]) -> f32 {
-    let total: f32 = hist.iter().sum();
-    if total <= 0.0 {
-        return u_tilde.clamp(-1.0, 1.0);
-    }
-    // The bin centres ascend and the w_i descend in i, so the 9th smallest of the 17 values is
-    // found by merging the two sorted lists for 9 steps.
-    let mut w = [0f32; BINS + 1];
-    let mut below = 0f32;
-    for (i, slot) in w.iter_mut().enumerate() {
-        *slot = u_tilde + tau_lambda * ((total - below) - below);
-        if let Some(h) = hist.get(i) {
-            below += h;
-        }
-    }
-    let (mut b, mut i) = (0usize, BINS); // next centre (ascending), next w (w[BINS] is smallest)
-    let mut median = 0f32;
-    for _ in 0..=BINS {
-        let centre = if b < BINS { bin_center(b) } else { f32::INFINITY };
-        let candidate = w[i];
-        if centre <= candidate {
-            median = centre;
-            b += 1;
-        } else {
-            median = candidate;
-            i = i.wrapping_sub(1);
-            if i > BINS {
-                // All w taken: the rest are centres.
-                i = 0;
-                w[0] = f32::INFINITY;
-            }
-        }
-    }
-    median.clamp(-1.0, 1.0)
+    prox_slopes(u_tilde, tau_lambda, &Slopes::of(hist))
 }
 
-fn project<const N: usize>(x: &mut [f32; N], radius: f32) {
-    let norm = x.iter().map(|v| v * v).sum::<f32>().sqrt();
-    if norm > radius {
-        let s = if norm > 0.0 { radius / norm } else { 0.0 };
-        x.iter_mut().for_each(|v| *v *= s);
+/// The data term's slopes on the 9 intervals between bin centres: (votes at or above) minus
+/// (votes below), i.e. total - 2 below_i. They depend on the histogram only, so the kernel
+/// computes them once per solve.
+#[derive(Clone, Copy, Debug)]
+pub struct Slopes([f32; BINS + 1]);
+
+impl Slopes {
+    pub fn of(hist: &[f32; BINS]) -> Slopes {
+        let mut below = [0f32; BINS + 1];
+        for i in 0..BINS {
+            below[i + 1] = below[i] + hist[i];
+        }
+        let total = below[BINS];
+        let slope = |i: usize| total - 2.0 * below[i];
+        Slopes(std::array::from_fn(slope))
     }
+}
+
+/// [`prox_histogram`] on precomputed slopes: nine independent clamps, four at a time.
+#[inline]
+pub fn prox_slopes(u_tilde: f32, tau_lambda: f32, slopes: &Slopes) -> f32 {
+    let [s0, s1, s2, s3, s4, s5, s6, s7, s8] = slopes.0;
+    let u = Vec4::splat(u_tilde);
+    let c_first = (u + tau_lambda * Vec4::new(s0, s1, s2, s3))
+        .max(INTERVAL_LOW_V[0])
+        .min(INTERVAL_HIGH_V[0]);
+    let c_second = (u + tau_lambda * Vec4::new(s4, s5, s6, s7))
+        .max(INTERVAL_LOW_V[1])
+        .min(INTERVAL_HIGH_V[1]);
+    let last = (u_tilde + tau_lambda * s8).max(INTERVAL_LOW[BINS]);
+    let pair = c_first + c_second;
+    let sum = (pair.x + pair.y) + (pair.z + pair.w) + last;
+    sum.clamp(-1.0, 1.0)
+}
+
+const INTERVAL_LOW_V: [Vec4; 2] = [
+    Vec4::from_array([INTERVAL_LOW[0], INTERVAL_LOW[1], INTERVAL_LOW[2], INTERVAL_LOW[3]]),
+    Vec4::from_array([INTERVAL_LOW[4], INTERVAL_LOW[5], INTERVAL_LOW[6], INTERVAL_LOW[7]]),
+];
+const INTERVAL_HIGH_V: [Vec4; 2] = [
+    Vec4::from_array([INTERVAL_HIGH[0], INTERVAL_HIGH[1], INTERVAL_HIGH[2], INTERVAL_HIGH[3]]),
+    Vec4::from_array([INTERVAL_HIGH[4], INTERVAL_HIGH[5], INTERVAL_HIGH[6], INTERVAL_HIGH[7]]),
+];
+
+/// The intervals between consecutive bin centres, open at both ends.
+const INTERVAL_LOW: [f32; BINS + 1] = {
+    let mut low = [f32::NEG_INFINITY; BINS + 1];
+    let mut i = 1;
+    while i <= BINS {
+        low[i] = -1.0 + (2.0 * (i - 1) as f32 + 1.0) / 8.0;
+        i += 1;
+    }
+    low
+};
+const INTERVAL_HIGH: [f32; BINS + 1] = {
+    let mut high = [f32::INFINITY; BINS + 1];
+    let mut i = 0;
+    while i < BINS {
+        high[i] = -1.0 + (2.0 * i as f32 + 1.0) / 8.0;
+        i += 1;
+    }
+    high
+};
+
+/// Projection onto the unit ball, without a branch: norms at most 1 are scaled by exactly 1.
+#[inline]
+fn project<const N: usize>(x: &mut [f32; N]) {
+    let norm = x.iter().map(|v| v * v).sum::<f32>().sqrt();
+    let s = 1.0 / norm.max(1.0);
+    x.iter_mut().for_each(|v| *v *= s);
 }
 
 /// Energy of a state (free cubes only).
@@ -364,8 +401,8 @@ pub fn energy(op: &Operator<'_>, state: &State) -> f64 {
 /// Puts the duals inside their (unit) balls; returns the starting energy.
 fn start(op: &Operator<'_>, state: &mut State) -> f64 {
     for (p, q) in state.p.iter_mut().zip(state.q.iter_mut()) {
-        project(p, 1.0);
-        project(q, 1.0);
+        project(p);
+        project(q);
     }
     energy(op, state)
 }
@@ -395,11 +432,11 @@ pub fn solve_reference(problem: &Problem, state: &mut State, iterations: usize) 
                 for a in 0..3 {
                     p[a] += sigma_p[c][a] * g[c][a];
                 }
-                project(p, 1.0);
+                project(p);
                 for k in 0..6 {
                     q[k] += sigma_q[c][k] * e[c][k];
                 }
-                project(q, 1.0);
+                project(q);
             });
         // Primal step.
         let (ku, kv) = op.apply_t(&state.p, &state.q);
@@ -427,111 +464,326 @@ pub fn solve_reference(problem: &Problem, state: &mut State, iterations: usize) 
     (before, after)
 }
 
-/// Picks, for the adjoint of E' restricted to v component `i`, which q entry (and factor)
-/// feeds the difference along each axis: `[axis] -> (q index, factor)`.
-const SYM_PICK: [[(usize, f32); 3]; 3] = [
-    [(0, 1.0), (3, SQRT_HALF), (4, SQRT_HALF)],
-    [(3, SQRT_HALF), (1, 1.0), (5, SQRT_HALF)],
-    [(4, SQRT_HALF), (5, SQRT_HALF), (2, 1.0)],
-];
+/// Cubes per parallel task: large enough that scheduling is noise, small enough to balance.
+const CHUNK: usize = 2048;
+
+/// One gather entry: an index into a packed array and its weight.
+#[derive(Clone, Copy, Debug, Default)]
+#[repr(C)]
+pub struct Gather {
+    pub index: u32,
+    pub weight: f32,
+}
+
+/// Per-cube constants of the dual step, packed for 4-wide arithmetic; the two passes read
+/// disjoint columns, so neither streams the other's bytes.
+#[derive(Clone, Copy, Debug)]
+pub struct DualConstants {
+    /// sigma_p alpha1 per axis; w holds alpha1.
+    pub sigma_p: Vec4,
+    /// sigma_q alpha0 for the diagonal rows (xx, yy, zz) of E'; w holds alpha0.
+    pub sigma_q_diag: Vec4,
+    /// sigma_q alpha0 for the off-diagonal rows (xy, xz, yz); w unused.
+    pub sigma_q_off: Vec4,
+}
+
+/// Per-cube constants of the primal step.
+#[derive(Clone, Copy, Debug)]
+pub struct PrimalConstants {
+    /// (tau_u, tau_v0, tau_v1, tau_v2).
+    pub tau: Vec4,
+    /// Minus the coefficient of the cube itself in its rows of D, per axis; w unused.
+    pub own: Vec4,
+}
+
+/// A [`Problem`] compiled into the layout the iterations read: columns of per-cube constants,
+/// and both D and its adjoint as gather lists. Every primal value a dual row reads is one packed
+/// `(u, v0, v1, v2)`, and every dual row the adjoint reads is one packed
+/// `(alpha1 p_axis, alpha0 Q[axis][0..3])` with Q the symmetric matrix of E'^T's weights, so a
+/// term costs one 16-byte load and one 4-wide multiply-add.
+pub struct Kernel {
+    pub n: usize,
+    /// Dual gather: terms of row 3c + axis are `row_terms[row_start[r] .. row_start[r + 1]]`;
+    /// their indices point into the packed primal array (free cubes, then frozen ones).
+    pub row_start: Vec<u32>,
+    pub row_terms: Vec<Gather>,
+    /// Primal gather: rows whose terms target cube j, as indices into the packed dual rows.
+    pub col_start: Vec<u32>,
+    pub col_terms: Vec<Gather>,
+    pub dual_constants: Vec<DualConstants>,
+    pub primal_constants: Vec<PrimalConstants>,
+    /// Per cube: the number of terms of its 3 rows, and of its adjoint gather.
+    pub lengths: Vec<[u16; 4]>,
+    /// Packed (u, v) of the frozen neighbours, appended after the free cubes.
+    pub frozen: Vec<Vec4>,
+    pub slopes: Vec<Slopes>,
+    pub lambda: f32,
+}
+
+/// The iterate in the kernel's layout: p with w = 0, q split into diagonal and off-diagonal.
+struct Packed {
+    uv: Vec<Vec4>,
+    p: Vec<Vec4>,
+    q_diag: Vec<Vec4>,
+    q_off: Vec<Vec4>,
+}
+
+/// Scales `x` (and its partner, as one vector) into the unit ball; norms at most 1 are scaled
+/// by exactly 1, without a branch.
+#[inline]
+fn unit_ball_scale(squared_norm: f32) -> f32 {
+    1.0 / squared_norm.sqrt().max(1.0)
+}
+
+#[inline]
+fn sum3(x: Vec4) -> f32 {
+    x.x * x.x + x.y * x.y + x.z * x.z
+}
+
+impl Kernel {
+    /// `None` when a gather list is longer than the packed lengths hold (2^16 terms; a 2:1
+    /// balanced cut has at most 4 per row and 12 per column); the caller then runs the
+    /// reference iteration.
+    pub fn new(problem: &Problem) -> Option<Kernel> {
+        let op = Operator::new(problem);
+        let steps = op.step_sizes();
+        let n = problem.n;
+        let gather = |(index, weight): &(u32, f32)| Gather {
+            index: *index,
+            weight: *weight,
+        };
+        let mut dual_constants = Vec::with_capacity(n);
+        let mut primal_constants = Vec::with_capacity(n);
+        for c in 0..n {
+            let (a1, a0) = (problem.alpha1[c], problem.alpha0[c]);
+            let sp = steps.sigma_p[c].map(|s| s * a1);
+            let sq = steps.sigma_q[c].map(|s| s * a0);
+            let tv = steps.tau_v[c];
+            let own = |axis: usize| op.reverse.row_sum.get(3 * c + axis).copied().unwrap_or(0.0);
+            dual_constants.push(DualConstants {
+                sigma_p: Vec4::new(sp[0], sp[1], sp[2], a1),
+                sigma_q_diag: Vec4::new(sq[0], sq[1], sq[2], a0),
+                sigma_q_off: Vec4::new(sq[3], sq[4], sq[5], 0.0),
+            });
+            primal_constants.push(PrimalConstants {
+                tau: Vec4::new(steps.tau_u[c], tv[0], tv[1], tv[2]),
+                own: Vec4::new(own(0), own(1), own(2), 0.0),
+            });
+        }
+        let len = |start: &[u32], i: usize| {
+            let span = start
+                .get(i + 1)
+                .copied()
+                .unwrap_or(0)
+                .saturating_sub(start.get(i).copied().unwrap_or(0));
+            u16::try_from(span).ok()
+        };
+        let lengths = (0..n)
+            .map(|c| {
+                Some([
+                    len(&problem.start, 3 * c)?,
+                    len(&problem.start, 3 * c + 1)?,
+                    len(&problem.start, 3 * c + 2)?,
+                    len(&op.reverse.start, c)?,
+                ])
+            })
+            .collect::<Option<Vec<_>>>()?;
+        Some(Kernel {
+            n,
+            lengths,
+            row_start: problem.start.clone(),
+            row_terms: problem.terms.iter().map(gather).collect(),
+            col_start: op.reverse.start.clone(),
+            col_terms: op.reverse.entries.iter().map(gather).collect(),
+            dual_constants,
+            primal_constants,
+            frozen: problem
+                .frozen_u
+                .iter()
+                .zip(&problem.frozen_v)
+                .map(|(u, v)| Vec4::new(*u, v[0], v[1], v[2]))
+                .collect(),
+            slopes: problem.hist.iter().map(Slopes::of).collect(),
+            lambda: problem.lambda,
+        })
+    }
+
+    /// The gather terms from row (or column) `first` on; a chunk walks them with a cursor.
+    fn terms_from<'k>(&self, start: &[u32], terms: &'k [Gather], first: usize) -> &'k [Gather] {
+        let from = start.get(first).copied().unwrap_or(0) as usize;
+        terms.get(from..).unwrap_or(&[])
+    }
+
+    /// Runs `iterations` steps on the packed state. Each pass computes every output from a
+    /// fixed gather list in a fixed order, so the result does not depend on the thread count.
+    /// The per-cube columns are walked with zipped iterators, so only the gathers check bounds.
+    fn iterate(&self, state: &mut Packed, iterations: usize) {
+        let n = self.n;
+        let mut bar: Vec<Vec4> = state.uv.iter().chain(&self.frozen).copied().collect();
+        let mut rows = vec![Vec4::ZERO; 3 * n];
+        for _ in 0..iterations {
+            {
+                let bar = &bar;
+                state
+                    .p
+                    .par_chunks_mut(CHUNK)
+                    .zip(state.q_diag.par_chunks_mut(CHUNK))
+                    .zip(state.q_off.par_chunks_mut(CHUNK))
+                    .zip(rows.par_chunks_mut(3 * CHUNK))
+                    .zip(self.dual_constants.par_chunks(CHUNK))
+                    .zip(self.lengths.par_chunks(CHUNK))
+                    .zip(bar[..n].par_chunks(CHUNK))
+                    .enumerate()
+                    .for_each(|(chunk, ((((((p, qd), qo), rows), constants), lengths), centres))| {
+                        let mut terms = self
+                            .terms_from(&self.row_start, &self.row_terms, 3 * chunk * CHUNK)
+                            .iter();
+                        let cubes = p
+                            .iter_mut()
+                            .zip(qd.iter_mut())
+                            .zip(qo.iter_mut())
+                            .zip(rows.chunks_exact_mut(3))
+                            .zip(constants.iter().zip(lengths).zip(centres));
+                        for ((((p, qd), qo), rows), ((k, lengths), centre)) in cubes {
+                            dual(&mut terms, bar, *centre, k, lengths, p, qd, qo, rows);
+                        }
+                    });
+            }
+            {
+                let rows = &rows;
+                state
+                    .uv
+                    .par_chunks_mut(CHUNK)
+                    .zip(bar[..n].par_chunks_mut(CHUNK))
+                    .zip(rows.par_chunks(3 * CHUNK))
+                    .zip(self.primal_constants.par_chunks(CHUNK))
+                    .zip(self.lengths.par_chunks(CHUNK))
+                    .zip(self.slopes.par_chunks(CHUNK))
+                    .enumerate()
+                    .for_each(|(chunk, (((((uv, bar), own_rows), constants), lengths), slopes))| {
+                        let mut terms = self.terms_from(&self.col_start, &self.col_terms, chunk * CHUNK).iter();
+                        let cubes = uv
+                            .iter_mut()
+                            .zip(bar.iter_mut())
+                            .zip(own_rows.chunks_exact(3))
+                            .zip(constants.iter().zip(lengths).zip(slopes));
+                        for (((uv, bar), own_rows), ((k, lengths), slopes)) in cubes {
+                            primal(&mut terms, rows, own_rows, k, lengths, slopes, self.lambda, uv, bar);
+                        }
+                    });
+            }
+        }
+    }
+}
+
+/// Dual step of one cube from the extrapolated primal `bar`: p and q move along K and are
+/// projected onto their unit balls; then the cube's three packed dual rows are written.
+/// Advances `terms` past this cube's.
+#[inline]
+#[expect(clippy::too_many_arguments, reason = "one cube's columns, borrowed apart")]
+fn dual(
+    terms: &mut std::slice::Iter<'_, Gather>,
+    bar: &[Vec4],
+    centre: Vec4,
+    k: &DualConstants,
+    lengths: &[u16; 4],
+    p: &mut Vec4,
+    q_diag: &mut Vec4,
+    q_off: &mut Vec4,
+    rows: &mut [Vec4],
+) {
+    // acc[axis] = (D_axis u, D_axis v0, D_axis v1, D_axis v2)
+    let acc: [Vec4; 3] = std::array::from_fn(|axis| {
+        let mut acc = Vec4::ZERO;
+        for term in terms.by_ref().take(usize::from(lengths[axis])) {
+            let t = bar.get(term.index as usize).copied().unwrap_or(centre);
+            acc += term.weight * (t - centre);
+        }
+        acc
+    });
+    // Rows of the transpose: du = (D_x u, D_y u, D_z u, 0), dv_i = (D_x v_i, D_y v_i, D_z v_i, 0).
+    let t = Mat4::from_cols(acc[0], acc[1], acc[2], Vec4::ZERO).transpose();
+    let (du, dv0, dv1, dv2) = (t.x_axis, t.y_axis, t.z_axis, t.w_axis);
+    let v = Vec4::new(centre.y, centre.z, centre.w, 0.0);
+    let new_p = *p + k.sigma_p * (du - v);
+    *p = new_p * unit_ball_scale(sum3(new_p));
+    let diag = Vec4::new(dv0.x, dv1.y, dv2.z, 0.0);
+    let off = SQRT_HALF * Vec4::new(dv0.y + dv1.x, dv0.z + dv2.x, dv1.z + dv2.y, 0.0);
+    let (qd, qo) = (*q_diag + k.sigma_q_diag * diag, *q_off + k.sigma_q_off * off);
+    let s = unit_ball_scale(sum3(qd) + sum3(qo));
+    let (qd, qo) = (qd * s, qo * s);
+    *q_diag = qd;
+    *q_off = qo;
+    // E'^T weights: Q = [[q0, s q3, s q4], [s q3, q1, s q5], [s q4, s q5, q2]], symmetric.
+    let (a1, a0) = (k.sigma_p.w, k.sigma_q_diag.w);
+    let (o3, o4, o5) = (SQRT_HALF * qo.x, SQRT_HALF * qo.y, SQRT_HALF * qo.z);
+    let packed = [
+        Vec4::new(a1 * p.x, a0 * qd.x, a0 * o3, a0 * o4),
+        Vec4::new(a1 * p.y, a0 * o3, a0 * qd.y, a0 * o5),
+        Vec4::new(a1 * p.z, a0 * o4, a0 * o5, a0 * qd.z),
+    ];
+    for (row, value) in rows.iter_mut().zip(packed) {
+        *row = value;
+    }
+}
+
+/// Primal step of one cube: the adjoint gathered from the packed dual rows, the prox of the
+/// data term for u, a plain step for v; writes the extrapolation 2 x_new - x_old to `bar`.
+/// Advances `terms` past this cube's.
+#[inline]
+#[expect(clippy::too_many_arguments, reason = "one cube's columns, borrowed apart")]
+fn primal(
+    terms: &mut std::slice::Iter<'_, Gather>,
+    rows: &[Vec4],
+    own_rows: &[Vec4],
+    k: &PrimalConstants,
+    lengths: &[u16; 4],
+    slopes: &Slopes,
+    lambda: f32,
+    uv: &mut Vec4,
+    bar: &mut Vec4,
+) {
+    let [r0, r1, r2] = [0, 1, 2].map(|axis| own_rows.get(axis).copied().unwrap_or(Vec4::ZERO));
+    let mut adjoint = -(k.own.x * r0 + k.own.y * r1 + k.own.z * r2);
+    for term in terms.by_ref().take(usize::from(lengths[3])) {
+        adjoint += term.weight * rows.get(term.index as usize).copied().unwrap_or(Vec4::ZERO);
+    }
+    // v's adjoint also has -alpha1 p, the first entries of the cube's own rows.
+    adjoint -= Vec4::new(0.0, r0.x, r1.x, r2.x);
+    let old = *uv;
+    let mut new = old - k.tau * adjoint;
+    new.x = prox_slopes(new.x, k.tau.x * lambda, slopes);
+    *uv = new;
+    *bar = 2.0 * new - old;
+}
 
 /// Runs `iterations` preconditioned primal-dual steps from `state`; returns the energy before
-/// and after. Both steps are gathers over precomputed lists, in place and without allocation,
-/// so every value is computed in a fixed order whatever the thread count.
+/// and after. The fused twin of [`solve_reference`], on the compiled [`Kernel`].
 pub fn solve(problem: &Problem, state: &mut State, iterations: usize) -> (f64, f64) {
+    let Some(kernel) = Kernel::new(problem) else {
+        return solve_reference(problem, state, iterations);
+    };
     let op = Operator::new(problem);
-    let steps = op.step_sizes();
-    let n = problem.n;
     let before = start(&op, state);
-    let mut u_bar = state.u.clone();
-    let mut v_bar = state.v.clone();
-    let reverse = &op.reverse;
-    let (a1, a0) = (&problem.alpha1, &problem.alpha0);
-    for _ in 0..iterations {
-        // Dual step: p, q from the differences of u_bar, v_bar at each cube.
-        {
-            let (u_bar, v_bar) = (&u_bar, &v_bar);
-            state
-                .p
-                .par_iter_mut()
-                .zip(state.q.par_iter_mut())
-                .enumerate()
-                .for_each(|(c, (p, q))| {
-                    let (uc, vc) = (u_bar[c], v_bar[c]);
-                    let mut du = [0f32; 3];
-                    let mut dv = [[0f32; 3]; 3]; // dv[i][axis] = D_axis v_i
-                    for axis in 0..3 {
-                        for &(t, w) in problem.row(3 * c + axis) {
-                            let t = t as usize;
-                            let (ut, vt) = if t < n {
-                                (u_bar[t], v_bar[t])
-                            } else {
-                                (problem.frozen_u[t - n], problem.frozen_v[t - n])
-                            };
-                            du[axis] += w * (ut - uc);
-                            for i in 0..3 {
-                                dv[i][axis] += w * (vt[i] - vc[i]);
-                            }
-                        }
-                    }
-                    let sp = &steps.sigma_p[c];
-                    for axis in 0..3 {
-                        p[axis] += sp[axis] * a1[c] * (du[axis] - vc[axis]);
-                    }
-                    project(p, 1.0);
-                    let e = Operator::sym(dv);
-                    let sq = &steps.sigma_q[c];
-                    for k in 0..6 {
-                        q[k] += sq[k] * a0[c] * e[k];
-                    }
-                    project(q, 1.0);
-                });
-        }
-        // Primal step: the adjoint gathered per cube, then the prox.
-        {
-            let (p, q) = (&state.p, &state.q);
-            let lambda = problem.lambda;
-            state
-                .u
-                .par_iter_mut()
-                .zip(state.v.par_iter_mut())
-                .zip(u_bar.par_iter_mut().zip(v_bar.par_iter_mut()))
-                .enumerate()
-                .for_each(|(j, ((u, v), (ub, vb)))| {
-                    let mut ku = 0f32;
-                    let mut kv = [0f32; 3];
-                    for axis in 0..3 {
-                        let own = reverse.row_sum[3 * j + axis];
-                        ku -= own * a1[j] * p[j][axis];
-                        for (i, pick) in SYM_PICK.iter().enumerate() {
-                            let (k, f) = pick[axis];
-                            kv[i] -= own * f * a0[j] * q[j][k];
-                        }
-                    }
-                    let (from, to) = (reverse.start[j] as usize, reverse.start[j + 1] as usize);
-                    for &(row, w) in &reverse.entries[from..to] {
-                        let (c, axis) = (row as usize / 3, row as usize % 3);
-                        ku += w * a1[c] * p[c][axis];
-                        for (i, pick) in SYM_PICK.iter().enumerate() {
-                            let (k, f) = pick[axis];
-                            kv[i] += w * f * a0[c] * q[c][k];
-                        }
-                    }
-                    for i in 0..3 {
-                        kv[i] -= a1[j] * p[j][i];
-                    }
-                    let old_u = *u;
-                    let new_u = prox_histogram(old_u - steps.tau_u[j] * ku, steps.tau_u[j] * lambda, &problem.hist[j]);
-                    *u = new_u;
-                    *ub = 2.0 * new_u - old_u;
-                    for i in 0..3 {
-                        let old = v[i];
-                        let new = old - steps.tau_v[j][i] * kv[i];
-                        v[i] = new;
-                        vb[i] = 2.0 * new - old;
-                    }
-                });
-        }
+    let three = |x: &[f32; 3]| Vec4::new(x[0], x[1], x[2], 0.0);
+    let mut packed = Packed {
+        uv: state
+            .u
+            .iter()
+            .zip(&state.v)
+            .map(|(u, v)| Vec4::new(*u, v[0], v[1], v[2]))
+            .collect(),
+        p: state.p.iter().map(three).collect(),
+        q_diag: state.q.iter().map(|q| Vec4::new(q[0], q[1], q[2], 0.0)).collect(),
+        q_off: state.q.iter().map(|q| Vec4::new(q[3], q[4], q[5], 0.0)).collect(),
+    };
+    kernel.iterate(&mut packed, iterations);
+    for (c, uv) in packed.uv.iter().enumerate() {
+        state.u[c] = uv.x;
+        state.v[c] = [uv.y, uv.z, uv.w];
+        let (p, qd, qo) = (packed.p[c], packed.q_diag[c], packed.q_off[c]);
+        state.p[c] = [p.x, p.y, p.z];
+        state.q[c] = [qd.x, qd.y, qd.z, qo.x, qo.y, qo.z];
     }
     let after = energy(&op, state);
     (before, after)
@@ -541,10 +793,8 @@ pub fn solve(problem: &Problem, state: &mut State, iterations: usize) -> (f64, f
 mod tests {
     use super::*;
 
-    #[test]
-    fn fused_iteration_matches_the_reference() {
-        // A small irregular problem: a chain with finer and frozen neighbours.
-        let n = 40;
+    /// An irregular problem: rows with one, four or no terms, and frozen neighbours.
+    fn irregular_problem(n: usize) -> Problem {
         let mut start = vec![0u32];
         let mut terms = Vec::new();
         for c in 0..n {
@@ -562,7 +812,7 @@ mod tests {
                 start.push(terms.len() as u32);
             }
         }
-        let problem = Problem {
+        Problem {
             n,
             start,
             terms,
@@ -574,7 +824,51 @@ mod tests {
             alpha1: (0..n).map(|c| 0.5 + (c % 3) as f32 * 0.25).collect(),
             alpha0: (0..n).map(|c| 0.3 + (c % 2) as f32 * 0.2).collect(),
             lambda: 0.2,
+        }
+    }
+
+    #[test]
+    fn kernel_results_do_not_depend_on_the_thread_count() {
+        // More cubes than one parallel chunk, so the chunks' term cursors are exercised.
+        let n = 2 * CHUNK + 123;
+        let problem = irregular_problem(n);
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("thread pool");
+            let mut state = State::zeros(n);
+            state
+                .u
+                .iter_mut()
+                .enumerate()
+                .for_each(|(i, u)| *u = (i as f32 * 0.11).cos());
+            pool.install(|| solve(&problem, &mut state, 15));
+            state
         };
+        let (one, three) = (run(1), run(3));
+        assert!(one == three, "1 and 3 threads gave different iterates");
+        // And the chunked kernel still follows the reference on a multi-chunk problem.
+        let mut reference = State::zeros(n);
+        reference
+            .u
+            .iter_mut()
+            .enumerate()
+            .for_each(|(i, u)| *u = (i as f32 * 0.11).cos());
+        solve_reference(&problem, &mut reference, 15);
+        let worst = one
+            .u
+            .iter()
+            .zip(&reference.u)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(worst < 1e-4, "kernel and reference differ by {worst}");
+    }
+
+    #[test]
+    fn fused_iteration_matches_the_reference() {
+        let n = 40;
+        let problem = irregular_problem(n);
         let mut a = State::zeros(n);
         a.u.iter_mut()
             .enumerate()
