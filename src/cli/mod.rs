@@ -467,9 +467,15 @@ pub struct InfoJson {
     pub bytes: u64,
     /// Content digest per stage (hex), equal for equal content however it was produced.
     pub digest: std::collections::BTreeMap<String, String>,
+    /// Side of the root cube in world units (absent before the first ingest).
+    pub root_side: Option<f64>,
+    /// The deepest solved level and the side of its cubes in world units (absent before a solve).
+    pub finest_level: Option<u8>,
+    pub finest_cube_side: Option<f64>,
 }
 
 pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError> {
+    use crate::IndicatorField;
     let snapshot = match version {
         Some(v) => store.snapshot(v)?,
         None => store.latest()?,
@@ -478,7 +484,12 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
         .stages()
         .map(|stage| (stage.to_string(), format!("{:016x}", snapshot.digest(stage))))
         .collect();
+    let scene = stages::ingest::read_scene(store)?;
+    let finest_level = snapshot.finest_level();
     Ok(InfoJson {
+        root_side: scene.map(|s| s.root_side),
+        finest_level,
+        finest_cube_side: scene.zip(finest_level).map(|(s, level)| s.cube_side(level)),
         store: store.root().display().to_string(),
         version: snapshot.version(),
         depth_maps: stages::ingest::registered_depth_maps(store)?
@@ -827,6 +838,12 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 println!("cubes          {}", info.cubes);
                 println!("treetop leaves {}", info.treetop_leaves);
                 println!("segments       {} ({} bytes)", info.segments, info.bytes);
+                if let Some(side) = info.root_side {
+                    println!("root side      {side}");
+                }
+                if let (Some(level), Some(side)) = (info.finest_level, info.finest_cube_side) {
+                    println!("finest level   {level} (cubes of side {side})");
+                }
                 for (stage, digest) in &info.digest {
                     println!("digest         {stage:<12} {digest}");
                 }

@@ -25,7 +25,21 @@ pub const BINS: usize = 8;
 
 /// Bin of a clamped signed distance a in [-1, 1] (DESIGN.md: the printed formula is garbled).
 pub fn bin_of(a: f64) -> usize {
-    (((a + 1.0) / 2.0 * 8.0).floor() as usize).min(BINS - 1)
+    // (a + 1) * 4 >= 0, where truncation is the floor (and needs no libm call).
+    (((a + 1.0) / 2.0 * 8.0) as usize).min(BINS - 1)
+}
+
+/// floor(log2(x)) for x >= 1, read from the exponent bits: exact, and no libm call in the
+/// voting loop (which runs billions of times).
+fn floor_log2(x: f64) -> usize {
+    (((x.to_bits() >> 52) & 0x7ff) as usize).saturating_sub(1023)
+}
+
+/// The nearest integer to a finite x, ties upward: floor(x + 0.5) without a libm call.
+fn nearest(x: f64) -> f64 {
+    let t = x + 0.5;
+    let truncated = t as i64 as f64;
+    if truncated > t { truncated - 1.0 } else { truncated }
 }
 
 /// Bin centres f_b = -1 + (2b + 1) / 8.
@@ -92,17 +106,13 @@ impl Pyramid {
             Projection::Spherical => f64::from(self.source.width) / std::f64::consts::TAU / distance,
         };
         let footprint = 2.0 * radius * pixels_per_unit;
-        let level = if footprint > 1.0 {
-            footprint.log2().floor() as usize
-        } else {
-            0
-        };
+        let level = if footprint > 1.0 { floor_log2(footprint) } else { 0 };
         let level = level.min(self.levels.len() - 1);
         let image = self.levels.get(level)?;
         let scale = f64::from(1u32 << level);
         let (i, j) = (
-            ((u - (scale - 1.0) * 0.5) / scale).round(),
-            ((v - (scale - 1.0) * 0.5) / scale).round(),
+            nearest((u - (scale - 1.0) * 0.5) / scale),
+            nearest((v - (scale - 1.0) * 0.5) / scale),
         );
         let i = if matches!(self.source.projection, Projection::Spherical) {
             i.rem_euclid(f64::from(image.width))
@@ -254,8 +264,15 @@ pub struct HistogramsStage {
     /// All registered depth maps, by id.
     pub depth_maps: Vec<(u64, DepthMapRecord)>,
     units: std::sync::OnceLock<Vec<UnitPlan>>,
+    /// Treetop units voted together, by group id (the first member's index).
+    groups: std::sync::OnceLock<BTreeMap<u64, Vec<usize>>>,
     cache: PyramidCache,
 }
+
+/// A histogram group holds at most this many times the largest treetop leaf's cubes: a cube
+/// costs the vote loop under a fifth of what the solver budgets per leaf cube (key, radius,
+/// centre and 8 bins), so a group fits where one solver leaf does.
+pub const GROUP_LEAVES: u64 = 4;
 
 impl HistogramsStage {
     pub fn new(scene: Scene, depth_maps: Vec<(u64, DepthMapRecord)>) -> HistogramsStage {
@@ -263,6 +280,7 @@ impl HistogramsStage {
             scene,
             depth_maps,
             units: std::sync::OnceLock::new(),
+            groups: std::sync::OnceLock::new(),
             cache: PyramidCache {
                 capacity: DEFAULT_PYRAMID_CACHE_BYTES,
                 state: std::sync::Mutex::default(),
@@ -312,7 +330,7 @@ impl Stage for HistogramsStage {
             .collect();
         let all = self.all_ids();
         let mut plans = Vec::new();
-        let mut units = Vec::new();
+        let mut pending = Vec::new();
         let mut replaced = BTreeSet::new();
         let mut kept = BTreeSet::new();
         for (index, unit) in treetop.units.iter().enumerate() {
@@ -329,10 +347,7 @@ impl Stage for HistogramsStage {
                     kept.insert(name.clone());
                 }
             } else {
-                units.push(UnitSpec {
-                    id: index as u64,
-                    label: format!("leaf {:?} ({} cubes)", unit.key, unit.record.rows),
-                });
+                pending.push(index);
             }
             plans.push(UnitPlan {
                 octree_segment: unit.segment.clone(),
@@ -345,6 +360,56 @@ impl Stage for HistogramsStage {
                 replaced.insert(name);
             }
         }
+        // Consecutive pending units share one pass over the depth maps: each map is decoded
+        // once per group, not once per unit.
+        let cap = treetop.units.iter().map(|u| u.record.rows).max().unwrap_or(0).max(64) * GROUP_LEAVES;
+        let mut groups: Vec<Vec<usize>> = Vec::new();
+        let mut load = 0u64;
+        for index in pending {
+            let rows = treetop.units.get(index).map_or(0, |u| u.record.rows);
+            match groups.last_mut() {
+                Some(group) if load + rows <= cap => {
+                    group.push(index);
+                    load += rows;
+                }
+                _ => {
+                    groups.push(vec![index]);
+                    load = rows;
+                }
+            }
+        }
+        let label = |members: &[usize]| -> Option<String> {
+            let key = |i: usize| treetop.units.get(i).map(|u| u.key);
+            let cubes: u64 = members
+                .iter()
+                .filter_map(|&i| treetop.units.get(i))
+                .map(|u| u.record.rows)
+                .sum();
+            Some(match members {
+                [only] => format!("leaf {:?} ({cubes} cubes)", key(*only)?),
+                _ => format!(
+                    "leaves {:?} to {:?} ({} units, {cubes} cubes)",
+                    key(*members.first()?)?,
+                    key(*members.last()?)?,
+                    members.len()
+                ),
+            })
+        };
+        let units = groups
+            .iter()
+            .filter_map(|members| {
+                Some(UnitSpec {
+                    id: *members.first()? as u64,
+                    label: label(members)?,
+                })
+            })
+            .collect();
+        let _ = self.groups.set(
+            groups
+                .into_iter()
+                .filter_map(|members| Some((*members.first()? as u64, members)))
+                .collect(),
+        );
         let _ = self.units.set(plans);
         Ok(Plan {
             units,
@@ -358,45 +423,36 @@ impl Stage for HistogramsStage {
             unit: unit.label.clone(),
             message: "units run before planning".into(),
         })?;
-        let plan = plans.get(unit.id as usize).ok_or_else(|| StoreError::Stage {
-            stage: HISTOGRAMS.into(),
-            unit: unit.label.clone(),
-            message: "unit out of range".into(),
-        })?;
-        let file = base.open_segment(&plan.octree_segment)?;
-        let reader = file.reader()?;
-        let keys = reader.read_keys().map_err(|e| file.corruption(e))?;
-        let (_, sums) = reader.read_u64("radius_sum").map_err(|e| file.corruption(e))?;
-        let (_, counts) = reader.read_u32("radius_count").map_err(|e| file.corruption(e))?;
-        let (centers, radii) = cube_geometry(&self.scene, &keys, &sums, &counts);
-
-        let (mut hist, already): (Vec<f32>, BTreeSet<u64>) = match &plan.previous {
-            Some((name, maps)) => {
-                let previous = base.open_segment(name)?;
-                let previous_reader = previous.reader()?;
-                let (_, hist) = previous_reader.read_f32("hist").map_err(|e| previous.corruption(e))?;
-                if hist.len() != keys.len() * BINS {
-                    return Err(previous.corruption(crate::format::DecodeError::MissingColumn(
-                        "hist rows matching the octree unit".into(),
-                    )));
-                }
-                (hist, maps.clone())
-            }
-            None => (vec![0f32; keys.len() * BINS], BTreeSet::new()),
-        };
-        // The unit's bounding ball, for the frustum test.
-        let unit_center = self.scene.cube_center(plan.key);
-        let unit_radius = self.scene.cube_side(plan.key.depth()) * 0.87 + radii.iter().copied().fold(0.0, f64::max);
-        let mut voted = already.clone();
-        let mut votes = 0u64;
+        let members = self
+            .groups
+            .get()
+            .and_then(|groups| groups.get(&unit.id))
+            .cloned()
+            .unwrap_or_else(|| vec![unit.id as usize]);
+        let mut voters = Vec::with_capacity(members.len());
+        for member in members {
+            let plan = plans.get(member).ok_or_else(|| StoreError::Stage {
+                stage: HISTOGRAMS.into(),
+                unit: unit.label.clone(),
+                message: "unit out of range".into(),
+            })?;
+            voters.push(self.voter(base, plan)?);
+        }
+        // One pass over the depth maps for the whole group, in id order.
         for (id, record) in &self.depth_maps {
-            if already.contains(id) {
-                continue;
-            }
-            voted.insert(*id);
             let source = &record.source;
             let world_to_camera = source.pose().inverse();
-            if !Pyramid::may_see(source, &world_to_camera, unit_center, unit_radius) {
+            let needed: Vec<usize> = voters
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| !v.already.contains(id))
+                .filter(|(_, v)| Pyramid::may_see(source, &world_to_camera, v.center, v.radius))
+                .map(|(i, _)| i)
+                .collect();
+            for voter in voters.iter_mut().filter(|v| !v.already.contains(id)) {
+                voter.voted.insert(*id);
+            }
+            if needed.is_empty() {
                 continue;
             }
             let pyramid = self.cache.get_or_load(*id, || {
@@ -408,25 +464,31 @@ impl Stage for HistogramsStage {
                 Ok(Pyramid::new(source.clone(), image))
             })?;
             let weight = quantized_weight(source.weight);
-            for (index, (center, radius)) in centers.iter().zip(&radii).enumerate() {
-                if let Some(bin) = pyramid.vote(&world_to_camera, *center, *radius)
-                    && let Some(h) = hist.get_mut(index * BINS + bin)
-                {
-                    *h += weight;
-                    votes += 1;
+            for index in needed {
+                if let Some(voter) = voters.get_mut(index) {
+                    voter.vote(&pyramid, &world_to_camera, weight);
                 }
             }
         }
-        let state = HistogramState {
-            octree_digest: file_digest(base, &plan.octree_segment),
-            depth_maps: voted.into_iter().collect(),
-        };
+        let mut segments = Vec::with_capacity(voters.len());
+        let mut extras = Vec::with_capacity(voters.len());
+        for voter in voters {
+            extras.push((
+                voter.key,
+                HistogramState {
+                    octree_digest: voter.octree_digest,
+                    depth_maps: voter.voted.into_iter().collect(),
+                },
+                voter.votes,
+            ));
+            segments.push(vec![
+                Column::keys(voter.keys),
+                Column::new("hist", BINS as u16, ColumnValues::F32(voter.hist)),
+            ]);
+        }
         Ok(UnitOutput {
-            segments: vec![vec![
-                Column::keys(keys),
-                Column::new("hist", BINS as u16, ColumnValues::F32(hist)),
-            ]],
-            extra: catalog::encode(&(plan.key, state, votes)),
+            segments,
+            extra: catalog::encode(&extras),
             block_rows: 0,
         })
     }
@@ -435,10 +497,11 @@ impl Stage for HistogramsStage {
         let mut table = txn.open_table(UNIT_STATE)?;
         let mut votes = 0u64;
         for (_, record) in units {
-            let (key, state, unit_votes): (CubeKey, HistogramState, u64) =
-                catalog::decode("units_done", &record.extra)?;
-            table.insert((HISTOGRAMS, key), catalog::encode(&state).as_slice())?;
-            votes += unit_votes;
+            let members: Vec<(CubeKey, HistogramState, u64)> = catalog::decode("units_done", &record.extra)?;
+            for (key, state, unit_votes) in members {
+                table.insert((HISTOGRAMS, key), catalog::encode(&state).as_slice())?;
+                votes += unit_votes;
+            }
         }
         // Logged, not recorded: the counts depend on scheduling, and the catalog must not.
         let (hits, misses) = self.cache.counts();
@@ -451,9 +514,107 @@ impl Stage for HistogramsStage {
     }
 }
 
+/// One treetop unit of a group being voted: its cubes, its histograms so far, and the maps
+/// that have voted into it.
+struct Voter {
+    key: CubeKey,
+    keys: Vec<CubeKey>,
+    centers: Vec<DVec3>,
+    radii: Vec<f64>,
+    hist: Vec<f32>,
+    already: BTreeSet<u64>,
+    voted: BTreeSet<u64>,
+    votes: u64,
+    octree_digest: u64,
+    /// The unit's bounding ball, for the frustum test.
+    center: DVec3,
+    radius: f64,
+}
+
+impl Voter {
+    fn vote(&mut self, pyramid: &Pyramid, world_to_camera: &glam::DMat4, weight: f32) {
+        for (index, (center, radius)) in self.centers.iter().zip(&self.radii).enumerate() {
+            if let Some(bin) = pyramid.vote(world_to_camera, *center, *radius)
+                && let Some(h) = self.hist.get_mut(index * BINS + bin)
+            {
+                *h += weight;
+                self.votes += 1;
+            }
+        }
+    }
+}
+
+impl HistogramsStage {
+    fn voter(&self, base: &Snapshot<'_>, plan: &UnitPlan) -> Result<Voter> {
+        let file = base.open_segment(&plan.octree_segment)?;
+        let reader = file.reader()?;
+        let keys = reader.read_keys().map_err(|e| file.corruption(e))?;
+        let (_, sums) = reader.read_u64("radius_sum").map_err(|e| file.corruption(e))?;
+        let (_, counts) = reader.read_u32("radius_count").map_err(|e| file.corruption(e))?;
+        let (centers, radii) = cube_geometry(&self.scene, &keys, &sums, &counts);
+        let (hist, already) = match &plan.previous {
+            Some((name, maps)) => {
+                let previous = base.open_segment(name)?;
+                let (_, hist) = previous
+                    .reader()?
+                    .read_f32("hist")
+                    .map_err(|e| previous.corruption(e))?;
+                if hist.len() != keys.len() * BINS {
+                    return Err(previous.corruption(crate::format::DecodeError::MissingColumn(
+                        "hist rows matching the octree unit".into(),
+                    )));
+                }
+                (hist, maps.clone())
+            }
+            None => (vec![0f32; keys.len() * BINS], BTreeSet::new()),
+        };
+        let center = self.scene.cube_center(plan.key);
+        let radius = self.scene.cube_side(plan.key.depth()) * 0.87 + radii.iter().copied().fold(0.0, f64::max);
+        Ok(Voter {
+            key: plan.key,
+            keys,
+            centers,
+            radii,
+            hist,
+            voted: already.clone(),
+            already,
+            votes: 0,
+            octree_digest: file_digest(base, &plan.octree_segment),
+            center,
+            radius,
+        })
+    }
+}
+
 fn file_digest(base: &Snapshot<'_>, segment: &str) -> u64 {
     base.segments(OCTREE)
         .iter()
         .find(|(n, _)| n == segment)
         .map_or(0, |(_, r)| r.content_digest)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bit_level_helpers_match_libm() {
+        let mut seed = 7u64;
+        for _ in 0..100_000 {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let unit = (seed >> 11) as f64 / (1u64 << 53) as f64;
+            let x = 1.0 + unit * 5000.0;
+            assert_eq!(floor_log2(x), x.log2().floor() as usize, "floor_log2({x})");
+            let y = unit * 4000.0 - 2000.0;
+            assert_eq!(nearest(y), (y + 0.5).floor(), "nearest({y})");
+            let a = unit * 2.0 - 1.0;
+            assert_eq!(bin_of(a), (((a + 1.0) / 2.0 * 8.0).floor() as usize).min(BINS - 1));
+        }
+        assert_eq!(floor_log2(1.0), 0);
+        assert_eq!(floor_log2(4.0), 2);
+        assert_eq!(floor_log2(7.999_999), 2);
+        assert_eq!(nearest(-0.5), 0.0);
+        assert_eq!(nearest(2.5), 3.0);
+        assert_eq!(nearest(-2.6), -3.0);
+    }
 }

@@ -170,14 +170,26 @@ type Inherited = (f32, [f32; 3], [f32; 3], [f32; 6]);
 struct Neighbourhood<'a, 's> {
     base: &'a Snapshot<'s>,
     treetop: &'a Treetop,
+    level: u8,
     previous_level: Option<LevelSegments>,
-    keys: BTreeMap<usize, Arc<UnitKeys>>,
+    keys: BTreeMap<usize, Arc<LevelKeys>>,
     /// Previous-level values by group id.
     values: BTreeMap<u64, Arc<LevelValues>>,
 }
 
+/// A unit's octree keys down to the level being solved, with their rows in the unit's segment.
+/// Every question a level asks concerns cubes of depth at most the level, and the octree is
+/// complete, so the leaf test still holds on the shortened list (an internal node's next key is
+/// its first child); a group of many small leaves then holds only its cut, not its octree.
+struct LevelKeys {
+    keys: UnitKeys,
+    rows: Vec<u32>,
+    /// Rows of the unit's whole segment.
+    total: usize,
+}
+
 impl Neighbourhood<'_, '_> {
-    fn unit_keys(&mut self, unit: usize) -> Result<Arc<UnitKeys>> {
+    fn unit_keys(&mut self, unit: usize) -> Result<Arc<LevelKeys>> {
         if let Some(k) = self.keys.get(&unit) {
             return Ok(k.clone());
         }
@@ -187,8 +199,18 @@ impl Neighbourhood<'_, '_> {
             message: "no such treetop unit".into(),
         })?;
         let file = self.base.open_segment(&info.segment)?;
-        let keys = file.reader()?.read_keys().map_err(|e| file.corruption(e))?;
-        let loaded = Arc::new(UnitKeys { keys, top: info.top });
+        let all = file.reader()?.read_keys().map_err(|e| file.corruption(e))?;
+        let total = all.len();
+        let (keys, rows): (Vec<CubeKey>, Vec<u32>) = all
+            .into_iter()
+            .zip(0u32..)
+            .filter(|(key, _)| key.depth() <= self.level)
+            .unzip();
+        let loaded = Arc::new(LevelKeys {
+            keys: UnitKeys { keys, top: info.top },
+            rows,
+            total,
+        });
         self.keys.insert(unit, loaded.clone());
         Ok(loaded)
     }
@@ -197,7 +219,7 @@ impl Neighbourhood<'_, '_> {
     fn node(&mut self, key: CubeKey) -> Result<Option<bool>> {
         let unit = self.treetop.unit_of(key);
         let keys = self.unit_keys(unit)?;
-        Ok(keys.keys.binary_search(&key).ok().map(|i| keys.is_leaf(i)))
+        Ok(keys.keys.keys.binary_search(&key).ok().map(|i| keys.keys.is_leaf(i)))
     }
 
     fn previous(&mut self, key: CubeKey) -> Result<Option<Inherited>> {
@@ -321,6 +343,7 @@ impl LevelStage {
         let mut hood = Neighbourhood {
             base,
             treetop,
+            level,
             previous_level: self.previous_stage().map(|stage| LevelSegments::of(base, stage)),
             keys: BTreeMap::new(),
             values: BTreeMap::new(),
@@ -335,10 +358,10 @@ impl LevelStage {
         let mut cut: Vec<(CubeKey, [f32; BINS])> = Vec::new();
         for &member in &members {
             let own = hood.unit_keys(member)?;
-            let rows: Vec<usize> = (0..own.keys.len())
+            let rows: Vec<usize> = (0..own.keys.keys.len())
                 .filter(|&i| {
-                    let d = own.keys[i].depth();
-                    d == level || (d < level && own.is_leaf(i))
+                    let d = own.keys.keys[i].depth();
+                    d == level || (d < level && own.keys.is_leaf(i))
                 })
                 .collect();
             if rows.is_empty() {
@@ -354,15 +377,16 @@ impl LevelStage {
                 })?;
             let file = base.open_segment(name)?;
             let (_, h) = file.reader()?.read_f32("hist").map_err(|e| file.corruption(e))?;
-            if h.len() != own.keys.len() * BINS {
+            if h.len() != own.total * BINS {
                 return Err(file.corruption(crate::format::DecodeError::MissingColumn(
                     "hist rows matching the octree unit".into(),
                 )));
             }
             cut.extend(rows.iter().map(|&i| {
+                let row = own.rows.get(i).map_or(usize::MAX, |r| *r as usize);
                 (
-                    own.keys[i],
-                    std::array::from_fn(|b| h.get(i * BINS + b).copied().unwrap_or(0.0)),
+                    own.keys.keys[i],
+                    std::array::from_fn(|b| h.get(row.saturating_mul(BINS) + b).copied().unwrap_or(0.0)),
                 )
             }));
         }

@@ -1,0 +1,383 @@
+#!/usr/bin/env python3
+"""Comparison benchmarks: octstore against Open3D's TSDF fusion (VoxelBlockGrid) and screened
+Poisson on the same depth maps. Run through tools/bench/run.sh, which sets up the Python
+environment and builds octstore; this script writes BENCHMARKS.md and PNG plots.
+
+Sections:
+  groundtruth  the bunny and the dragon rendered by octstore-gt-render at several noise and
+               outlier levels; accuracy, completeness, Chamfer and F-score from octstore-evaluate
+  redkitchen   RedKitchen subsets: wall time, CPU time, peak RSS and output size for octstore and
+               TSDF at the same voxel size
+
+Every method sees exactly the same depth maps and poses. Wall and CPU time and peak RSS of
+Open3D are measured in a child process (resource.getrusage of the children), like octstore's.
+"""
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+SHARED = ROOT.parent / "shared" / "data"
+BIN = ROOT / "target" / "release"
+
+
+def run_measured(args, **kwargs):
+    """Runs a command; returns (stdout, wall seconds, CPU seconds, peak RSS MB) of the child."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.monotonic()
+    out = subprocess.run(args, check=True, capture_output=True, text=True, **kwargs)
+    wall = time.monotonic() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    # ru_maxrss of the children is the largest child so far: each measured run is the largest
+    # of its own sub-processes only when runs are ordered small to large; the worker therefore
+    # reports its own peak, and octstore prints its own.
+    return out.stdout, wall, cpu, after.ru_maxrss / 1024.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Depth maps as every method sees them
+
+
+def read_pfm(path):
+    import numpy as np
+
+    data = Path(path).read_bytes()
+    header, rest = data.split(b"\n", 1)
+    if header.strip() != b"Pf":
+        raise ValueError(f"{path}: not a one-channel PFM")
+    dims, rest = rest.split(b"\n", 1)
+    scale, rest = rest.split(b"\n", 1)
+    width, height = (int(x) for x in dims.split())
+    dtype = "<f4" if float(scale) < 0 else ">f4"
+    image = np.frombuffer(rest, dtype=dtype, count=width * height).reshape(height, width)
+    return np.flipud(image).astype(np.float32)
+
+
+def read_manifest(manifest):
+    """(depth in metres with 0 for missing, K 3x3, camera-to-world 4x4) per view."""
+    import numpy as np
+
+    spec = json.loads(Path(manifest).read_text())
+    views = []
+    for entry in spec["depth_maps"]:
+        depth = read_pfm(Path(manifest).parent / entry["image"])
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+        k = entry["intrinsics"]
+        intrinsic = np.array([[k["fx"], 0, k["cx"]], [0, k["fy"], k["cy"]], [0, 0, 1]], dtype=np.float64)
+        pose = np.array(entry["pose"]["camera_to_world"], dtype=np.float64).reshape(4, 4)
+        if entry["pose"].get("axes", "opencv") != "opencv":
+            raise ValueError(f"{manifest}: only OpenCV camera axes are handled here")
+        views.append((depth, intrinsic, pose))
+    return views
+
+
+def read_redkitchen(frames):
+    import numpy as np
+    import open3d as o3d
+
+    folder = SHARED / "7scenes-redkitchen"
+    intrinsic = np.loadtxt(folder / "camera-intrinsics.txt")
+    stride = 1000 // frames
+    views = []
+    for i in range(0, 1000, stride)[:frames]:
+        depth = np.asarray(o3d.io.read_image(str(folder / f"frame-{i:06d}.depth.png"))).astype(np.float32)
+        depth[depth >= 65535] = 0
+        pose = np.loadtxt(folder / f"frame-{i:06d}.pose.txt")
+        views.append((depth / 1000.0, intrinsic, pose))
+    return views
+
+
+# ---------------------------------------------------------------------------------------------
+# The other tools (run in a child process: `bench.py worker METHOD ...`)
+
+
+def tsdf(views, voxel, depth_max, out):
+    import numpy as np
+    import open3d as o3d
+    import open3d.core as o3c
+
+    device = o3c.Device("CPU:0")
+    grid = o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight"),
+        attr_dtypes=(o3c.float32, o3c.float32),
+        attr_channels=((1), (1)),
+        voxel_size=voxel,
+        block_resolution=8,
+        block_count=200000,
+        device=device,
+    )
+    for depth, intrinsic, pose in views:
+        image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth))).to(device)
+        k = o3c.Tensor(intrinsic, o3c.float64)
+        extrinsic = o3c.Tensor(np.linalg.inv(pose), o3c.float64)
+        blocks = grid.compute_unique_block_coordinates(image, k, extrinsic, 1.0, depth_max)
+        grid.integrate(blocks, image, k, extrinsic, 1.0, depth_max)
+    mesh = grid.extract_triangle_mesh().to_legacy()
+    o3d.io.write_triangle_mesh(str(out), mesh)
+
+
+def back_project(views, step):
+    """Points and normals (oriented to their camera) of every `step`-th pixel."""
+    import numpy as np
+    import open3d as o3d
+
+    clouds = o3d.geometry.PointCloud()
+    for depth, intrinsic, pose in views:
+        h, w = depth.shape
+        jj, ii = np.mgrid[0:h:step, 0:w:step]
+        z = depth[jj, ii]
+        keep = z > 0
+        x = (ii[keep] - intrinsic[0, 2]) * z[keep] / intrinsic[0, 0]
+        y = (jj[keep] - intrinsic[1, 2]) * z[keep] / intrinsic[1, 1]
+        local = np.stack([x, y, z[keep], np.ones_like(x)], axis=1)
+        world = (pose @ local.T).T[:, :3]
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world))
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
+        cloud.orient_normals_towards_camera_location(pose[:3, 3])
+        clouds += cloud
+    return clouds
+
+
+def poisson(views, depth_level, out):
+    import numpy as np
+    import open3d as o3d
+
+    cloud = back_project(views, 2)
+    mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth_level)
+    # The usual trimming of unsupported surface: drop the 2 % least dense vertices.
+    densities = np.asarray(densities)
+    mesh.remove_vertices_by_mask(densities < np.quantile(densities, 0.02))
+    o3d.io.write_triangle_mesh(str(out), mesh)
+
+
+def worker(argv):
+    method, source, out = argv[0], argv[1], Path(argv[2])
+    views = read_manifest(source) if source.endswith(".json") else read_redkitchen(int(source))
+    if method == "tsdf":
+        tsdf(views, float(argv[3]), float(argv[4]), out)
+    elif method == "poisson":
+        poisson(views, int(argv[3]), out)
+    else:
+        raise SystemExit(f"unknown method {method}")
+    print(json.dumps({"peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}))
+
+
+def run_worker(*args):
+    stdout, wall, cpu, _ = run_measured([sys.executable, __file__, "worker", *map(str, args)])
+    peak = json.loads(stdout.strip().splitlines()[-1])["peak_mb"]
+    return wall, cpu, peak
+
+
+# ---------------------------------------------------------------------------------------------
+# octstore
+
+
+def octstore(store, source, args_ingest, args_solve, mesh):
+    """Ingest, solve and extract; wall and CPU time of the three, and the largest peak RSS."""
+    octstore_bin = str(BIN / "octstore")
+    total_wall = total_cpu = peak = 0.0
+    for args in (
+        ["ingest", str(store), str(source), *args_ingest],
+        ["solve", str(store), *args_solve],
+        ["extract", str(store), "-o", str(mesh)],
+    ):
+        stdout, wall, cpu, _ = run_measured([octstore_bin, "--quiet", *args])
+        total_wall += wall
+        total_cpu += cpu
+        for line in stdout.splitlines():
+            if "peak memory" in line:
+                peak = max(peak, float(line.split("peak memory")[1].split("MB")[0]))
+    return total_wall, total_cpu, peak
+
+
+def evaluate(mesh, truth):
+    out = subprocess.run(
+        [str(BIN / "octstore-evaluate"), str(mesh), str(truth), "--json"], check=True, capture_output=True, text=True
+    )
+    return json.loads(out.stdout)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sections
+
+
+GT_MESHES = {"bunny": SHARED / "meshes" / "bunny00.off", "dragon": SHARED / "meshes" / "dragon_vrip_res3.ply.gz"}
+GT_NOISE = [0.002, 0.01]
+GT_OUTLIERS = [0.0, 0.05, 0.2]
+
+
+def groundtruth(work, quick):
+    rows = []
+    meshes = {"bunny": GT_MESHES["bunny"]} if quick else GT_MESHES
+    for name, truth in meshes.items():
+        for noise in GT_NOISE[:1] if quick else GT_NOISE:
+            for outliers in GT_OUTLIERS:
+                case = work / f"{name}-{noise}-{outliers}"
+                views = case / "views"
+                subprocess.run(
+                    [
+                        str(BIN / "octstore-gt-render"),
+                        str(truth),
+                        "--out",
+                        str(views),
+                        "--views",
+                        "24",
+                        "--width",
+                        "320",
+                        "--height",
+                        "240",
+                        "--noise",
+                        str(noise),
+                        "--outliers",
+                        str(outliers),
+                    ],
+                    check=True,
+                    capture_output=True,
+                )
+                manifest = views / "scene.json"
+                # One resolution for all: octstore's finest cubes at depth 9 of a root about
+                # 1.2 x the scene; TSDF voxels of the same size; Poisson at octree depth 9.
+                results = {}
+                mesh = case / "octstore.ply"
+                wall, cpu, peak = octstore(case / "store", manifest, ["--max-depth", "9"], ["--iterations", "100"], mesh)
+                results["octstore"] = (mesh, wall, cpu, peak)
+                info = json.loads(subprocess.run(
+                    [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
+                ).stdout)
+                voxel = info["finest_cube_side"]
+                mesh = case / "tsdf.ply"
+                results["tsdf"] = (mesh, *run_worker("tsdf", manifest, mesh, voxel, 100.0))
+                mesh = case / "poisson.ply"
+                results["poisson"] = (mesh, *run_worker("poisson", manifest, mesh, 9))
+                for method, (mesh, wall, cpu, peak) in results.items():
+                    metrics = evaluate(mesh, truth)
+                    rows.append(
+                        {
+                            "mesh": name,
+                            "noise": noise,
+                            "outliers": outliers,
+                            "method": method,
+                            "wall_s": wall,
+                            "cpu_s": cpu,
+                            "peak_mb": peak,
+                            **metrics,
+                        }
+                    )
+                    print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def redkitchen(work, frames_list):
+    rows = []
+    for frames in frames_list:
+        case = work / f"redkitchen-{frames}"
+        case.mkdir(parents=True, exist_ok=True)
+        mesh = case / "octstore.ply"
+        stride = 1000 // frames
+        wall, cpu, peak = octstore(
+            case / "store",
+            SHARED / "7scenes-redkitchen",
+            ["--stride", str(stride), "--limit", str(frames)],
+            ["--memory-budget", "1GiB"],
+            mesh,
+        )
+        info = json.loads(subprocess.run(
+            [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
+        ).stdout)
+        voxel = info["finest_cube_side"]
+        rows.append({"frames": frames, "method": "octstore", "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
+                     "voxel_m": voxel, "mesh_mb": mesh.stat().st_size / 1e6})
+        print(json.dumps(rows[-1]), flush=True)
+        tsdf_mesh = case / "tsdf.ply"
+        wall, cpu, peak = run_worker("tsdf", frames, tsdf_mesh, voxel, 4.0)
+        rows.append({"frames": frames, "method": "tsdf", "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
+                     "voxel_m": voxel, "mesh_mb": tsdf_mesh.stat().st_size / 1e6})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def plots(rows, out_dir):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    for name in sorted({r["mesh"] for r in rows}):
+        for noise in sorted({r["noise"] for r in rows if r["mesh"] == name}):
+            figure, axis = plt.subplots(figsize=(5, 3.5))
+            for method in ("octstore", "tsdf", "poisson"):
+                points = sorted(
+                    (r["outliers"], r["f_score"]) for r in rows if (r["mesh"], r["noise"], r["method"]) == (name, noise, method)
+                )
+                if points:
+                    axis.plot([100 * p[0] for p in points], [p[1] for p in points], marker="o", label=method)
+            axis.set_xlabel("outlier pixels (%)")
+            axis.set_ylabel("F-score (tau = 1 % of the diagonal)")
+            axis.set_ylim(0, 1.02)
+            axis.set_title(f"{name}, depth noise {100 * noise:g} %")
+            axis.legend()
+            figure.tight_layout()
+            path = out_dir / f"fscore-{name}-{noise}.png"
+            figure.savefig(path, dpi=110)
+            plt.close(figure)
+            written.append(path)
+    return written
+
+
+def write_markdown(gt_rows, rk_rows, images, path):
+    lines = ["# Benchmarks", "", "Written by `tools/bench/run.sh` (see the README). Machine: "
+             f"{os.cpu_count()} cores; {time.strftime('%Y-%m-%d')}.", ""]
+    if gt_rows:
+        lines += ["## Ground truth (octstore-gt-render, 24 views of 320x240, evaluated by octstore-evaluate)", "",
+                  "tau = 1 % of the ground truth's bounding-box diagonal; reconstructions cropped to the ground "
+                  "truth's box plus 5 %. Accuracy, completeness and Chamfer are mean distances in the mesh's units.", "",
+                  "| mesh | depth noise | outliers | method | precision | recall | F-score | accuracy | completeness | Chamfer | wall s | CPU s | peak MB |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in gt_rows:
+            lines.append(
+                f"| {r['mesh']} | {100 * r['noise']:g} % | {100 * r['outliers']:g} % | {r['method']} | {r['precision']:.3f} | "
+                f"{r['recall']:.3f} | {r['f_score']:.3f} | {r['accuracy']:.5f} | {r['completeness']:.5f} | {r['chamfer']:.5f} | "
+                f"{r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['peak_mb']:.0f} |"
+            )
+        lines += [""] + [f"![{p.stem}]({p.relative_to(path.parent)})" for p in images] + [""]
+    if rk_rows:
+        lines += ["## RedKitchen", "", "| frames | method | voxel (m) | wall s | CPU s | peak MB | mesh MB |", "|---|---|---|---|---|---|---|"]
+        for r in rk_rows:
+            lines.append(f"| {r['frames']} | {r['method']} | {r['voxel_m']:.4f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+                         f"{r['peak_mb']:.0f} | {r['mesh_mb']:.1f} |")
+        lines.append("")
+    path.write_text("\n".join(lines))
+
+
+def main():
+    if len(sys.argv) > 1 and sys.argv[1] == "worker":
+        return worker(sys.argv[2:])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sections", nargs="+", default=["groundtruth", "redkitchen"])
+    parser.add_argument("--frames", nargs="+", type=int, default=[100, 300, 1000])
+    parser.add_argument("--quick", action="store_true", help="bunny only, one noise level")
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks", help="plots and raw results")
+    parser.add_argument("--markdown", type=Path, default=ROOT / "BENCHMARKS.md")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as scratch:
+        work = Path(scratch)
+        gt_rows = groundtruth(work, args.quick) if "groundtruth" in args.sections else []
+        rk_rows = redkitchen(work, args.frames) if "redkitchen" in args.sections else []
+    (args.out / "results.json").write_text(json.dumps({"groundtruth": gt_rows, "redkitchen": rk_rows}, indent=1))
+    images = plots(gt_rows, args.out) if gt_rows else []
+    write_markdown(gt_rows, rk_rows, images, args.markdown)
+    print(f"wrote {args.markdown}")
+
+
+if __name__ == "__main__":
+    main()
