@@ -120,10 +120,10 @@ pub fn solve(store: &Store, options: &SolveOptions, mut on_report: impl FnMut(&R
         let _ = std::fs::remove_dir_all(scratch);
     }
     if options.until >= SolveUntil::Histograms {
-        // Stages run one at a time: a quarter of the budget for decoded depth maps leaves the
-        // histogram stage far below the solver's peak.
+        // Stages run one at a time: an eighth of the budget for decoded depth maps, beside the
+        // workers' groups of leaves, keeps the histogram stage within the budget.
         let stage =
-            HistogramsStage::new(scene, registered_depth_maps(store)?).with_cache_bytes(options.memory_budget / 4);
+            HistogramsStage::new(scene, registered_depth_maps(store)?).with_cache_bytes(options.memory_budget / 8);
         on_report(&store.run_stage(&stage, &options.run)?);
     }
     if options.until >= SolveUntil::Solution {
