@@ -163,6 +163,10 @@ impl LevelSegments {
     }
 }
 
+/// A unit is small, and batched with its neighbours, when it has at most 1 / this of the cubes
+/// a level group may hold.
+pub const SMALL_UNIT_FRACTION: u64 = 8;
+
 /// Previous-level (u, v, p, q) of one cube.
 type Inherited = (f32, [f32; 3], [f32; 3], [f32; 6]);
 
@@ -270,7 +274,7 @@ impl LevelStage {
         }
     }
 
-    /// Batches consecutive treetop units into groups of at most `cap` cut cubes, counting each
+    /// Batches consecutive small treetop units into groups of at most `cap` cut cubes, counting each
     /// unit at its bound: no more cubes than it has, and no more than 8^(level - depth) for a
     /// leaf at `depth` (the cut tiles the leaf's cube with cubes of depth at most `level`). The
     /// grouping depends only on the octree, so every process (and a cluster's workers) derives
@@ -279,6 +283,8 @@ impl LevelStage {
         let cap = treetop.units.iter().map(|u| u.record.rows).max().unwrap_or(0).max(64);
         let mut groups: Vec<Vec<usize>> = Vec::new();
         let mut load = 0u64;
+        // Whether the last group is one of small units that may take more.
+        let mut open = false;
         for (index, unit) in treetop.units.iter().enumerate() {
             let depth = CubeKey::from_raw(unit.record.first_key).depth();
             if depth > level {
@@ -287,14 +293,19 @@ impl LevelStage {
             let below = u32::from(level - depth);
             let bound = if below >= 21 { u64::MAX } else { 8u64.pow(below) };
             let cubes = bound.min(unit.record.rows);
+            // Only small units are batched; a unit with more than an eighth of the cap solves
+            // alone. A group also reads its neighbours' previous-level values, so fine levels
+            // (where most units are large) keep the memory of one unit per worker.
+            let small = cubes.saturating_mul(SMALL_UNIT_FRACTION) <= cap;
             match groups.last_mut() {
-                Some(group) if load.saturating_add(cubes) <= cap => {
+                Some(group) if small && open && load.saturating_add(cubes) <= cap => {
                     group.push(index);
                     load += cubes;
                 }
                 _ => {
                     groups.push(vec![index]);
                     load = cubes;
+                    open = small;
                 }
             }
         }
