@@ -442,15 +442,16 @@ impl Stage for HistogramsStage {
         for (id, record) in &self.depth_maps {
             let source = &record.source;
             let world_to_camera = source.pose().inverse();
-            let needed: Vec<usize> = voters
-                .iter()
-                .enumerate()
-                .filter(|(_, v)| !v.already.contains(id))
-                .filter(|(_, v)| Pyramid::may_see(source, &world_to_camera, v.center, v.radius))
-                .map(|(i, _)| i)
-                .collect();
-            for voter in voters.iter_mut().filter(|v| !v.already.contains(id)) {
+            // Every member the map has not voted into yet records it; those it may see vote.
+            let mut needed = Vec::new();
+            for (index, voter) in voters.iter_mut().enumerate() {
+                if voter.already.contains(id) {
+                    continue;
+                }
                 voter.voted.insert(*id);
+                if Pyramid::may_see(source, &world_to_camera, voter.center, voter.radius) {
+                    needed.push(index);
+                }
             }
             if needed.is_empty() {
                 continue;

@@ -544,8 +544,8 @@ impl Kernel {
     /// `None` when a gather list is longer than the packed lengths hold (2^16 terms; a 2:1
     /// balanced cut has at most 4 per row and 12 per column); the caller then runs the
     /// reference iteration.
-    pub fn new(problem: &Problem) -> Option<Kernel> {
-        let op = Operator::new(problem);
+    pub fn new(op: &Operator<'_>) -> Option<Kernel> {
+        let problem = op.problem;
         let steps = op.step_sizes();
         let n = problem.n;
         let gather = |(index, weight): &(u32, f32)| Gather {
@@ -760,10 +760,10 @@ fn primal(
 /// Runs `iterations` preconditioned primal-dual steps from `state`; returns the energy before
 /// and after. The fused twin of [`solve_reference`], on the compiled [`Kernel`].
 pub fn solve(problem: &Problem, state: &mut State, iterations: usize) -> (f64, f64) {
-    let Some(kernel) = Kernel::new(problem) else {
+    let op = Operator::new(problem);
+    let Some(kernel) = Kernel::new(&op) else {
         return solve_reference(problem, state, iterations);
     };
-    let op = Operator::new(problem);
     let before = start(&op, state);
     let three = |x: &[f32; 3]| Vec4::new(x[0], x[1], x[2], 0.0);
     let mut packed = Packed {
