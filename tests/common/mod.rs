@@ -99,7 +99,7 @@ impl KillTrials<'_> {
             .output()
             .expect("run octstore");
         assert!(out.status.success(), "{}", stderr(&out));
-        let window = started.elapsed().as_micros() as u64 * self.window_percent / 100 + 1;
+        let mut window = started.elapsed().as_micros() as u64 * self.window_percent / 100 + 1;
         let expected = fingerprint(&reference);
 
         let mut state = self.seed;
@@ -108,6 +108,7 @@ impl KillTrials<'_> {
             let store = self.root.join(format!("trial-{trial}"));
             (self.prepare)(&store);
             let delay = Duration::from_micros(xorshift(&mut state) % window);
+            let spawned = Instant::now();
             let mut child = Command::new(octstore_bin())
                 .args((self.args)(&store, false))
                 .env("OCTSTORE_LOG", "warn")
@@ -115,10 +116,26 @@ impl KillTrials<'_> {
                 .stderr(Stdio::null())
                 .spawn()
                 .expect("spawn octstore");
-            std::thread::sleep(delay);
-            child.kill().expect("SIGKILL"); // SIGKILL on Unix
-            if !child.wait().expect("wait").success() {
-                interrupted += 1;
+            // Poll rather than sleep through the delay: a run that ends before its kill moment
+            // shows the reference was slower than the trials (a cold page cache, a busy CI
+            // machine), and the window shrinks to the share of the duration actually seen, so later kills
+            // still land mid-run.
+            loop {
+                if let Some(status) = child.try_wait().expect("poll octstore") {
+                    assert!(status.success(), "trial {trial}: uninterrupted run failed");
+                    let took = spawned.elapsed().as_micros() as u64;
+                    window = window.min(took * self.window_percent / 100 + 1);
+                    break;
+                }
+                let waited = spawned.elapsed();
+                if waited >= delay {
+                    child.kill().expect("SIGKILL"); // SIGKILL on Unix
+                    if !child.wait().expect("wait").success() {
+                        interrupted += 1;
+                    }
+                    break;
+                }
+                std::thread::sleep((delay - waited).min(Duration::from_millis(1)));
             }
             if store.join("catalog.redb").exists() {
                 let verify = octstore(&["verify", store.to_str().unwrap()], &[]);
@@ -139,6 +156,10 @@ impl KillTrials<'_> {
                 &format!("trial {trial}, killed after {delay:?}"),
             );
         }
+        eprintln!(
+            "{interrupted} of {} kills landed mid-run; final window {window} us",
+            self.trials
+        );
         assert!(
             interrupted >= self.trials / 2,
             "only {interrupted} of {} kills landed mid-run",
