@@ -224,6 +224,14 @@ pub enum Command {
         width: u32,
         #[arg(long, default_value_t = 600)]
         height: u32,
+        /// Take the picture from this camera instead of the fitted 3/4 view: a text file of 16
+        /// numbers, the camera-to-world 4x4 matrix row by row, OpenCV axes (a 7-Scenes
+        /// `frame-*.pose.txt` as is).
+        #[arg(long)]
+        pose: Option<PathBuf>,
+        /// Focal length in pixels for `--pose` (principal point at the image centre).
+        #[arg(long, default_value_t = 525.0, requires = "pose")]
+        focal: f64,
     },
     /// Summary of a store: version, inputs, cubes, leaves, segments, bytes, content digests.
     Info {
@@ -818,13 +826,35 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             output,
             width,
             height,
+            pose,
+            focal,
         } => {
-            let mesh = crate::quality::meshio::read_mesh(&mesh).map_err(|message| StoreError::Stage {
+            let render_error = |unit: &std::path::Path, message: String| StoreError::Stage {
                 stage: "render".into(),
-                unit: "-".into(),
+                unit: unit.display().to_string(),
                 message,
-            })?;
-            save_png(&crate::render::render(&mesh, width, height), &output)?;
+            };
+            let view = match pose {
+                None => crate::render::View::Fitted,
+                Some(path) => {
+                    let text = std::fs::read_to_string(&path).map_err(|e| render_error(&path, e.to_string()))?;
+                    let numbers = text
+                        .split_whitespace()
+                        .map(str::parse::<f64>)
+                        .collect::<std::result::Result<Vec<f64>, _>>()
+                        .map_err(|e| render_error(&path, format!("not a 4x4 matrix of numbers: {e}")))?;
+                    let rows: [f64; 16] = numbers.try_into().map_err(|n: Vec<f64>| {
+                        render_error(&path, format!("expected 16 numbers (a 4x4 matrix), found {}", n.len()))
+                    })?;
+                    let camera_to_world = glam::DMat4::from_cols_array(&rows).transpose();
+                    if camera_to_world.determinant().abs().is_nan() || camera_to_world.determinant().abs() <= 1e-9 {
+                        return Err(render_error(&path, "the pose is not invertible".into()));
+                    }
+                    crate::render::View::Pinhole { camera_to_world, focal }
+                }
+            };
+            let mesh = crate::quality::meshio::read_mesh(&mesh).map_err(|message| render_error(&mesh, message))?;
+            save_png(&crate::render::render_view(&mesh, width, height, view), &output)?;
         }
         Command::Info { store, json, version } => {
             let store = Store::open_for_reading(&store)?;

@@ -141,6 +141,15 @@ impl DepthMapSource {
         DMat4::from_cols_array(&self.camera_to_world)
     }
 
+    /// Angle one pixel spans (radians) at the image's coarsest direction: a surface at distance
+    /// `t` facing the camera has samples `t * pixel_angle()` apart.
+    pub fn pixel_angle(&self) -> f64 {
+        match self.projection {
+            Projection::Pinhole { fx, fy, .. } => 1.0 / fx.min(fy),
+            Projection::Spherical => std::f64::consts::TAU / f64::from(self.width.max(1)),
+        }
+    }
+
     /// Direction in the camera frame for pixel (i, j), scaled so that `origin + dir * depth`
     /// is the sample: z = 1 for pinhole (depth is z), unit length for spherical (depth is range).
     pub fn ray(&self, i: f64, j: f64) -> DVec3 {

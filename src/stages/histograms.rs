@@ -52,10 +52,43 @@ pub fn quantized_weight(weight: f32) -> f32 {
     ((weight * 16.0).round() / 16.0).max(0.0)
 }
 
-/// A depth map and its mipmap pyramid: level k averages the valid depths of 2^k x 2^k pixels.
+/// A depth map and its mipmap pyramid: each pixel of level k + 1 is the median of the valid
+/// depths among its 2 x 2 pixels of level k (the mean of the middle two when there are four
+/// or two), NaN when none is valid.
+///
+/// A median rather than a mean: a coarse voxel reads one pixel of a coarse level, and a mean
+/// lets every wild depth below it shift that pixel. Random outliers lie behind the surface as
+/// often as in front, but a depth behind can be arbitrarily far, so means are biased away from
+/// the camera and coarse voxels vote the surface deeper into the object (20 % outlier pixels
+/// eroded the synthetic bunny by about 3 finest cubes). The median of four ignores one wild
+/// value per block, and level by level its errors stay local.
 pub struct Pyramid {
     pub source: DepthMapSource,
     pub levels: Vec<DepthImage>,
+}
+
+/// The median of the finite values among four, NaN when none is finite.
+pub fn median_of_valid(values: [f32; 4]) -> f32 {
+    let mut valid = [0f32; 4];
+    let mut n = 0;
+    for v in values {
+        if v.is_finite()
+            && let Some(slot) = valid.get_mut(n)
+        {
+            *slot = v;
+            n += 1;
+        }
+    }
+    let valid = valid.get_mut(..n).unwrap_or_default();
+    valid.sort_unstable_by(f32::total_cmp);
+    match *valid {
+        [] => f32::NAN,
+        [a] => a,
+        [a, b] => ((f64::from(a) + f64::from(b)) * 0.5) as f32,
+        [_, b, _] => b,
+        [_, b, c, _] => ((f64::from(b) + f64::from(c)) * 0.5) as f32,
+        _ => f32::NAN,
+    }
 }
 
 impl Pyramid {
@@ -69,15 +102,12 @@ impl Pyramid {
             let mut depth = Vec::with_capacity((w * h) as usize);
             for j in 0..h {
                 for i in 0..w {
-                    let (mut sum, mut n) = (0f64, 0u32);
-                    for (di, dj) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                        let d = last.get(2 * i + di, 2 * j + dj);
-                        if d.is_finite() {
-                            sum += f64::from(d);
-                            n += 1;
-                        }
-                    }
-                    depth.push(if n > 0 { (sum / f64::from(n)) as f32 } else { f32::NAN });
+                    depth.push(median_of_valid([
+                        last.get(2 * i, 2 * j),
+                        last.get(2 * i + 1, 2 * j),
+                        last.get(2 * i, 2 * j + 1),
+                        last.get(2 * i + 1, 2 * j + 1),
+                    ]));
                 }
             }
             levels.push(DepthImage {
@@ -597,6 +627,49 @@ fn file_digest(base: &Snapshot<'_>, segment: &str) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pyramid_levels_take_the_median_of_valid_depths() {
+        let nan = f32::NAN;
+        assert_eq!(median_of_valid([1.0, 9.0, 2.0, 3.0]), 2.5);
+        assert_eq!(median_of_valid([1.0, nan, 7.0, 2.0]), 2.0);
+        assert_eq!(median_of_valid([nan, 4.0, nan, 2.0]), 3.0);
+        assert_eq!(median_of_valid([nan, nan, 5.0, nan]), 5.0);
+        assert!(median_of_valid([nan, nan, nan, nan]).is_nan());
+
+        // A 4 x 2 wall at depth 1 with one wild pixel per 2 x 2 block: level 1 is the wall
+        // (a mean would put the left block at 1.75), level 2 keeps it, and a block without
+        // valid pixels stays invalid.
+        let source = crate::stages::depthmap::DepthMapSource {
+            path: "wall.pfm".into(),
+            format: crate::stages::depthmap::ImageFormat::Pfm,
+            width: 6,
+            height: 2,
+            projection: crate::stages::depthmap::Projection::Pinhole {
+                fx: 10.0,
+                fy: 10.0,
+                cx: 3.0,
+                cy: 1.0,
+            },
+            camera_to_world: glam::DMat4::IDENTITY.to_cols_array(),
+            kind: crate::stages::depthmap::Kind::Photo,
+            weight: 1.0,
+        };
+        let depth = vec![4.0, 1.0, 1.0, 0.1, nan, nan, 1.0, 1.0, 1.0, 1.0, nan, nan];
+        let pyramid = Pyramid::new(
+            source,
+            DepthImage {
+                width: 6,
+                height: 2,
+                depth,
+            },
+        );
+        let level1 = &pyramid.levels[1].depth;
+        assert_eq!((level1[0], level1[1]), (1.0, 1.0));
+        assert!(level1[2].is_nan());
+        assert_eq!(pyramid.levels[2].depth[0], 1.0);
+        assert_eq!(pyramid.levels.last().map(|l| (l.width, l.height)), Some((1, 1)));
+    }
 
     #[test]
     fn bit_level_helpers_match_libm() {

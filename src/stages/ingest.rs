@@ -47,7 +47,8 @@ pub struct SampleStats {
     pub absurd: u64,
     /// Valid pixels without a valid 4-neighbour: no radius can be estimated.
     pub isolated: u64,
-    /// Samples outside the root cube (stray outliers; more than 1% is an error).
+    /// Samples outside the root cube (stray outliers; more than 1% that are not spikes is an
+    /// error).
     pub outside: u64,
 }
 
@@ -69,73 +70,29 @@ impl SampleStats {
 pub struct Samples {
     pub points: Vec<DVec3>,
     pub radii: Vec<f64>,
+    /// Whether each sample is a spike: fewer than two of its 4-neighbours lie within
+    /// `SPIKE_SPACING` pixel footprints.
+    pub spikes: Vec<bool>,
     pub stats: SampleStats,
 }
 
 pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
-    let (w, h) = (image.width as usize, image.height as usize);
-    let mut stats = SampleStats {
-        pixels: (w * h) as u64,
-        ..SampleStats::default()
-    };
-    let mut valid: Vec<f32> = image
-        .depth
-        .iter()
-        .copied()
-        .filter(|d| d.is_finite() && *d > 0.0)
-        .collect();
-    stats.invalid = stats.pixels - valid.len() as u64;
-    let median = if valid.is_empty() {
-        0.0
-    } else {
-        let mid = valid.len() / 2;
-        *valid.select_nth_unstable_by(mid, f32::total_cmp).1
-    };
-    let limit = median * ABSURD_DEPTH_FACTOR;
+    let grid = CameraGrid::new(source, image);
+    let mut stats = grid.stats;
     let pose = source.pose();
-    let camera: Vec<Option<DVec3>> = (0..w * h)
-        .map(|index| {
-            let d = image.depth.get(index).copied().unwrap_or(f32::NAN);
-            if !(d.is_finite() && d > 0.0) || d > limit {
-                return None;
-            }
-            let (i, j) = ((index % w) as f64, (index / w) as f64);
-            Some(source.ray(i, j) * f64::from(d))
-        })
-        .collect();
-    stats.absurd = image
-        .depth
-        .iter()
-        .filter(|d| d.is_finite() && **d > 0.0 && **d > limit)
-        .count() as u64;
-    let wraps = matches!(source.projection, super::depthmap::Projection::Spherical);
-    let mut points = Vec::with_capacity(valid.len());
-    let mut radii = Vec::with_capacity(valid.len());
-    for j in 0..h {
-        for i in 0..w {
-            let Some(p) = camera[j * w + i] else { continue };
-            let mut nearest = f64::INFINITY;
-            let neighbours = [
-                (i.checked_sub(1).or(if wraps { Some(w - 1) } else { None }), Some(j)),
-                (
-                    if i + 1 < w {
-                        Some(i + 1)
-                    } else if wraps {
-                        Some(0)
-                    } else {
-                        None
-                    },
-                    Some(j),
-                ),
-                (Some(i), j.checked_sub(1)),
-                (Some(i), if j + 1 < h { Some(j + 1) } else { None }),
-            ];
-            for (ni, nj) in neighbours {
-                if let (Some(ni), Some(nj)) = (ni, nj)
-                    && let Some(q) = camera[nj * w + ni]
-                {
-                    nearest = nearest.min((q - p).length());
-                }
+    let pixel_angle = source.pixel_angle();
+    let mut points = Vec::new();
+    let mut radii = Vec::new();
+    let mut spikes = Vec::new();
+    for j in 0..grid.height {
+        for i in 0..grid.width {
+            let Some(p) = grid.at(i, j) else { continue };
+            let reach = SPIKE_SPACING * pixel_angle * p.length();
+            let (mut nearest, mut close) = (f64::INFINITY, 0);
+            for q in grid.neighbours(i, j) {
+                let distance = (q - p).length();
+                nearest = nearest.min(distance);
+                close += usize::from(distance <= reach);
             }
             if !nearest.is_finite() || nearest <= 0.0 {
                 stats.isolated += 1;
@@ -143,10 +100,139 @@ pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
             }
             points.push(pose.transform_point3(p));
             radii.push(nearest * 0.5);
+            spikes.push(close < 2);
         }
     }
     stats.samples = points.len() as u64;
-    Samples { points, radii, stats }
+    Samples {
+        points,
+        radii,
+        spikes,
+        stats,
+    }
+}
+
+/// A depth map's valid pixels as camera-frame points, with their 4-neighbourhoods (wrapping
+/// around horizontally for spherical maps).
+struct CameraGrid {
+    width: usize,
+    height: usize,
+    wraps: bool,
+    points: Vec<Option<DVec3>>,
+    stats: SampleStats,
+}
+
+impl CameraGrid {
+    fn new(source: &DepthMapSource, image: &DepthImage) -> CameraGrid {
+        let (width, height) = (image.width as usize, image.height as usize);
+        let mut stats = SampleStats {
+            pixels: (width * height) as u64,
+            ..SampleStats::default()
+        };
+        let mut valid: Vec<f32> = image
+            .depth
+            .iter()
+            .copied()
+            .filter(|d| d.is_finite() && *d > 0.0)
+            .collect();
+        stats.invalid = stats.pixels - valid.len() as u64;
+        let median = if valid.is_empty() {
+            0.0
+        } else {
+            let mid = valid.len() / 2;
+            *valid.select_nth_unstable_by(mid, f32::total_cmp).1
+        };
+        let limit = median * ABSURD_DEPTH_FACTOR;
+        let points = (0..width * height)
+            .map(|index| {
+                let d = image.depth.get(index).copied().unwrap_or(f32::NAN);
+                if !(d.is_finite() && d > 0.0) || d > limit {
+                    return None;
+                }
+                let (i, j) = ((index % width) as f64, (index / width) as f64);
+                Some(source.ray(i, j) * f64::from(d))
+            })
+            .collect();
+        stats.absurd = image
+            .depth
+            .iter()
+            .filter(|d| d.is_finite() && **d > 0.0 && **d > limit)
+            .count() as u64;
+        CameraGrid {
+            width,
+            height,
+            wraps: matches!(source.projection, super::depthmap::Projection::Spherical),
+            points,
+            stats,
+        }
+    }
+
+    fn at(&self, i: usize, j: usize) -> Option<DVec3> {
+        self.points.get(j * self.width + i).copied().flatten()
+    }
+
+    /// The valid ones among the left, right, upper and lower neighbours of pixel (i, j).
+    fn neighbours(&self, i: usize, j: usize) -> impl Iterator<Item = DVec3> + '_ {
+        let left = i
+            .checked_sub(1)
+            .or(if self.wraps { self.width.checked_sub(1) } else { None });
+        let right = if i + 1 < self.width {
+            Some(i + 1)
+        } else if self.wraps {
+            Some(0)
+        } else {
+            None
+        };
+        let up = j.checked_sub(1);
+        let down = if j + 1 < self.height { Some(j + 1) } else { None };
+        [(left, Some(j)), (right, Some(j)), (Some(i), up), (Some(i), down)]
+            .into_iter()
+            .filter_map(|(ni, nj)| self.at(ni?, nj?))
+    }
+}
+
+/// A sample with fewer than two 4-neighbours within this many pixel footprints is a spike (an
+/// isolated wrong depth, or a pair of them). Surfaces seen at up to about 80 degrees from
+/// head-on keep their neighbours within it; random outlier depths almost never have two.
+/// Spikes do not size the root, and spikes outside the root are dropped without complaint.
+const SPIKE_SPACING: f64 = 8.0;
+
+/// Up to about `count` of a map's samples, evenly strided, for sizing the root cube. Spikes
+/// are left out: a few percent of wild depths would otherwise stretch the root far beyond the
+/// scene and cost every cube resolution (with `--max-depth` fixed, the finest cube grows with
+/// the root). Spikes still spawn cubes and vote like any other sample inside the root.
+pub fn bounds_sample(samples: &Samples, count: usize) -> Vec<DVec3> {
+    let consistent: Vec<DVec3> = samples
+        .points
+        .iter()
+        .zip(&samples.spikes)
+        .filter(|(_, spike)| !**spike)
+        .map(|(p, _)| *p)
+        .collect();
+    // A map of nothing but spikes (pure noise) still bounds the scene through all its samples.
+    let chosen = if consistent.is_empty() {
+        samples.points.clone()
+    } else {
+        consistent
+    };
+    let step = (chosen.len() / count.max(1)).max(1);
+    chosen.into_iter().step_by(step).collect()
+}
+
+/// A box robust to stray points: per axis, the 0.1 % and 99.9 % quantiles. None without points.
+pub fn robust_bounds(points: &[DVec3]) -> Option<(DVec3, DVec3)> {
+    if points.is_empty() {
+        return None;
+    }
+    let quantile = |axis: usize, q: f64| -> f64 {
+        let mut v: Vec<f64> = points.iter().map(|p| p[axis]).collect();
+        v.sort_by(f64::total_cmp);
+        let index = ((v.len() - 1) as f64 * q).round() as usize;
+        v.get(index).copied().unwrap_or(0.0)
+    };
+    let lo = DVec3::new(quantile(0, 0.001), quantile(1, 0.001), quantile(2, 0.001));
+    let hi = DVec3::new(quantile(0, 0.999), quantile(1, 0.999), quantile(2, 0.999));
+    Some((lo, hi))
 }
 
 /// Content id of a depth map: xxh3 of its file bytes and its registration (path excluded).
@@ -263,34 +349,23 @@ impl IngestStage {
                         max_depth: options.max_depth,
                     },
                     None => {
-                        // A robust box: per axis, the 0.1% and 99.9% quantiles of a sample of
-                        // every map's points, so that stray outliers do not inflate the root.
                         let per_map: Vec<Vec<DVec3>> = maps
                             .par_iter()
                             .map(|(_, source)| {
                                 let image = source.load().map_err(input_error)?;
-                                let samples = back_project(source, &image);
                                 // At most ~200,000 points in total, whatever the number of maps.
                                 let per_map = (200_000 / maps.len().max(1)).max(64);
-                                let step = (samples.points.len() / per_map).max(1);
-                                Ok(samples.points.iter().step_by(step).copied().collect())
+                                Ok(bounds_sample(&back_project(source, &image), per_map))
                             })
                             .collect::<Result<_>>()?;
                         let points: Vec<DVec3> = per_map.into_iter().flatten().collect();
-                        if points.is_empty() {
+                        let Some((lo, hi)) = robust_bounds(&points) else {
                             return Err(StoreError::Stage {
                                 stage: INGEST.into(),
                                 unit: "all depth maps".into(),
                                 message: "no valid depth samples: nothing to build a scene from".into(),
                             });
-                        }
-                        let quantile = |axis: usize, q: f64| -> f64 {
-                            let mut v: Vec<f64> = points.iter().map(|p| p[axis]).collect();
-                            v.sort_by(f64::total_cmp);
-                            v[((v.len() - 1) as f64 * q).round() as usize]
                         };
-                        let lo = DVec3::new(quantile(0, 0.001), quantile(1, 0.001), quantile(2, 0.001));
-                        let hi = DVec3::new(quantile(0, 0.999), quantile(1, 0.999), quantile(2, 0.999));
                         Scene::around(lo, hi, options.root_margin, options.max_depth)
                     }
                 };
@@ -318,20 +393,24 @@ impl IngestStage {
         let samples = back_project(source, &image);
         let mut stats = samples.stats;
         let mut entries: Vec<(CubeKey, u64)> = Vec::with_capacity(samples.points.len());
-        for (p, r) in samples.points.iter().zip(&samples.radii) {
+        // Consistent samples outside the root mean the map sees beyond the scene the store was
+        // sized for; spikes outside it are noise.
+        let mut consistent_outside = 0u64;
+        for ((p, r), spike) in samples.points.iter().zip(&samples.radii).zip(&samples.spikes) {
             if !self.scene.contains(*p) {
                 stats.outside += 1;
+                consistent_outside += u64::from(!*spike);
                 continue;
             }
             let depth = self.scene.depth_for_radius(*r);
             entries.push((self.scene.key_at(*p, depth), self.scene.quantize_radius(*r)));
         }
-        if stats.outside * 100 > stats.samples.max(1) {
+        if consistent_outside * 100 > stats.samples.max(1) {
             return Err(super::depthmap::bad(
                 &source.path,
                 format!(
-                    "{} of {} samples lie outside the store's root cube (min {:?}, side {}); create a new store whose first ingest includes this depth map, or give --root / a larger --root-margin",
-                    stats.outside, stats.samples, self.scene.root_min, self.scene.root_side
+                    "{consistent_outside} of {} samples (not counting isolated spikes) lie outside the store's root cube (min {:?}, side {}); create a new store whose first ingest includes this depth map, or give --root / a larger --root-margin",
+                    stats.samples, self.scene.root_min, self.scene.root_side
                 ),
             ));
         }
@@ -453,5 +532,101 @@ impl Stage for IngestStage {
             total.pixels,
             total.outside
         ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stages::depthmap::{ImageFormat, Kind, Projection};
+
+    fn camera(width: u32, height: u32) -> DepthMapSource {
+        DepthMapSource {
+            path: "plane.pfm".into(),
+            format: ImageFormat::Pfm,
+            width,
+            height,
+            projection: Projection::Pinhole {
+                fx: 100.0,
+                fy: 100.0,
+                cx: f64::from(width) / 2.0,
+                cy: f64::from(height) / 2.0,
+            },
+            camera_to_world: glam::DMat4::IDENTITY.to_cols_array(),
+            kind: Kind::Photo,
+            weight: 1.0,
+        }
+    }
+
+    /// A wall at depth 1 seen head-on, with one pixel in ten replaced by a depth between 0.2 and
+    /// 2.0 (the synthetic outlier model): the spikes would push the 99.9 % quantile of z to
+    /// about 1.9; without them the box ends at the wall.
+    #[test]
+    fn spikes_do_not_size_the_root() {
+        let (w, h) = (64u32, 48u32);
+        let source = camera(w, h);
+        let mut state = 7u64;
+        let depth: Vec<f32> = (0..w * h)
+            .map(|_| {
+                if crate::scenes::uniform(&mut state) < 0.1 {
+                    (0.2 + 1.8 * crate::scenes::uniform(&mut state)) as f32
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+        let image = DepthImage {
+            width: w,
+            height: h,
+            depth,
+        };
+        let all = robust_bounds(&back_project(&source, &image).points).unwrap();
+        assert!(all.1.z > 1.5, "the outliers reach far behind the wall: {all:?}");
+        let kept = bounds_sample(&back_project(&source, &image), usize::MAX);
+        let (lo, hi) = robust_bounds(&kept).unwrap();
+        // Only spikes within the spacing band (8 footprints = 8 % of the depth at f = 100) can
+        // pass, and they sit next to the wall anyway.
+        assert!(
+            (0.9..=1.0).contains(&lo.z) && (1.0..=1.1).contains(&hi.z),
+            "{lo:?} {hi:?}"
+        );
+        // The wall's own extent survives: x spans about +-0.32 at depth 1.
+        assert!(lo.x < -0.3 && hi.x > 0.3, "{lo:?} {hi:?}");
+        assert!(kept.len() as f64 > 0.85 * f64::from(w * h), "kept {}", kept.len());
+    }
+
+    /// A wall slanted 75 degrees from head-on is no spike (except the few pixels where it
+    /// runs off towards grazing view), and a map of pure noise still gives a box.
+    #[test]
+    fn slanted_surfaces_and_pure_noise_still_bound_the_scene() {
+        let (w, h) = (64u32, 48u32);
+        let source = camera(w, h);
+        let slope = 75f64.to_radians().tan();
+        let depth: Vec<f32> = (0..w * h)
+            .map(|index| {
+                let x = (f64::from(index % w) - f64::from(w) / 2.0) / 100.0;
+                (1.0 / (1.0 - slope * x)).abs() as f32
+            })
+            .map(|d| if d < 5.0 { d } else { f32::NAN })
+            .collect();
+        let image = DepthImage {
+            width: w,
+            height: h,
+            depth,
+        };
+        let kept = bounds_sample(&back_project(&source, &image), usize::MAX);
+        let samples = back_project(&source, &image).points.len();
+        assert!(kept.len() * 100 >= samples * 99, "kept {} of {samples}", kept.len());
+
+        let mut state = 3u64;
+        let noise: Vec<f32> = (0..w * h)
+            .map(|_| (0.2 + 1.8 * crate::scenes::uniform(&mut state)) as f32)
+            .collect();
+        let image = DepthImage {
+            width: w,
+            height: h,
+            depth: noise,
+        };
+        assert!(!bounds_sample(&back_project(&source, &image), 100).is_empty());
     }
 }

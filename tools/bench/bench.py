@@ -16,7 +16,9 @@ Open3D are measured in a child process (resource.getrusage of the children), lik
 import argparse
 import json
 import os
+import re
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -29,7 +31,8 @@ BIN = ROOT / "target" / "release"
 
 
 def run_measured(args, **kwargs):
-    """Runs a command; returns (stdout, wall seconds, CPU seconds, peak RSS MB) of the child."""
+    """Runs a command; returns (stdout, stderr, wall seconds, CPU seconds, peak RSS MB) of the
+    child."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.monotonic()
     out = subprocess.run(args, check=True, capture_output=True, text=True, **kwargs)
@@ -39,7 +42,7 @@ def run_measured(args, **kwargs):
     # ru_maxrss of the children is the largest child so far: each measured run is the largest
     # of its own sub-processes only when runs are ordered small to large; the worker therefore
     # reports its own peak, and octstore prints its own.
-    return out.stdout, wall, cpu, after.ru_maxrss / 1024.0
+    return out.stdout, out.stderr, wall, cpu, after.ru_maxrss / 1024.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -171,7 +174,7 @@ def worker(argv):
 
 
 def run_worker(*args):
-    stdout, wall, cpu, _ = run_measured([sys.executable, __file__, "worker", *map(str, args)])
+    stdout, _, wall, cpu, _ = run_measured([sys.executable, __file__, "worker", *map(str, args)])
     peak = json.loads(stdout.strip().splitlines()[-1])["peak_mb"]
     return wall, cpu, peak
 
@@ -180,22 +183,37 @@ def run_worker(*args):
 # octstore
 
 
-def octstore(store, source, args_ingest, args_solve, mesh):
-    """Ingest, solve and extract; wall and CPU time of the three, and the largest peak RSS."""
+STAGE_LINE = re.compile(r"^(\S+)\s.*\| ([0-9.]+)s \| peak memory ([0-9]+) MB")
+OCTREE_PARTS = re.compile(r"octree: merge ([0-9.]+)s, balance ([0-9.]+)s, nodes ([0-9.]+)s, treetop ([0-9.]+)s")
+
+
+def octstore(store, source, args_ingest, args_solve, mesh, budget=None):
+    """Ingest, solve and extract. Returns wall and CPU time of the three, the largest peak RSS,
+    and the stage breakdown: seconds and peak MB per stage from octstore's summary lines, plus
+    the octree stage's parts (merge, balance, nodes, treetop) from its log."""
     octstore_bin = str(BIN / "octstore")
     total_wall = total_cpu = peak = 0.0
+    stages = {}
+    common = ["--quiet"] + (["--memory-budget", budget] if budget else [])
     for args in (
         ["ingest", str(store), str(source), *args_ingest],
         ["solve", str(store), *args_solve],
         ["extract", str(store), "-o", str(mesh)],
     ):
-        stdout, wall, cpu, _ = run_measured([octstore_bin, "--quiet", *args])
+        stdout, stderr, wall, cpu, _ = run_measured([octstore_bin, *common, *args])
         total_wall += wall
         total_cpu += cpu
         for line in stdout.splitlines():
-            if "peak memory" in line:
-                peak = max(peak, float(line.split("peak memory")[1].split("MB")[0]))
-    return total_wall, total_cpu, peak
+            match = STAGE_LINE.match(line)
+            if match:
+                name, seconds, mb = match.group(1), float(match.group(2)), float(match.group(3))
+                stages[name] = {"seconds": seconds, "peak_mb": mb}
+                peak = max(peak, mb)
+        for line in stderr.splitlines():
+            match = OCTREE_PARTS.search(line)
+            if match:
+                stages["octree-parts"] = dict(zip(("merge", "balance", "nodes", "treetop"), map(float, match.groups())))
+    return total_wall, total_cpu, peak, stages
 
 
 def evaluate(mesh, truth):
@@ -247,7 +265,7 @@ def groundtruth(work, quick):
                 # 1.2 x the scene; TSDF voxels of the same size; Poisson at octree depth 9.
                 results = {}
                 mesh = case / "octstore.ply"
-                wall, cpu, peak = octstore(case / "store", manifest, ["--max-depth", "9"], ["--iterations", "100"], mesh)
+                wall, cpu, peak, _ = octstore(case / "store", manifest, ["--max-depth", "9"], ["--iterations", "100"], mesh)
                 results["octstore"] = (mesh, wall, cpu, peak)
                 info = json.loads(subprocess.run(
                     [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
@@ -275,33 +293,194 @@ def groundtruth(work, quick):
     return rows
 
 
-def redkitchen(work, frames_list):
+# The camera all RedKitchen pictures are taken from: frame 0's pose, pulled 1 m back along its
+# viewing axis so that more of the kitchen is in view (7-Scenes poses are camera-to-world,
+# OpenCV axes; the depth camera's focal length is 585 px).
+PICTURE_FRAME = 0
+PICTURE_PULLBACK_M = 1.0
+
+
+def picture_pose(out_dir):
+    import numpy as np
+
+    pose = np.loadtxt(SHARED / "7scenes-redkitchen" / f"frame-{PICTURE_FRAME:06d}.pose.txt")
+    pose[:3, 3] -= PICTURE_PULLBACK_M * pose[:3, 2]
+    path = out_dir / "redkitchen-picture.pose.txt"
+    np.savetxt(path, pose)
+    return path
+
+
+def picture(mesh, pose, png):
+    subprocess.run(
+        [str(BIN / "octstore"), "--quiet", "render", str(mesh), "-o", str(png), "--pose", str(pose),
+         "--focal", "585", "--width", "640", "--height", "480"],
+        check=True,
+        capture_output=True,
+    )
+
+
+def redkitchen(work, frames_list, out_dir):
     rows = []
+    pose = picture_pose(out_dir)
     for frames in frames_list:
         case = work / f"redkitchen-{frames}"
         case.mkdir(parents=True, exist_ok=True)
         mesh = case / "octstore.ply"
         stride = 1000 // frames
-        wall, cpu, peak = octstore(
+        wall, cpu, peak, stages = octstore(
             case / "store",
             SHARED / "7scenes-redkitchen",
             ["--stride", str(stride), "--limit", str(frames)],
-            ["--memory-budget", "1GiB"],
+            [],
             mesh,
+            budget="1GiB",
         )
         info = json.loads(subprocess.run(
             [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
         ).stdout)
         voxel = info["finest_cube_side"]
+        png = out_dir / f"redkitchen-{frames}-octstore.png"
+        picture(mesh, pose, png)
         rows.append({"frames": frames, "method": "octstore", "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
-                     "voxel_m": voxel, "mesh_mb": mesh.stat().st_size / 1e6})
+                     "voxel_m": voxel, "mesh_mb": mesh.stat().st_size / 1e6, "cubes": info["cubes"],
+                     "stages": stages, "picture": png.name})
         print(json.dumps(rows[-1]), flush=True)
         tsdf_mesh = case / "tsdf.ply"
         wall, cpu, peak = run_worker("tsdf", frames, tsdf_mesh, voxel, 4.0)
+        png = out_dir / f"redkitchen-{frames}-tsdf.png"
+        picture(tsdf_mesh, pose, png)
         rows.append({"frames": frames, "method": "tsdf", "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
-                     "voxel_m": voxel, "mesh_mb": tsdf_mesh.stat().st_size / 1e6})
+                     "voxel_m": voxel, "mesh_mb": tsdf_mesh.stat().st_size / 1e6, "picture": png.name})
         print(json.dumps(rows[-1]), flush=True)
     return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# Scale: a synthetic city of boxes, seen from above by 8 cameras per block
+
+CITY_BLOCK_M = 20.0
+CITY_VIEW = (320, 240, 60.0)  # width, height, horizontal field of view in degrees
+
+
+def city(n, seed=1):
+    """Boxes (min, max) of an n x n city: per block 2 x 2 buildings of random footprint and
+    height, streets between blocks, and the ground (a thin slab under the whole city)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    boxes = []
+    for bx in range(n):
+        for by in range(n):
+            x0, y0 = bx * CITY_BLOCK_M, by * CITY_BLOCK_M
+            for ix in range(2):
+                for iy in range(2):
+                    lo_x = x0 + 2.0 + ix * 8.0 + rng.uniform(0.0, 1.5)
+                    lo_y = y0 + 2.0 + iy * 8.0 + rng.uniform(0.0, 1.5)
+                    size_x, size_y = rng.uniform(4.0, 6.5, size=2)
+                    height = rng.uniform(4.0, 25.0)
+                    boxes.append(((lo_x, lo_y, 0.0), (lo_x + size_x, lo_y + size_y, height)))
+    extent = n * CITY_BLOCK_M
+    boxes.append(((-5.0, -5.0, -1.0), (extent + 5.0, extent + 5.0, 0.0)))
+    return np.array(boxes, dtype=np.float64)
+
+
+def look_at(eye, target):
+    """Camera-to-world with OpenCV axes (x right, y down, z forward), world z up."""
+    import numpy as np
+
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, forward, eye
+    return pose
+
+
+def cast(boxes, origin, directions):
+    """Distance along each (unit) direction to the nearest box, inf where none is hit."""
+    import numpy as np
+
+    nearest = np.full(len(directions), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse = 1.0 / directions
+    for lo, hi in boxes:
+        t1 = (lo - origin) * inverse
+        t2 = (hi - origin) * inverse
+        near = np.nanmax(np.minimum(t1, t2), axis=1)
+        far = np.nanmin(np.maximum(t1, t2), axis=1)
+        hit = (far >= np.maximum(near, 0.0)) & (near > 0.0)
+        nearest = np.where(hit & (near < nearest), near, nearest)
+    return nearest
+
+
+def write_city(n, folder):
+    """Renders the n x n city into PFM depth maps plus an octstore manifest; returns the
+    manifest and the number of depth maps."""
+    import numpy as np
+
+    folder.mkdir(parents=True, exist_ok=True)
+    boxes = city(n)
+    width, height, fov = CITY_VIEW
+    focal = width / 2.0 / np.tan(np.radians(fov) / 2.0)
+    jj, ii = np.mgrid[0:height, 0:width]
+    local = np.stack([(ii - width / 2.0) / focal, (jj - height / 2.0) / focal, np.ones_like(ii, float)], -1)
+    local = local.reshape(-1, 3)
+    entries = []
+    for bx in range(n):
+        for by in range(n):
+            center = np.array([(bx + 0.5) * CITY_BLOCK_M, (by + 0.5) * CITY_BLOCK_M, 8.0])
+            for k in range(8):
+                angle = 2.0 * np.pi * (k + 0.5 * (bx + by) % 2) / 8.0
+                radius = 18.0 if k % 2 == 0 else 10.0
+                eye = center + np.array([radius * np.cos(angle), radius * np.sin(angle), 40.0 + 4.0 * (k % 3)])
+                pose = look_at(eye, center)
+                directions = local @ pose[:3, :3].T
+                lengths = np.linalg.norm(directions, axis=1)
+                # Only boxes near the block can be in view: the views look steeply down.
+                reach = np.all((boxes[:, 0, :2] < center[:2] + 70.0) & (boxes[:, 1, :2] > center[:2] - 70.0), axis=1)
+                t = cast(boxes[reach], eye, directions / lengths[:, None])
+                depth = (t / lengths).reshape(height, width).astype(np.float32)
+                depth[~np.isfinite(depth)] = np.nan
+                name = f"view-{len(entries):05d}.pfm"
+                with open(folder / name, "wb") as f:
+                    f.write(f"Pf\n{width} {height}\n-1.0\n".encode())
+                    f.write(np.flipud(depth).astype("<f4").tobytes())
+                entries.append({
+                    "image": name,
+                    "width": width,
+                    "height": height,
+                    "kind": "photo",
+                    "intrinsics": {"fx": focal, "fy": focal, "cx": width / 2.0, "cy": height / 2.0},
+                    "pose": {"camera_to_world": pose.reshape(-1).tolist(), "axes": "opencv"},
+                })
+    manifest = folder / "scene.json"
+    manifest.write_text(json.dumps({"depth_maps": entries}))
+    return manifest, len(entries)
+
+
+def scale(work, sizes, budget):
+    rows = []
+    for n in sizes:
+        case = work / f"city-{n}"
+        manifest, maps = write_city(n, case / "views")
+        mesh = case / "city.ply"
+        wall, cpu, peak, stages = octstore(case / "store", manifest, ["--max-depth", "20"], [], mesh, budget=budget)
+        info = json.loads(subprocess.run(
+            [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
+        ).stdout)
+        rows.append({"blocks": n * n, "depth_maps": maps, "samples": maps * CITY_VIEW[0] * CITY_VIEW[1],
+                     "cubes": info["cubes"], "cube_data_mb": info["cubes"] * CUBE_BYTES / 1e6, "budget": budget,
+                     "wall_s": wall, "cpu_s": cpu, "peak_mb": peak, "stages": stages})
+        print(json.dumps(rows[-1]), flush=True)
+        shutil.rmtree(case)
+    return rows
+
+
+# Bytes of one cube's data in the solve: key (16), r_c sum and count (12), 8 histogram bins (32),
+# u, v (3), p (3), q (6) as f32 (52).
+CUBE_BYTES = 16 + 12 + 32 + 52
 
 
 def plots(rows, out_dir):
@@ -362,20 +541,35 @@ def main():
     if len(sys.argv) > 1 and sys.argv[1] == "worker":
         return worker(sys.argv[2:])
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sections", nargs="+", default=["groundtruth", "redkitchen"])
+    parser.add_argument("--sections", nargs="+", default=["groundtruth", "redkitchen", "scale"])
     parser.add_argument("--frames", nargs="+", type=int, default=[100, 300, 1000])
     parser.add_argument("--quick", action="store_true", help="bunny only, one noise level")
+    parser.add_argument("--scale-budget", default="1GiB", help="--memory-budget of the scale section")
+    parser.add_argument("--scale-sizes", nargs="+", type=int, default=[1, 2, 4, 8, 16],
+                        help="city sizes (blocks per side, squared) of the scale section")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks", help="plots and raw results")
     parser.add_argument("--markdown", type=Path, default=ROOT / "BENCHMARKS.md")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    # Each section keeps its own results file, so sections can be run (and re-run) separately
+    # and BENCHMARKS.md always shows the latest run of every section.
     with tempfile.TemporaryDirectory() as scratch:
         work = Path(scratch)
-        gt_rows = groundtruth(work, args.quick) if "groundtruth" in args.sections else []
-        rk_rows = redkitchen(work, args.frames) if "redkitchen" in args.sections else []
-    (args.out / "results.json").write_text(json.dumps({"groundtruth": gt_rows, "redkitchen": rk_rows}, indent=1))
-    images = plots(gt_rows, args.out) if gt_rows else []
-    write_markdown(gt_rows, rk_rows, images, args.markdown)
+        for section in args.sections:
+            if section == "groundtruth":
+                rows = groundtruth(work, args.quick)
+            elif section == "redkitchen":
+                rows = redkitchen(work, args.frames, args.out)
+            elif section == "scale":
+                rows = scale(work, args.scale_sizes, args.scale_budget)
+            else:
+                raise SystemExit(f"unknown section {section}")
+            (args.out / f"results-{section}.json").write_text(json.dumps(rows, indent=1))
+    results = {}
+    for section in ("groundtruth", "redkitchen", "scale"):
+        path = args.out / f"results-{section}.json"
+        results[section] = json.loads(path.read_text()) if path.exists() else []
+    write_markdown(results, args.out, args.markdown)
     print(f"wrote {args.markdown}")
 
 
