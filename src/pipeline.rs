@@ -39,7 +39,9 @@
 
 use std::path::PathBuf;
 
-use crate::stages::extract::{ExtractOptions, Mesh, UnitMesh, assemble, extract_units, unit_mesh, write_mesh};
+use crate::stages::extract::{
+    ExtractOptions, MeshSummary, UnitMesh, assemble, edge_defects, extract_units, stream_to_file, unit_mesh, write_mesh,
+};
 use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps};
 use crate::stages::inputs::{DiscoverOptions, discover};
@@ -359,27 +361,71 @@ pub fn work_extract(store: &Store, chunk: u32) -> Result<WorkReport> {
 
 /// Welds every unit's piece into the planned mesh file, exactly as `octstore extract` would;
 /// names the missing or damaged chunks instead when there are any.
-pub fn commit_extract(store: &Store) -> Result<(Mesh, PathBuf)> {
+pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
     let (plan, args, _) = checked_extract_plan(store)?;
     let dir = store.chunk_dir(&plan);
-    let mut meshes = Vec::with_capacity(plan.units.len());
-    let mut missing = std::collections::BTreeSet::new();
-    for &unit in &plan.units {
-        let mesh = std::fs::read(dir.join(unit_mesh_name(unit)))
+    let read = |unit: u64| -> Option<UnitMesh> {
+        std::fs::read(dir.join(unit_mesh_name(unit)))
             .ok()
-            .and_then(|b| decode_chunk_file::<UnitMesh>(UNIT_MESH_MAGIC, &b));
-        match mesh {
-            Some(mesh) => meshes.push(mesh),
-            None => {
-                missing.insert(plan.chunk_of(unit));
-            }
-        }
-    }
+            .and_then(|b| decode_chunk_file::<UnitMesh>(UNIT_MESH_MAGIC, &b))
+    };
+    let missing: std::collections::BTreeSet<_> = plan
+        .units
+        .iter()
+        .filter(|&&unit| !dir.join(unit_mesh_name(unit)).is_file())
+        .map(|&unit| plan.chunk_of(unit))
+        .collect();
     if !missing.is_empty() {
         return Err(plan.missing_chunks_error(&missing));
     }
-    let mesh = assemble(meshes, &args.options);
-    write_mesh(&args.output, &mesh).map_err(crate::store::io_error("write mesh", &args.output))?;
+    let summary = if args.options.region.is_none() && args.options.decimate.is_none() {
+        // Streamed one piece at a time, like `octstore extract`.
+        let treetop = Treetop::of(&store.latest()?)?;
+        let damaged = std::cell::RefCell::new(std::collections::BTreeSet::new());
+        let pieces = plan.units.iter().filter_map(|&unit| {
+            let key = usize::try_from(unit)
+                .ok()
+                .and_then(|i| treetop.units.get(i))
+                .map(|u| u.key);
+            match (key, read(unit)) {
+                (Some(key), Some(mesh)) => Some(Ok((key, mesh))),
+                _ => {
+                    damaged.borrow_mut().insert(plan.chunk_of(unit));
+                    None
+                }
+            }
+        });
+        let streamed = stream_to_file(pieces, &args.output);
+        let damaged = damaged.into_inner();
+        if !damaged.is_empty() {
+            let _ = std::fs::remove_file(&args.output);
+            return Err(plan.missing_chunks_error(&damaged));
+        }
+        streamed?
+    } else {
+        let mut meshes = Vec::with_capacity(plan.units.len());
+        let mut damaged = std::collections::BTreeSet::new();
+        for &unit in &plan.units {
+            match read(unit) {
+                Some(mesh) => meshes.push(mesh),
+                None => {
+                    damaged.insert(plan.chunk_of(unit));
+                }
+            }
+        }
+        if !damaged.is_empty() {
+            return Err(plan.missing_chunks_error(&damaged));
+        }
+        let mesh = assemble(meshes, &args.options);
+        write_mesh(&args.output, &mesh).map_err(crate::store::io_error("write mesh", &args.output))?;
+        let (boundary, non_manifold) = edge_defects(&mesh);
+        MeshSummary {
+            vertices: mesh.positions.len() as u64,
+            triangles: mesh.triangles.len() as u64,
+            boundary_edges: boundary as u64,
+            non_manifold_edges: non_manifold as u64,
+        }
+    };
     store.remove_cluster_plan(&plan)?;
-    Ok((mesh, args.output))
+    Ok((summary, args.output))
 }

@@ -158,6 +158,33 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
     assert_eq!(info["digest"], info_b["digest"]);
     assert_same_store(&fingerprint(&store_a), &fingerprint(&store_b), "1 vs 2 threads");
 
+    // The CLI streams the mesh leaf by leaf, holding only the seams between leaves; it writes
+    // exactly what welding the whole mesh in memory writes, in PLY and in OBJ.
+    let opened = octstore::Store::open_read_only(&store_a).unwrap();
+    let scene = octstore::stages::ingest::read_scene(&opened).unwrap().unwrap();
+    let finest = octstore::stages::octree_max_depth(&opened).unwrap();
+    let in_memory = extract(&opened.latest().unwrap(), &scene, finest, &ExtractOptions::default()).unwrap();
+    for name in ["whole.ply", "whole.obj"] {
+        let path = a.path().join(name);
+        octstore::stages::extract::write_mesh(&path, &in_memory).unwrap();
+        let streamed = a.path().join(format!("streamed-{name}"));
+        let out = octstore(
+            &["extract", store_a.to_str().unwrap(), "-o", streamed.to_str().unwrap()],
+            &[],
+        );
+        assert!(out.status.success(), "{}", stderr(&out));
+        assert!(
+            std::fs::read(&path).unwrap() == std::fs::read(&streamed).unwrap(),
+            "streamed {name} differs from the in-memory one"
+        );
+    }
+    let leftovers: Vec<_> = std::fs::read_dir(a.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
+        .collect();
+    assert!(leftovers.is_empty(), "temporary files left: {leftovers:?}");
+
     // Decimation per leaf never moves a vertex shared with another leaf: still closed and
     // manifold, every kept vertex is an original one, and threads do not change the bytes.
     let full = read_ply(&a.path().join("mesh.ply")).unwrap();

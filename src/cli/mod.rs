@@ -7,7 +7,7 @@ use std::process::ExitCode;
 use clap::{Args, Parser, Subcommand};
 use serde::Serialize;
 
-use crate::stages::extract::{Mesh, Region};
+use crate::stages::extract::Region;
 use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage};
 use crate::stages::inputs::{DiscoverOptions, InputFormat};
@@ -313,7 +313,7 @@ pub fn extract_to(
     output: &std::path::Path,
     options: &stages::extract::ExtractOptions,
     version: Option<u64>,
-) -> Result<Mesh, StoreError> {
+) -> Result<stages::extract::MeshSummary, StoreError> {
     let started = std::time::Instant::now();
     let scene = stages::ingest::read_scene(store)?.ok_or_else(|| StoreError::Stage {
         stage: "extract".into(),
@@ -325,20 +325,26 @@ pub fn extract_to(
         None => store.latest()?,
     };
     let finest = stages::octree_max_depth(store)?;
-    let mesh = stages::extract::extract(&snapshot, &scene, finest, options)?;
-    stages::extract::write_mesh(output, &mesh).map_err(crate::store::io_error("write mesh", output))?;
-    let (boundary, non_manifold) = stages::extract::edge_defects(&mesh);
+    let summary = stages::extract::extract_to_file(&snapshot, &scene, finest, options, output)?;
+    print_extract_summary(&summary, output, started);
+    Ok(summary)
+}
+
+fn print_extract_summary(
+    summary: &stages::extract::MeshSummary,
+    output: &std::path::Path,
+    started: std::time::Instant,
+) {
     println!(
         "extract    {} vertices, {} triangles, {} boundary edges, {} non-manifold edges -> {} | {:.2}s | peak memory {:.0} MB",
-        mesh.positions.len(),
-        mesh.triangles.len(),
-        boundary,
-        non_manifold,
+        summary.vertices,
+        summary.triangles,
+        summary.boundary_edges,
+        summary.non_manifold_edges,
         output.display(),
         started.elapsed().as_secs_f64(),
         peak_rss_bytes() as f64 / 1e6
     );
-    Ok(mesh)
 }
 
 /// The stage of a recorded cluster plan, rebuilt with the plan's solver parameters.
@@ -637,18 +643,8 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             let store = Store::open(&store)?;
             if stage == pipeline::EXTRACT {
                 let started = std::time::Instant::now();
-                let (mesh, output) = pipeline::commit_extract(&store)?;
-                let (boundary, non_manifold) = stages::extract::edge_defects(&mesh);
-                println!(
-                    "extract    {} vertices, {} triangles, {} boundary edges, {} non-manifold edges -> {} | {:.2}s | peak memory {:.0} MB",
-                    mesh.positions.len(),
-                    mesh.triangles.len(),
-                    boundary,
-                    non_manifold,
-                    output.display(),
-                    started.elapsed().as_secs_f64(),
-                    peak_rss_bytes() as f64 / 1e6
-                );
+                let (summary, output) = pipeline::commit_extract(&store)?;
+                print_extract_summary(&summary, &output, started);
                 return Ok(ExitCode::SUCCESS);
             }
             let runnable = cluster_stage_of_plan(&store, &stage)?;
@@ -746,7 +742,12 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             for level in 0..=stages::octree_max_depth(&store)? {
                 summary(&store.run_stage(&LevelStage::new(level, scene, params), &run)?);
             }
-            let mesh = extract_to(&store, &out.join("demo.ply"), &Default::default(), None)?;
+            extract_to(&store, &out.join("demo.ply"), &Default::default(), None)?;
+            let mesh = stages::extract::read_ply(&out.join("demo.ply")).map_err(|message| StoreError::Stage {
+                stage: "demo".into(),
+                unit: "demo.ply".into(),
+                message,
+            })?;
             // The preview shows the objects, not the room around them.
             let objects = Region {
                 min: glam::DVec3::new(-0.7, -0.6, -0.45),

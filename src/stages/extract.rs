@@ -522,6 +522,339 @@ pub fn assemble(mut meshes: Vec<UnitMesh>, options: &ExtractOptions) -> Mesh {
     mesh
 }
 
+/// Counts of a written mesh.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct MeshSummary {
+    pub vertices: u64,
+    pub triangles: u64,
+    pub boundary_edges: u64,
+    pub non_manifold_edges: u64,
+}
+
+/// The low 124 bits of a corner id: the leaf key, or for a virtual cell the key it mirrors.
+const CORNER_KEY_MASK: u128 = (1 << 124) - 1;
+
+/// Whether a surface vertex can come from no unit but the one with treetop cube `unit`.
+///
+/// It can if both cells at the ends of its edge are leaves (or mirrors of leaves) inside the
+/// unit's cube that touch none of its faces, except faces on the root's boundary. Every dual
+/// cell with that edge surrounds an octree vertex V at a corner of such a leaf; V is then inside
+/// the unit's cube or on the root's boundary, so every leaf incident to V, the cell's generator
+/// among them, belongs to the unit. Other vertices may be shared with other units.
+fn private_to(unit: CubeKey) -> impl Fn(&VertexId) -> bool {
+    let lo = unit.corner_full_resolution().map(u64::from);
+    let side = full_side(unit.depth());
+    let limit = 1u64 << 32;
+    move |&(a, b): &VertexId| {
+        [a, b].iter().all(|&id| {
+            let leaf = CubeKey::from_raw(id & CORNER_KEY_MASK);
+            let corner = leaf.corner_full_resolution().map(u64::from);
+            let leaf_side = full_side(leaf.depth());
+            (0..3).all(|axis| {
+                let (u0, u1) = (lo[axis], lo[axis] + side);
+                let (l0, l1) = (corner[axis], corner[axis] + leaf_side);
+                u0 <= l0 && l1 <= u1 && (l0 != u0 || u0 == 0) && (l1 != u1 || u1 == limit)
+            })
+        })
+    }
+}
+
+/// Welds units' pieces into one mesh as they come, in unit order, holding only the vertices
+/// (and edges between them) that a later unit may share: the same vertices, normals, triangles
+/// and edge counts as welding everything at once, in memory bounded by the seams, not by the
+/// surface.
+struct StreamingWeld<W: MeshWriter> {
+    writer: W,
+    /// Vertices a later unit may also produce: global index and the normal summed so far.
+    seam: HashMap<VertexId, (u32, DVec3)>,
+    /// Uses of edges between two seam vertices (only those can span units).
+    seam_edges: HashMap<(u32, u32), u32>,
+    summary: MeshSummary,
+}
+
+/// Where a streamed mesh goes: vertices in order (their normal may be fixed later, when every
+/// unit sharing the vertex is done), then triangles by global index.
+trait MeshWriter {
+    fn vertex(&mut self, position: DVec3, normal: DVec3) -> std::io::Result<()>;
+    fn triangle(&mut self, triangle: [u32; 3]) -> std::io::Result<()>;
+    fn fix_normal(&mut self, index: u32, normal: DVec3) -> std::io::Result<()>;
+}
+
+impl<W: MeshWriter> StreamingWeld<W> {
+    fn new(writer: W) -> Self {
+        StreamingWeld {
+            writer,
+            seam: HashMap::new(),
+            seam_edges: HashMap::new(),
+            summary: MeshSummary::default(),
+        }
+    }
+
+    fn add(&mut self, mesh: &UnitMesh, private: impl Fn(&VertexId) -> bool) -> std::io::Result<()> {
+        let mut map = Vec::with_capacity(mesh.vertices.len());
+        let mut on_seam = Vec::with_capacity(mesh.vertices.len());
+        for (edge, p, n) in &mesh.vertices {
+            if private(edge) {
+                let index = self.next_index()?;
+                self.writer.vertex(*p, n.normalize_or_zero())?;
+                map.push(index);
+                on_seam.push(false);
+            } else {
+                let index = match self.seam.get_mut(edge) {
+                    Some((index, normal)) => {
+                        *normal += *n;
+                        *index
+                    }
+                    None => {
+                        let index = self.next_index()?;
+                        self.writer.vertex(*p, DVec3::ZERO)?;
+                        self.seam.insert(*edge, (index, *n));
+                        index
+                    }
+                };
+                map.push(index);
+                on_seam.push(true);
+            }
+        }
+        let mut local_edges: HashMap<(u32, u32), u32> = HashMap::new();
+        for t in &mesh.triangles {
+            let ids = t.map(|v| (map.get(v as usize).copied(), on_seam.get(v as usize).copied()));
+            let [(Some(a), Some(sa)), (Some(b), Some(sb)), (Some(c), Some(sc))] = ids else {
+                continue;
+            };
+            self.writer.triangle([a, b, c])?;
+            self.summary.triangles += 1;
+            for ((x, sx), (y, sy)) in [((a, sa), (b, sb)), ((b, sb), (c, sc)), ((c, sc), (a, sa))] {
+                let edges = if sx && sy {
+                    &mut self.seam_edges
+                } else {
+                    &mut local_edges
+                };
+                *edges.entry((x.min(y), x.max(y))).or_insert(0) += 1;
+            }
+        }
+        self.count_edges(local_edges.values());
+        Ok(())
+    }
+
+    fn next_index(&mut self) -> std::io::Result<u32> {
+        let index = u32::try_from(self.summary.vertices)
+            .map_err(|_| std::io::Error::other("more than 2^32 vertices: the PLY indices would overflow"))?;
+        self.summary.vertices += 1;
+        Ok(index)
+    }
+
+    fn count_edges<'a>(&mut self, uses: impl Iterator<Item = &'a u32>) {
+        for &count in uses {
+            self.summary.boundary_edges += u64::from(count == 1);
+            self.summary.non_manifold_edges += u64::from(count > 2);
+        }
+    }
+
+    fn finish(mut self) -> std::io::Result<(W, MeshSummary)> {
+        let mut fixes: Vec<(u32, DVec3)> = self.seam.values().copied().collect();
+        fixes.sort_by_key(|(index, _)| *index);
+        for (index, normal) in fixes {
+            self.writer.fix_normal(index, normal.normalize_or_zero())?;
+        }
+        let seam_edges = std::mem::take(&mut self.seam_edges);
+        self.count_edges(seam_edges.values());
+        Ok((self.writer, self.summary))
+    }
+}
+
+/// Writes a mesh file in two passes over temporary files beside it: fixed-size vertex records
+/// (so that normals can be fixed in place) and face records, joined under the header at the end.
+struct MeshFile {
+    path: std::path::PathBuf,
+    vertices_path: std::path::PathBuf,
+    faces_path: std::path::PathBuf,
+    vertices: std::io::BufWriter<std::fs::File>,
+    faces: std::io::BufWriter<std::fs::File>,
+}
+
+/// Bytes of one vertex record: position and normal as little-endian f32.
+const VERTEX_RECORD: u64 = 6 * std::mem::size_of::<f32>() as u64;
+/// Bytes of one face record in binary PLY: the count byte 3, then three u32 indices.
+const FACE_RECORD: usize = 1 + 3 * std::mem::size_of::<u32>();
+
+impl MeshFile {
+    fn create(path: &Path) -> std::io::Result<MeshFile> {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let beside = |suffix: &str| path.with_file_name(format!(".{name}.{suffix}.tmp"));
+        let (vertices_path, faces_path) = (beside("vertices"), beside("faces"));
+        let open = |p: &Path| -> std::io::Result<std::io::BufWriter<std::fs::File>> {
+            Ok(std::io::BufWriter::new(
+                std::fs::OpenOptions::new()
+                    .read(true)
+                    .write(true)
+                    .create(true)
+                    .truncate(true)
+                    .open(p)?,
+            ))
+        };
+        Ok(MeshFile {
+            path: path.to_path_buf(),
+            vertices: open(&vertices_path)?,
+            faces: open(&faces_path)?,
+            vertices_path,
+            faces_path,
+        })
+    }
+
+    /// Joins the parts into the mesh file (PLY, or OBJ by extension) and removes them.
+    fn finish(self, summary: &MeshSummary) -> std::io::Result<()> {
+        use std::io::{Read, Seek, SeekFrom};
+        let mut vertices = self.vertices.into_inner().map_err(|e| e.into_error())?;
+        let mut faces = self.faces.into_inner().map_err(|e| e.into_error())?;
+        vertices.seek(SeekFrom::Start(0))?;
+        faces.seek(SeekFrom::Start(0))?;
+        let mut out = std::io::BufWriter::new(std::fs::File::create(&self.path)?);
+        let is_obj = self.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("obj"));
+        if is_obj {
+            let mut reader = std::io::BufReader::new(vertices);
+            let mut record = [0u8; VERTEX_RECORD as usize];
+            for _ in 0..summary.vertices {
+                reader.read_exact(&mut record)?;
+                let f: Vec<f32> = record
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .collect();
+                writeln!(out, "v {} {} {}", f[0], f[1], f[2])?;
+                writeln!(out, "vn {} {} {}", f[3], f[4], f[5])?;
+            }
+            let mut reader = std::io::BufReader::new(faces);
+            let mut record = [0u8; FACE_RECORD];
+            for _ in 0..summary.triangles {
+                reader.read_exact(&mut record)?;
+                let v: Vec<u32> = record[1..]
+                    .chunks_exact(4)
+                    .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) + 1)
+                    .collect();
+                writeln!(out, "f {0}//{0} {1}//{1} {2}//{2}", v[0], v[1], v[2])?;
+            }
+        } else {
+            write!(out, "{}", ply_header(summary.vertices, summary.triangles))?;
+            std::io::copy(&mut vertices, &mut out)?;
+            std::io::copy(&mut faces, &mut out)?;
+        }
+        out.flush()?;
+        std::fs::remove_file(&self.vertices_path)?;
+        std::fs::remove_file(&self.faces_path)?;
+        Ok(())
+    }
+
+    fn abandon(self) {
+        drop(self.vertices);
+        drop(self.faces);
+        let _ = std::fs::remove_file(&self.vertices_path);
+        let _ = std::fs::remove_file(&self.faces_path);
+    }
+}
+
+impl MeshWriter for MeshFile {
+    fn vertex(&mut self, position: DVec3, normal: DVec3) -> std::io::Result<()> {
+        for v in position.as_vec3().to_array().iter().chain(&normal.as_vec3().to_array()) {
+            self.vertices.write_all(&v.to_le_bytes())?;
+        }
+        Ok(())
+    }
+
+    fn triangle(&mut self, triangle: [u32; 3]) -> std::io::Result<()> {
+        self.faces.write_all(&[3u8])?;
+        for v in triangle {
+            self.faces.write_all(&v.to_le_bytes())?;
+        }
+        Ok(())
+    }
+
+    fn fix_normal(&mut self, index: u32, normal: DVec3) -> std::io::Result<()> {
+        use std::io::{Seek, SeekFrom};
+        self.vertices.flush()?;
+        let file = self.vertices.get_mut();
+        file.seek(SeekFrom::Start(u64::from(index) * VERTEX_RECORD + VERTEX_RECORD / 2))?;
+        for v in normal.as_vec3().to_array() {
+            file.write_all(&v.to_le_bytes())?;
+        }
+        file.seek(SeekFrom::End(0))?;
+        Ok(())
+    }
+}
+
+/// Streams pieces (treetop cube, mesh) in unit order into a mesh file without region or
+/// decimation; memory holds one piece at a time plus the seams between units.
+pub fn stream_to_file(pieces: impl Iterator<Item = Result<(CubeKey, UnitMesh)>>, path: &Path) -> Result<MeshSummary> {
+    let io = |source: std::io::Error| StoreError::Io {
+        action: "write mesh",
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = MeshFile::create(path).map_err(io)?;
+    let mut weld = StreamingWeld::new(file);
+    let written = || -> Result<()> {
+        for piece in pieces {
+            let (unit, mesh) = piece?;
+            weld.add(&mesh, private_to(unit)).map_err(io)?;
+        }
+        Ok(())
+    };
+    if let Err(e) = written() {
+        weld.writer.abandon();
+        return Err(e);
+    }
+    let (file, summary) = weld.finish().map_err(io)?;
+    file.finish(&summary).map_err(io)?;
+    Ok(summary)
+}
+
+/// Extracts the surface into a mesh file. Without a region or decimation the pieces are
+/// streamed (units computed a few at a time, in parallel, welded in unit order), so memory does
+/// not grow with the surface; with either, the mesh is assembled in memory first.
+pub fn extract_to_file(
+    snapshot: &Snapshot<'_>,
+    scene: &Scene,
+    finest: u8,
+    options: &ExtractOptions,
+    path: &Path,
+) -> Result<MeshSummary> {
+    if options.region.is_some() || options.decimate.is_some() {
+        let mesh = extract(snapshot, scene, finest, options)?;
+        write_mesh(path, &mesh).map_err(crate::store::io_error("write mesh", path))?;
+        let (boundary, non_manifold) = edge_defects(&mesh);
+        return Ok(MeshSummary {
+            vertices: mesh.positions.len() as u64,
+            triangles: mesh.triangles.len() as u64,
+            boundary_edges: boundary as u64,
+            non_manifold_edges: non_manifold as u64,
+        });
+    }
+    let units = extract_units(snapshot, scene, finest, None)?;
+    let treetop = Treetop::of(snapshot)?;
+    let batch = 2 * rayon::current_num_threads().max(1);
+    let pieces = units.chunks(batch).flat_map(|chunk| {
+        let meshes: Vec<Result<(CubeKey, UnitMesh)>> = chunk
+            .par_iter()
+            .map(|&unit| {
+                let key = treetop
+                    .units
+                    .get(unit)
+                    .map(|u| u.key)
+                    .ok_or_else(|| StoreError::Stage {
+                        stage: "extract".into(),
+                        unit: unit.to_string(),
+                        message: "no such treetop unit".into(),
+                    })?;
+                Ok((key, unit_mesh(snapshot, &treetop, scene, finest, unit)?))
+            })
+            .collect();
+        meshes
+    });
+    stream_to_file(pieces, path)
+}
+
 /// Cuts a mesh at a box: triangles are clipped against its six planes (new vertices on the box
 /// faces are welded by position).
 pub fn clip(mesh: &Mesh, region: Region) -> Mesh {
@@ -601,6 +934,12 @@ pub fn edge_defects(mesh: &Mesh) -> (usize, usize) {
     (boundary, non_manifold)
 }
 
+fn ply_header(vertices: u64, triangles: u64) -> String {
+    format!(
+        "ply\nformat binary_little_endian 1.0\ncomment octstore\nelement vertex {vertices}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nelement face {triangles}\nproperty list uchar uint vertex_indices\nend_header\n"
+    )
+}
+
 /// Writes binary little-endian PLY, or OBJ when the path ends in `.obj`.
 pub fn write_mesh(path: &Path, mesh: &Mesh) -> std::io::Result<()> {
     let file = std::fs::File::create(path)?;
@@ -617,9 +956,8 @@ pub fn write_mesh(path: &Path, mesh: &Mesh) -> std::io::Result<()> {
     } else {
         write!(
             out,
-            "ply\nformat binary_little_endian 1.0\ncomment octstore\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nelement face {}\nproperty list uchar uint vertex_indices\nend_header\n",
-            mesh.positions.len(),
-            mesh.triangles.len()
+            "{}",
+            ply_header(mesh.positions.len() as u64, mesh.triangles.len() as u64)
         )?;
         for (p, n) in mesh.positions.iter().zip(&mesh.normals) {
             for v in p.iter().chain(n) {
