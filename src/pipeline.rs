@@ -387,15 +387,15 @@ pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
                 .ok()
                 .and_then(|i| treetop.units.get(i))
                 .map(|u| u.key);
-            match (key, read(unit)) {
-                (Some(key), Some(mesh)) => Some(Ok((key, mesh))),
+            match (key, usize::try_from(unit), read(unit)) {
+                (Some(key), Ok(index), Some(mesh)) => Some(Ok((index, key, mesh))),
                 _ => {
                     damaged.borrow_mut().insert(plan.chunk_of(unit));
                     None
                 }
             }
         });
-        let streamed = stream_to_file(pieces, &args.output);
+        let streamed = stream_to_file(pieces, &treetop, &args.output);
         let damaged = damaged.into_inner();
         if !damaged.is_empty() {
             let _ = std::fs::remove_file(&args.output);
