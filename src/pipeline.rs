@@ -40,7 +40,7 @@
 use std::path::PathBuf;
 
 use crate::stages::extract::{
-    ExtractOptions, MeshSummary, UnitMesh, assemble, edge_defects, extract_units, stream_to_file, unit_mesh, write_mesh,
+    ExtractOptions, MeshSummary, UnitMesh, assemble, extract_units, stream_to_file, unit_mesh, write_assembled,
 };
 use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps};
@@ -416,15 +416,7 @@ pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
         if !damaged.is_empty() {
             return Err(plan.missing_chunks_error(&damaged));
         }
-        let mesh = assemble(meshes, &args.options);
-        write_mesh(&args.output, &mesh).map_err(crate::store::io_error("write mesh", &args.output))?;
-        let (boundary, non_manifold) = edge_defects(&mesh);
-        MeshSummary {
-            vertices: mesh.positions.len() as u64,
-            triangles: mesh.triangles.len() as u64,
-            boundary_edges: boundary as u64,
-            non_manifold_edges: non_manifold as u64,
-        }
+        write_assembled(&args.output, &assemble(meshes, &args.options))?
     };
     store.remove_cluster_plan(&plan)?;
     Ok((summary, args.output))

@@ -885,6 +885,18 @@ pub fn stream_to_file(
     Ok(summary)
 }
 
+/// Writes a mesh assembled in memory and counts it like the streaming path does.
+pub fn write_assembled(path: &Path, mesh: &Mesh) -> Result<MeshSummary> {
+    write_mesh(path, mesh).map_err(crate::store::io_error("write mesh", path))?;
+    let (boundary, non_manifold) = edge_defects(mesh);
+    Ok(MeshSummary {
+        vertices: mesh.positions.len() as u64,
+        triangles: mesh.triangles.len() as u64,
+        boundary_edges: boundary as u64,
+        non_manifold_edges: non_manifold as u64,
+    })
+}
+
 /// Extracts the surface into a mesh file. Without a region or decimation the pieces are
 /// streamed (units computed a few at a time, in parallel, welded in unit order), so memory does
 /// not grow with the surface; with either, the mesh is assembled in memory first.
@@ -896,15 +908,7 @@ pub fn extract_to_file(
     path: &Path,
 ) -> Result<MeshSummary> {
     if options.region.is_some() || options.decimate.is_some() {
-        let mesh = extract(snapshot, scene, finest, options)?;
-        write_mesh(path, &mesh).map_err(crate::store::io_error("write mesh", path))?;
-        let (boundary, non_manifold) = edge_defects(&mesh);
-        return Ok(MeshSummary {
-            vertices: mesh.positions.len() as u64,
-            triangles: mesh.triangles.len() as u64,
-            boundary_edges: boundary as u64,
-            non_manifold_edges: non_manifold as u64,
-        });
+        return write_assembled(path, &extract(snapshot, scene, finest, options)?);
     }
     let units = extract_units(snapshot, scene, finest, None)?;
     let treetop = Treetop::of(snapshot)?;
