@@ -165,7 +165,16 @@ impl Pyramid {
         Some(bin_of((a / delta).clamp(-1.0, 1.0)))
     }
 
-    /// Whether a ball may project into the image (frustum test; LIDAR sees all around).
+    /// Whether any cube whose centre lies in the ball, and whose voting radius is at most the
+    /// ball's radius, may vote: a frustum test that is conservative by construction (LIDAR sees
+    /// all around).
+    ///
+    /// `vote` reads the pixel nearest the projected centre at a level whose pixel spans at most
+    /// the cube's footprint `2 r f / z`, and a level's last pixel may reach one level pixel past
+    /// the image edge. So a voting centre satisfies `-0.5 <= u < width + 2 r f / z`, that is,
+    /// it lies at most `2 r f / n` beyond the side plane `u = width` (n the plane normal's
+    /// length), and never beyond `u = -0.5`. A ball is culled only when it lies wholly beyond
+    /// such a widened plane (one pixel of slack on every side).
     pub fn may_see(source: &DepthMapSource, world_to_camera: &glam::DMat4, center: DVec3, radius: f64) -> bool {
         match source.projection {
             Projection::Spherical => true,
@@ -174,15 +183,20 @@ impl Pyramid {
                 if p.z + radius <= 0.0 {
                     return false;
                 }
-                if p.z <= radius {
-                    return true;
-                }
-                let (u, v) = (fx * p.x / p.z + cx, fy * p.y / p.z + cy);
-                let margin = radius / (p.z - radius) * fx.max(fy) * 1.5 + 1.0;
-                u > -margin
-                    && v > -margin
-                    && u < f64::from(source.width) + margin
-                    && v < f64::from(source.height) + margin
+                let f = fx.max(fy);
+                let (w, h) = (f64::from(source.width), f64::from(source.height));
+                // Each side: the plane's normal (pointing out of the image) through the
+                // camera centre, and the widening allowed beyond it.
+                let sides = [
+                    (DVec3::new(-fx, 0.0, -(cx + 1.0)), 0.0),
+                    (DVec3::new(0.0, -fy, -(cy + 1.0)), 0.0),
+                    (DVec3::new(fx, 0.0, cx - w - 1.0), 2.0 * f),
+                    (DVec3::new(0.0, fy, cy - h - 1.0), 2.0 * f),
+                ];
+                sides.iter().all(|(normal, widening)| {
+                    let length = normal.length();
+                    normal.dot(p) / length <= radius + widening * radius / length
+                })
             }
         }
     }
@@ -472,15 +486,26 @@ impl Stage for HistogramsStage {
         for (id, record) in &self.depth_maps {
             let source = &record.source;
             let world_to_camera = source.pose().inverse();
-            // Every member the map has not voted into yet records it; those it may see vote.
+            // Every member the map has not voted into yet records it; the chunks of those it may
+            // see vote. A map no chunk can see is never decoded.
             let mut needed = Vec::new();
             for (index, voter) in voters.iter_mut().enumerate() {
                 if voter.already.contains(id) {
                     continue;
                 }
                 voter.voted.insert(*id);
-                if Pyramid::may_see(source, &world_to_camera, voter.center, voter.radius) {
-                    needed.push(index);
+                if !Pyramid::may_see(source, &world_to_camera, voter.center, voter.radius) {
+                    continue;
+                }
+                let seen: Vec<usize> = voter
+                    .chunks
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, chunk)| Pyramid::may_see(source, &world_to_camera, chunk.center, chunk.radius))
+                    .map(|(chunk, _)| chunk)
+                    .collect();
+                if !seen.is_empty() {
+                    needed.push((index, seen));
                 }
             }
             if needed.is_empty() {
@@ -495,9 +520,9 @@ impl Stage for HistogramsStage {
                 Ok(Pyramid::new(source.clone(), image))
             })?;
             let weight = quantized_weight(source.weight);
-            for index in needed {
+            for (index, seen) in needed {
                 if let Some(voter) = voters.get_mut(index) {
-                    voter.vote(&pyramid, &world_to_camera, weight);
+                    voter.vote(&pyramid, &world_to_camera, weight, &seen);
                 }
             }
         }
@@ -560,16 +585,62 @@ struct Voter {
     /// The unit's bounding ball, for the frustum test.
     center: DVec3,
     radius: f64,
+    /// Runs of Morton-consecutive cubes with their bounding balls, tested against each map's
+    /// frustum before any of their cubes is projected.
+    chunks: Vec<Chunk>,
+}
+
+/// Cubes per culling chunk: Morton-consecutive cubes are spatially compact, so a chunk's ball
+/// stays small near the surface, where the cubes are.
+const CHUNK_CUBES: usize = 256;
+
+/// Cubes `start..end` of a unit and a ball that holds every one of their voting balls.
+struct Chunk {
+    start: usize,
+    end: usize,
+    center: DVec3,
+    radius: f64,
+}
+
+fn chunks(centers: &[DVec3], radii: &[f64]) -> Vec<Chunk> {
+    let mut chunks = Vec::with_capacity(centers.len().div_ceil(CHUNK_CUBES));
+    let mut start = 0;
+    while start < centers.len() {
+        let end = (start + CHUNK_CUBES).min(centers.len());
+        let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+        for (center, radius) in centers.iter().zip(radii).take(end).skip(start) {
+            lo = lo.min(*center - DVec3::splat(*radius));
+            hi = hi.max(*center + DVec3::splat(*radius));
+        }
+        chunks.push(Chunk {
+            start,
+            end,
+            center: (lo + hi) * 0.5,
+            radius: (hi - lo).length() * 0.5,
+        });
+        start = end;
+    }
+    chunks
 }
 
 impl Voter {
-    fn vote(&mut self, pyramid: &Pyramid, world_to_camera: &glam::DMat4, weight: f32) {
-        for (index, (center, radius)) in self.centers.iter().zip(&self.radii).enumerate() {
-            if let Some(bin) = pyramid.vote(world_to_camera, *center, *radius)
-                && let Some(h) = self.hist.get_mut(index * BINS + bin)
-            {
-                *h += weight;
-                self.votes += 1;
+    /// Votes `pyramid` into the cubes of the chunks listed in `seen`, in cube order.
+    fn vote(&mut self, pyramid: &Pyramid, world_to_camera: &glam::DMat4, weight: f32, seen: &[usize]) {
+        for chunk in seen.iter().filter_map(|&c| self.chunks.get(c)) {
+            let cubes = self
+                .centers
+                .iter()
+                .zip(&self.radii)
+                .enumerate()
+                .take(chunk.end)
+                .skip(chunk.start);
+            for (index, (center, radius)) in cubes {
+                if let Some(bin) = pyramid.vote(world_to_camera, *center, *radius)
+                    && let Some(h) = self.hist.get_mut(index * BINS + bin)
+                {
+                    *h += weight;
+                    self.votes += 1;
+                }
             }
         }
     }
@@ -602,6 +673,7 @@ impl HistogramsStage {
         let center = self.scene.cube_center(plan.key);
         let radius = self.scene.cube_side(plan.key.depth()) * 0.87 + radii.iter().copied().fold(0.0, f64::max);
         Ok(Voter {
+            chunks: chunks(&centers, &radii),
             key: plan.key,
             keys,
             centers,
@@ -669,6 +741,59 @@ mod tests {
         assert!(level1[2].is_nan());
         assert_eq!(pyramid.levels[2].depth[0], 1.0);
         assert_eq!(pyramid.levels.last().map(|l| (l.width, l.height)), Some((1, 1)));
+    }
+
+    #[test]
+    fn frustum_test_never_culls_a_cube_that_votes() {
+        // An odd-sized image, so coarse levels overhang the edges, seen by a camera with
+        // unequal focal lengths; depth everywhere far behind the cubes, so every cube that
+        // projects into a level votes.
+        let (width, height) = (37u32, 33u32);
+        let source = crate::stages::depthmap::DepthMapSource {
+            path: "far.pfm".into(),
+            format: crate::stages::depthmap::ImageFormat::Pfm,
+            width,
+            height,
+            projection: crate::stages::depthmap::Projection::Pinhole {
+                fx: 30.0,
+                fy: 24.0,
+                cx: 17.0,
+                cy: 12.5,
+            },
+            camera_to_world: glam::DMat4::IDENTITY.to_cols_array(),
+            kind: crate::stages::depthmap::Kind::Photo,
+            weight: 1.0,
+        };
+        let depth = vec![1000.0; (width * height) as usize];
+        let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
+        let world_to_camera = glam::DMat4::IDENTITY;
+        let mut seed = 11u64;
+        let mut uniform = move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (mut voted, mut culled) = (0, 0);
+        for _ in 0..200_000 {
+            let z = 0.05 + uniform() * 10.0;
+            let center = DVec3::new((uniform() * 2.4 - 1.2) * z, (uniform() * 2.4 - 1.2) * z, z);
+            let radius = uniform().powi(3) * z;
+            // A ball holding the cube: its centre anywhere within `slack` of the cube's.
+            let slack = if uniform() < 0.5 { 0.0 } else { uniform() * radius };
+            let direction = DVec3::new(uniform() - 0.5, uniform() - 0.5, uniform() - 0.5).normalize_or_zero();
+            let ball = (center + direction * slack, radius + slack);
+            let sees = Pyramid::may_see(&source, &world_to_camera, ball.0, ball.1);
+            if pyramid.vote(&world_to_camera, center, radius).is_some() {
+                voted += 1;
+                assert!(
+                    sees,
+                    "a voting cube at {center} (r {radius}) was culled by the ball {ball:?}"
+                );
+            } else if !sees {
+                culled += 1;
+            }
+        }
+        // The draw covers both sides of the border.
+        assert!(voted > 10_000 && culled > 10_000, "{voted} voted, {culled} culled");
     }
 
     #[test]
