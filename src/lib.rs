@@ -12,6 +12,7 @@
 
 pub mod cli;
 pub mod format;
+pub mod gpu;
 pub mod pipeline;
 pub mod quality;
 pub mod render;

@@ -69,6 +69,8 @@ pub struct SolveOptions {
     pub memory_budget: u64,
     pub params: SolveParams,
     pub run: RunOptions,
+    /// Where the solver's iterations run.
+    pub device: crate::gpu::DeviceChoice,
 }
 
 impl Default for SolveOptions {
@@ -79,6 +81,7 @@ impl Default for SolveOptions {
             memory_budget: 1 << 30,
             params: SolveParams::default(),
             run: RunOptions::default(),
+            device: crate::gpu::DeviceChoice::Auto,
         }
     }
 }
@@ -111,7 +114,22 @@ pub fn ingest(
 
 /// Runs the pending stages up to `options.until`: the octree, the histograms, then every level
 /// of the solution coarse to fine. `on_report` sees each stage's report as it finishes.
-pub fn solve(store: &Store, options: &SolveOptions, mut on_report: impl FnMut(&RunReport)) -> Result<()> {
+pub fn solve(store: &Store, options: &SolveOptions, on_report: impl FnMut(&RunReport)) -> Result<()> {
+    let gpu = if options.until >= SolveUntil::Solution {
+        open_gpu(options.device)?
+    } else {
+        None
+    };
+    solve_with_gpu(store, options, gpu, on_report)
+}
+
+/// [`solve`] with the solver's iterations on an already open `gpu` (`options.device` unused).
+pub fn solve_with_gpu(
+    store: &Store,
+    options: &SolveOptions,
+    gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
+    mut on_report: impl FnMut(&RunReport),
+) -> Result<()> {
     let scene = required_scene(store, OCTREE)?;
     if options.until >= SolveUntil::Octree {
         let scratch = store.scratch_dir(OCTREE)?;
@@ -130,11 +148,28 @@ pub fn solve(store: &Store, options: &SolveOptions, mut on_report: impl FnMut(&R
     }
     if options.until >= SolveUntil::Solution {
         for level in 0..=octree_max_depth(store)? {
-            let stage = LevelStage::new(level, scene, options.params);
+            let stage = LevelStage::new(level, scene, options.params).with_gpu(gpu.clone());
             on_report(&store.run_stage(&stage, &options.run)?);
         }
     }
     Ok(())
+}
+
+/// The device `choice` names: an error only when `gpu` was asked for and none opens; `auto`
+/// falls back to the CPU with a warning.
+pub fn open_gpu(choice: crate::gpu::DeviceChoice) -> Result<Option<std::sync::Arc<crate::gpu::Gpu>>> {
+    match crate::gpu::Gpu::open(choice) {
+        Ok(gpu) => Ok(gpu.map(std::sync::Arc::new)),
+        Err(error) if choice == crate::gpu::DeviceChoice::Auto => {
+            tracing::warn!("{error}; solving on the CPU");
+            Ok(None)
+        }
+        Err(error) => Err(StoreError::Stage {
+            stage: "solve".into(),
+            unit: "--device gpu".into(),
+            message: error.to_string(),
+        }),
+    }
 }
 
 /// The stage a cluster run works on, by its catalog name: `histograms` or `solution-LL`. The

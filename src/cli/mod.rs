@@ -115,6 +115,10 @@ pub enum Command {
         /// Treetop leaves hold fewer cubes than this.
         #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
         leaf_cubes: u64,
+        /// Where the TGV iterations run: auto takes a hardware GPU when there is one (never a
+        /// software rasteriser), gpu any adapter (llvmpipe included), cpu the CPU kernel.
+        #[arg(long, value_enum, default_value = "auto")]
+        device: crate::gpu::DeviceChoice,
     },
     /// Cluster run, step 1: split a stage's pending units into chunks and record the plan.
     Plan {
@@ -235,7 +239,12 @@ pub enum Command {
     },
     /// Summary of a store: version, inputs, cubes, leaves, segments, bytes, content digests.
     Info {
-        store: PathBuf,
+        /// The store; not needed with --devices.
+        #[arg(required_unless_present = "devices")]
+        store: Option<PathBuf>,
+        /// List the GPU adapters wgpu finds (and which one `--device auto` would take).
+        #[arg(long)]
+        devices: bool,
         #[arg(long)]
         json: bool,
         /// Show this version instead of the latest.
@@ -573,6 +582,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             until,
             leaf_cubes,
             solver,
+            device,
         } => {
             let store = Store::open(&store)?;
             let options = pipeline::SolveOptions {
@@ -581,6 +591,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 memory_budget: global.memory_budget,
                 params: solver.params(),
                 run: run_options(&global, resume),
+                device,
             };
             pipeline::solve(&store, &options, summary)?;
         }
@@ -857,7 +868,38 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             let mesh = crate::quality::meshio::read_mesh(&mesh).map_err(|message| render_error(&mesh, message))?;
             save_png(&crate::render::render_view(&mesh, width, height, view), &output)?;
         }
-        Command::Info { store, json, version } => {
+        Command::Info {
+            devices: true, json, ..
+        } => {
+            let adapters = crate::gpu::adapters();
+            if json {
+                println!("{}", serde_json::to_string_pretty(&adapters).unwrap_or_default());
+            } else if adapters.is_empty() {
+                println!("no GPU adapters (solve runs on the CPU; WGPU_BACKEND chooses backends)");
+            } else {
+                let auto = adapters.iter().position(|a| !a.software);
+                for (index, a) in adapters.iter().enumerate() {
+                    let mark = if Some(index) == auto { "  <- --device auto" } else { "" };
+                    println!(
+                        "{index}: {} ({}, {}{}, {}; storage bindings up to {} MiB){mark}",
+                        a.name,
+                        a.backend,
+                        a.device_type,
+                        if a.software { ", software" } else { "" },
+                        a.driver,
+                        a.max_storage_binding >> 20
+                    );
+                }
+            }
+        }
+        Command::Info {
+            store, json, version, ..
+        } => {
+            let store = store.ok_or_else(|| StoreError::Stage {
+                stage: "info".into(),
+                unit: "arguments".into(),
+                message: "give a store, or --devices".into(),
+            })?;
             let store = Store::open_for_reading(&store)?;
             let info = info(&store, version)?;
             if json {

@@ -254,6 +254,8 @@ pub struct LevelStage {
     treetop: std::sync::OnceLock<Treetop>,
     /// Treetop units solved together, by group id (the first member's index).
     groups: std::sync::OnceLock<BTreeMap<u64, Vec<usize>>>,
+    /// Where the iterations run; `None` is the CPU kernel.
+    gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
 }
 
 #[derive(Serialize, Deserialize, Default, Clone, Copy)]
@@ -271,7 +273,14 @@ impl LevelStage {
             params,
             treetop: std::sync::OnceLock::new(),
             groups: std::sync::OnceLock::new(),
+            gpu: None,
         }
+    }
+
+    /// Runs the iterations on `gpu` (falling back to the CPU per unit on a GPU failure).
+    pub fn with_gpu(mut self, gpu: Option<std::sync::Arc<crate::gpu::Gpu>>) -> LevelStage {
+        self.gpu = gpu;
+        self
     }
 
     /// Batches consecutive small treetop units into groups of at most `cap` cut cubes, counting each
@@ -552,7 +561,12 @@ impl Stage for LevelStage {
         if problem.start.len() != 3 * problem.n + 1 {
             return Err(self.stage_error(unit, "internal: malformed neighbour lists".into()));
         }
-        let (energy_before, energy_after) = super::tgv::solve(&problem, &mut state, self.params.iterations as usize);
+        let (energy_before, energy_after) = super::tgv::solve_on(
+            self.gpu.as_deref(),
+            &problem,
+            &mut state,
+            self.params.iterations as usize,
+        );
         let values = LevelValues {
             keys,
             u: state.u,

@@ -313,8 +313,9 @@ pub fn prox_histogram(u_tilde: f32, tau_lambda: f32, hist: &[f32; BINS]) -> f32 
 /// The data term's slopes on the 9 intervals between bin centres: (votes at or above) minus
 /// (votes below), i.e. total - 2 below_i. They depend on the histogram only, so the kernel
 /// computes them once per solve.
-#[derive(Clone, Copy, Debug)]
-pub struct Slopes([f32; BINS + 1]);
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(transparent)]
+pub struct Slopes(pub [f32; BINS + 1]);
 
 impl Slopes {
     pub fn of(hist: &[f32; BINS]) -> Slopes {
@@ -468,7 +469,7 @@ pub fn solve_reference(problem: &Problem, state: &mut State, iterations: usize) 
 const CHUNK: usize = 2048;
 
 /// One gather entry: an index into a packed array and its weight.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct Gather {
     pub index: u32,
@@ -477,7 +478,8 @@ pub struct Gather {
 
 /// Per-cube constants of the dual step, packed for 4-wide arithmetic; the two passes read
 /// disjoint columns, so neither streams the other's bytes.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
 pub struct DualConstants {
     /// sigma_p alpha1 per axis; w holds alpha1.
     pub sigma_p: Vec4,
@@ -488,7 +490,8 @@ pub struct DualConstants {
 }
 
 /// Per-cube constants of the primal step.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
 pub struct PrimalConstants {
     /// (tau_u, tau_v0, tau_v1, tau_v2).
     pub tau: Vec4,
@@ -521,11 +524,39 @@ pub struct Kernel {
 }
 
 /// The iterate in the kernel's layout: p with w = 0, q split into diagonal and off-diagonal.
-struct Packed {
-    uv: Vec<Vec4>,
-    p: Vec<Vec4>,
-    q_diag: Vec<Vec4>,
-    q_off: Vec<Vec4>,
+#[derive(Clone, Debug, PartialEq)]
+pub struct Packed {
+    pub uv: Vec<Vec4>,
+    pub p: Vec<Vec4>,
+    pub q_diag: Vec<Vec4>,
+    pub q_off: Vec<Vec4>,
+}
+
+impl Packed {
+    pub fn of(state: &State) -> Packed {
+        let three = |x: &[f32; 3]| Vec4::new(x[0], x[1], x[2], 0.0);
+        Packed {
+            uv: state
+                .u
+                .iter()
+                .zip(&state.v)
+                .map(|(u, v)| Vec4::new(*u, v[0], v[1], v[2]))
+                .collect(),
+            p: state.p.iter().map(three).collect(),
+            q_diag: state.q.iter().map(|q| Vec4::new(q[0], q[1], q[2], 0.0)).collect(),
+            q_off: state.q.iter().map(|q| Vec4::new(q[3], q[4], q[5], 0.0)).collect(),
+        }
+    }
+
+    pub fn unpack_into(&self, state: &mut State) {
+        for (c, uv) in self.uv.iter().enumerate() {
+            state.u[c] = uv.x;
+            state.v[c] = [uv.y, uv.z, uv.w];
+            let (p, qd, qo) = (self.p[c], self.q_diag[c], self.q_off[c]);
+            state.p[c] = [p.x, p.y, p.z];
+            state.q[c] = [qd.x, qd.y, qd.z, qo.x, qo.y, qo.z];
+        }
+    }
 }
 
 /// Scales `x` (and its partner, as one vector) into the unit ball; norms at most 1 are scaled
@@ -617,7 +648,7 @@ impl Kernel {
     /// Runs `iterations` steps on the packed state. Each pass computes every output from a
     /// fixed gather list in a fixed order, so the result does not depend on the thread count.
     /// The per-cube columns are walked with zipped iterators, so only the gathers check bounds.
-    fn iterate(&self, state: &mut Packed, iterations: usize) {
+    pub fn iterate(&self, state: &mut Packed, iterations: usize) {
         let n = self.n;
         let mut bar: Vec<Vec4> = state.uv.iter().chain(&self.frozen).copied().collect();
         let mut rows = vec![Vec4::ZERO; 3 * n];
@@ -760,31 +791,37 @@ fn primal(
 /// Runs `iterations` preconditioned primal-dual steps from `state`; returns the energy before
 /// and after. The fused twin of [`solve_reference`], on the compiled [`Kernel`].
 pub fn solve(problem: &Problem, state: &mut State, iterations: usize) -> (f64, f64) {
+    solve_on(None, problem, state, iterations)
+}
+
+/// [`solve`] with the iterations on `gpu` when given. A GPU failure (out of memory, device
+/// lost, a buffer over the adapter's limits) is logged and the same iterations run on the CPU,
+/// from the same starting state.
+pub fn solve_on(gpu: Option<&crate::gpu::Gpu>, problem: &Problem, state: &mut State, iterations: usize) -> (f64, f64) {
     let op = Operator::new(problem);
     let Some(kernel) = Kernel::new(&op) else {
         return solve_reference(problem, state, iterations);
     };
     let before = start(&op, state);
-    let three = |x: &[f32; 3]| Vec4::new(x[0], x[1], x[2], 0.0);
-    let mut packed = Packed {
-        uv: state
-            .u
-            .iter()
-            .zip(&state.v)
-            .map(|(u, v)| Vec4::new(*u, v[0], v[1], v[2]))
-            .collect(),
-        p: state.p.iter().map(three).collect(),
-        q_diag: state.q.iter().map(|q| Vec4::new(q[0], q[1], q[2], 0.0)).collect(),
-        q_off: state.q.iter().map(|q| Vec4::new(q[3], q[4], q[5], 0.0)).collect(),
+    let mut packed = Packed::of(state);
+    let on_gpu = match gpu {
+        Some(gpu) => {
+            let result = crate::gpu::tgv::iterate(gpu, &kernel, &mut packed, iterations);
+            gpu.count(result.is_ok());
+            match result {
+                Ok(()) => true,
+                Err(error) => {
+                    tracing::warn!("{error}; this unit's {} cubes run on the CPU", kernel.n);
+                    false
+                }
+            }
+        }
+        None => false,
     };
-    kernel.iterate(&mut packed, iterations);
-    for (c, uv) in packed.uv.iter().enumerate() {
-        state.u[c] = uv.x;
-        state.v[c] = [uv.y, uv.z, uv.w];
-        let (p, qd, qo) = (packed.p[c], packed.q_diag[c], packed.q_off[c]);
-        state.p[c] = [p.x, p.y, p.z];
-        state.q[c] = [qd.x, qd.y, qd.z, qo.x, qo.y, qo.z];
+    if !on_gpu {
+        kernel.iterate(&mut packed, iterations);
     }
+    packed.unpack_into(state);
     let after = energy(&op, state);
     (before, after)
 }

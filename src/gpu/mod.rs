@@ -1,0 +1,249 @@
+//! The heavy stages on a GPU, through wgpu (WGSL compute shaders in `shaders/`).
+//!
+//! The CPU code is the reference and the fallback: every shader has a CPU twin of the same name
+//! in [`twins`], tests compare the two within a stated tolerance, and a unit whose GPU run fails
+//! (out of memory, device lost, a limit exceeded) runs on the CPU instead, with a warning.
+//!
+//! Device choice (`--device`): `auto` takes a hardware adapter when there is one and never a
+//! software rasteriser (llvmpipe would be slower than the CPU kernel); `gpu` takes the best
+//! adapter there is, software included, which is how the tests reach the shaders on machines
+//! without a GPU; `cpu` opens nothing. `WGPU_BACKEND` (and the other `wgpu` environment
+//! variables) choose the backends.
+
+pub mod tgv;
+pub mod twins;
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
+/// Where the solver runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum DeviceChoice {
+    /// A hardware GPU if there is one, else the CPU.
+    #[default]
+    Auto,
+    /// The CPU kernel.
+    Cpu,
+    /// The best GPU adapter there is, a software one included; an error when there is none.
+    Gpu,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    #[error("no GPU adapter found (backends from WGPU_BACKEND, default all); {0}")]
+    NoAdapter(String),
+    #[error("opening the device of adapter {adapter} failed: {message}")]
+    RequestDevice { adapter: String, message: String },
+    #[error("the unit needs a {what} buffer of {needed} bytes; the adapter allows {limit}")]
+    TooLarge {
+        what: &'static str,
+        needed: u64,
+        limit: u64,
+    },
+    #[error("out of GPU memory: {0}")]
+    OutOfMemory(String),
+    #[error("GPU device lost: {0}")]
+    DeviceLost(String),
+    #[error("GPU validation error: {0}")]
+    Validation(String),
+    #[error("reading results back from the GPU failed: {0}")]
+    Readback(String),
+}
+
+/// One adapter as `octstore info --devices` lists it.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct AdapterSummary {
+    pub name: String,
+    pub backend: String,
+    pub device_type: String,
+    pub driver: String,
+    /// A software rasteriser (llvmpipe, SwiftShader): never chosen by `auto`.
+    pub software: bool,
+    /// Largest storage buffer binding, in bytes.
+    pub max_storage_binding: u64,
+}
+
+fn instance() -> wgpu::Instance {
+    wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env())
+}
+
+fn summary(adapter: &wgpu::Adapter) -> AdapterSummary {
+    let info = adapter.get_info();
+    AdapterSummary {
+        name: info.name.clone(),
+        backend: format!("{:?}", info.backend),
+        device_type: format!("{:?}", info.device_type),
+        driver: format!("{} {}", info.driver, info.driver_info).trim().to_string(),
+        software: info.device_type == wgpu::DeviceType::Cpu,
+        max_storage_binding: adapter.limits().max_storage_buffer_binding_size,
+    }
+}
+
+/// Every adapter wgpu finds, in its order.
+pub fn adapters() -> Vec<AdapterSummary> {
+    let instance = instance();
+    pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()))
+        .iter()
+        .map(summary)
+        .collect()
+}
+
+/// Preference among adapters: discrete, integrated, virtual, other, then software.
+fn rank(device_type: wgpu::DeviceType) -> u8 {
+    match device_type {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Other => 3,
+        wgpu::DeviceType::Cpu => 4,
+    }
+}
+
+/// An open device with the solver's pipelines.
+pub struct Gpu {
+    pub adapter: AdapterSummary,
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    limits: wgpu::Limits,
+    tgv: tgv::Pipelines,
+    /// Set by the device-lost callback; later units go straight to the CPU.
+    lost: Arc<AtomicBool>,
+    /// Units whose iterations ran here, and units that fell back to the CPU.
+    units: AtomicU64,
+    fallbacks: AtomicU64,
+}
+
+impl Gpu {
+    /// The device `choice` asks for: `None` for `cpu`, and for `auto` without a hardware GPU.
+    pub fn open(choice: DeviceChoice) -> Result<Option<Gpu>, GpuError> {
+        if choice == DeviceChoice::Cpu {
+            return Ok(None);
+        }
+        let instance = instance();
+        let mut found = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        found.sort_by_key(|a| rank(a.get_info().device_type));
+        let usable =
+            |a: &wgpu::Adapter| choice == DeviceChoice::Gpu || a.get_info().device_type != wgpu::DeviceType::Cpu;
+        let Some(adapter) = found.into_iter().find(usable) else {
+            return match choice {
+                DeviceChoice::Gpu => Err(GpuError::NoAdapter(
+                    "on Debian, the package mesa-vulkan-drivers provides a software one (llvmpipe)".into(),
+                )),
+                _ => Ok(None),
+            };
+        };
+        let summary = summary(&adapter);
+        // Everything the adapter allows: large leaves need large storage bindings.
+        let limits = adapter.limits();
+        let descriptor = wgpu::DeviceDescriptor {
+            label: Some("octstore"),
+            required_limits: limits.clone(),
+            ..Default::default()
+        };
+        let (device, queue) =
+            pollster::block_on(adapter.request_device(&descriptor)).map_err(|e| GpuError::RequestDevice {
+                adapter: summary.name.clone(),
+                message: e.to_string(),
+            })?;
+        let lost = Arc::new(AtomicBool::new(false));
+        let flag = lost.clone();
+        device.set_device_lost_callback(move |reason, message| {
+            tracing::warn!("GPU device lost ({reason:?}): {message}");
+            flag.store(true, Ordering::SeqCst);
+        });
+        // Errors outside an error scope would otherwise panic; every unit's work runs inside
+        // scopes, so anything reaching this handler is logged, not fatal.
+        device.on_uncaptured_error(Arc::new(|error| tracing::error!("uncaptured GPU error: {error}")));
+        let tgv = tgv::Pipelines::new(&device);
+        tracing::info!(
+            "GPU: {} ({}, {}, {})",
+            summary.name,
+            summary.backend,
+            summary.device_type,
+            summary.driver
+        );
+        Ok(Some(Gpu {
+            adapter: summary,
+            device,
+            queue,
+            limits,
+            tgv,
+            lost,
+            units: AtomicU64::new(0),
+            fallbacks: AtomicU64::new(0),
+        }))
+    }
+
+    /// Caps the storage bindings this process will use below the adapter's limit, so that
+    /// larger units take the CPU fallback (for tests of that path, and to leave room for other
+    /// work on a shared GPU).
+    pub fn with_binding_limit(mut self, bytes: u64) -> Gpu {
+        self.limits.max_storage_buffer_binding_size = self.limits.max_storage_buffer_binding_size.min(bytes);
+        self
+    }
+
+    /// (units run on this device, units that fell back to the CPU) so far.
+    pub fn counts(&self) -> (u64, u64) {
+        (self.units.load(Ordering::SeqCst), self.fallbacks.load(Ordering::SeqCst))
+    }
+
+    pub(crate) fn count(&self, on_gpu: bool) {
+        let counter = if on_gpu { &self.units } else { &self.fallbacks };
+        counter.fetch_add(1, Ordering::SeqCst);
+    }
+
+    pub fn is_lost(&self) -> bool {
+        self.lost.load(Ordering::SeqCst)
+    }
+
+    /// Checks that one storage binding of `bytes` fits the device.
+    fn check_binding(&self, what: &'static str, bytes: u64) -> Result<(), GpuError> {
+        let limit = self
+            .limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size);
+        if bytes > limit {
+            return Err(GpuError::TooLarge {
+                what,
+                needed: bytes,
+                limit,
+            });
+        }
+        Ok(())
+    }
+
+    /// Runs `work` inside out-of-memory and validation error scopes, and turns what they catch
+    /// (or a lost device) into an error.
+    fn scoped<T>(&self, work: impl FnOnce() -> Result<T, GpuError>) -> Result<T, GpuError> {
+        if self.is_lost() {
+            return Err(GpuError::DeviceLost("lost during an earlier unit".into()));
+        }
+        let out_of_memory = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let result = work();
+        let invalid = pollster::block_on(validation.pop());
+        let exhausted = pollster::block_on(out_of_memory.pop());
+        if let Some(error) = exhausted {
+            return Err(GpuError::OutOfMemory(error.to_string()));
+        }
+        if let Some(error) = invalid {
+            return Err(GpuError::Validation(error.to_string()));
+        }
+        if self.is_lost() {
+            return Err(GpuError::DeviceLost("during this unit".into()));
+        }
+        result
+    }
+}
+
+/// Workgroups for `n` invocations of a 256-wide shader, as a 2-D grid within the per-dimension
+/// limit; returns (x, y, invocations per grid row).
+pub fn grid(n: u32, max_per_dimension: u32) -> (u32, u32, u32) {
+    let groups = n.div_ceil(WORKGROUP_SIZE).max(1);
+    let x = groups.min(max_per_dimension.max(1));
+    let y = groups.div_ceil(x);
+    (x, y, x * WORKGROUP_SIZE)
+}
+
+/// `@workgroup_size` of every compute shader.
+pub const WORKGROUP_SIZE: u32 = 256;
