@@ -1,10 +1,14 @@
 //! Solver throughput: cube-iterations per second of the preconditioned primal-dual TGV steps on
 //! a uniform grid of N^3 free cubes with histograms (`cargo bench --bench solver`;
-//! OCTSTORE_BENCH_GRID sets N, default 100, i.e. 1 million cubes).
+//! OCTSTORE_BENCH_GRID sets N, default 100, i.e. 1 million cubes), on the CPU kernel and then on
+//! every GPU adapter wgpu finds (software ones included, marked as such). A GPU figure counts
+//! the iterations only: the time of one iteration (upload, one step, read-back) is subtracted
+//! from the time of all of them.
 
 use std::time::Instant;
 
-use octstore::stages::tgv::{Problem, State, solve};
+use octstore::gpu::{Gpu, adapters};
+use octstore::stages::tgv::{Kernel, Operator, Packed, Problem, State, solve};
 
 fn main() {
     let n: usize = std::env::var("OCTSTORE_BENCH_GRID")
@@ -56,17 +60,50 @@ fn main() {
         alpha0: vec![2.0 * h * h; cubes],
         lambda: 0.1,
     };
-    let mut state = State::zeros(cubes);
+    let state = State::zeros(cubes);
     let iterations: usize = std::env::var("OCTSTORE_BENCH_ITERATIONS")
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(200);
     let started = Instant::now();
-    let (before, after) = solve(&problem, &mut state, iterations);
+    let (before, after) = solve(&problem, &mut state.clone(), iterations);
     let seconds = started.elapsed().as_secs_f64();
     println!(
         "solver: {cubes} cubes x {iterations} iterations in {seconds:.2}s on {} threads: {:.2} million cube-iterations/s (energy {before:.3e} -> {after:.3e})",
         rayon::current_num_threads(),
         (cubes * iterations) as f64 / seconds / 1e6
     );
+    let op = Operator::new(&problem);
+    let Some(kernel) = Kernel::new(&op) else {
+        println!("solver: gather lists too long for the kernel; no GPU figures");
+        return;
+    };
+    let found = adapters();
+    if found.is_empty() {
+        println!("solver: no GPU adapter found (WGPU_BACKEND chooses backends)");
+    }
+    for (index, adapter) in found.iter().enumerate() {
+        let kind = if adapter.software { "software" } else { "hardware" };
+        let gpu = match Gpu::open_adapter(index) {
+            Ok(gpu) => gpu,
+            Err(error) => {
+                println!("solver on {} ({kind}): {error}", adapter.name);
+                continue;
+            }
+        };
+        let time = |steps: usize| {
+            let mut packed = Packed::of(&state);
+            let started = Instant::now();
+            octstore::gpu::tgv::iterate(&gpu, &kernel, &mut packed, steps).map(|()| started.elapsed().as_secs_f64())
+        };
+        match (time(1), time(iterations)) {
+            (Ok(one), Ok(all)) => println!(
+                "solver on {} ({kind}, {}): {cubes} cubes x {iterations} iterations in {all:.2}s ({one:.2}s for one with upload and read-back): {:.2} million cube-iterations/s",
+                adapter.name,
+                adapter.backend,
+                (cubes * (iterations - 1)) as f64 / (all - one).max(1e-9) / 1e6
+            ),
+            (Err(error), _) | (_, Err(error)) => println!("solver on {} ({kind}): {error}", adapter.name),
+        }
+    }
 }

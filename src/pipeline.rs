@@ -115,7 +115,7 @@ pub fn ingest(
 /// Runs the pending stages up to `options.until`: the octree, the histograms, then every level
 /// of the solution coarse to fine. `on_report` sees each stage's report as it finishes.
 pub fn solve(store: &Store, options: &SolveOptions, on_report: impl FnMut(&RunReport)) -> Result<()> {
-    let gpu = if options.until >= SolveUntil::Solution {
+    let gpu = if options.until >= SolveUntil::Histograms {
         open_gpu(options.device)?
     } else {
         None
@@ -142,8 +142,9 @@ pub fn solve_with_gpu(
     if options.until >= SolveUntil::Histograms {
         // Stages run one at a time: an eighth of the budget for decoded depth maps, beside the
         // workers' groups of leaves, keeps the histogram stage within the budget.
-        let stage =
-            HistogramsStage::new(scene, registered_depth_maps(store)?).with_cache_bytes(options.memory_budget / 8);
+        let stage = HistogramsStage::new(scene, registered_depth_maps(store)?)
+            .with_cache_bytes(options.memory_budget / 8)
+            .with_gpu(gpu.clone());
         on_report(&store.run_stage(&stage, &options.run)?);
     }
     if options.until >= SolveUntil::Solution {

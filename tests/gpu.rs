@@ -1,6 +1,7 @@
 //! The GPU solver against its CPU twins and the CPU kernel. The shaders run on whatever adapter
-//! `--device gpu` would take; CI installs llvmpipe (Debian's mesa-vulkan-drivers), so these
-//! tests fail, rather than skip, on a machine with no Vulkan adapter at all.
+//! `--device gpu` would take. CI installs llvmpipe (Debian's mesa-vulkan-drivers) and sets
+//! OCTSTORE_REQUIRE_GPU=1, so there a missing adapter fails these tests; elsewhere a test that
+//! needs an adapter says on stderr that it did not run, and passes.
 
 use glam::Vec4;
 use octstore::gpu::{DeviceChoice, Gpu, twins};
@@ -78,10 +79,16 @@ fn grid_problem(g: usize, seed: u64) -> (Problem, State) {
     (problem, state)
 }
 
-fn open_gpu() -> Gpu {
+/// The adapter `--device gpu` takes; `None` (after saying so) where there is none and
+/// OCTSTORE_REQUIRE_GPU is not 1.
+fn open_gpu() -> Option<Gpu> {
     match Gpu::open(DeviceChoice::Gpu) {
-        Ok(Some(gpu)) => gpu,
+        Ok(Some(gpu)) => Some(gpu),
         Ok(None) => panic!("--device gpu opened nothing"),
+        Err(error) if std::env::var("OCTSTORE_REQUIRE_GPU").as_deref() != Ok("1") => {
+            eprintln!("NOT RUN: {error} (install mesa-vulkan-drivers, or set OCTSTORE_REQUIRE_GPU=1 to fail)");
+            None
+        }
         Err(error) => panic!("{error}"),
     }
 }
@@ -115,7 +122,7 @@ const GPU_TOLERANCE: f32 = 1e-4;
 
 #[test]
 fn gpu_iterations_match_the_twins() {
-    let gpu = open_gpu();
+    let Some(gpu) = open_gpu() else { return };
     for (g, seed) in [(1, 1), (7, 5), (23, 9)] {
         let (problem, state) = grid_problem(g, seed);
         let op = Operator::new(&problem);
@@ -147,7 +154,8 @@ fn a_unit_over_the_gpu_limits_runs_on_the_cpu_with_the_same_result() {
     let mut cpu = state.clone();
     let cpu_energy = tgv::solve(&problem, &mut cpu, 30);
     // Bindings of 1 KiB: every buffer of a 512-cube unit is larger.
-    let gpu = open_gpu().with_binding_limit(1024);
+    let Some(gpu) = open_gpu() else { return };
+    let gpu = gpu.with_binding_limit(1024);
     let mut fallback = state.clone();
     let fallback_energy = tgv::solve_on(Some(&gpu), &problem, &mut fallback, 30);
     assert_eq!(cpu, fallback);
@@ -167,7 +175,7 @@ fn a_unit_over_the_gpu_limits_runs_on_the_cpu_with_the_same_result() {
 
 #[test]
 fn solve_on_the_gpu_lowers_the_energy_like_the_cpu() {
-    let gpu = open_gpu();
+    let Some(gpu) = open_gpu() else { return };
     let (problem, state) = grid_problem(12, 11);
     let mut cpu = state.clone();
     let (cpu_before, cpu_after) = tgv::solve(&problem, &mut cpu, 60);
@@ -257,9 +265,9 @@ fn shared_structs_match_the_shader_layout() {
     assert_eq!(size_of::<tgv::Slopes>(), 9 * size_of::<f32>());
 }
 
-/// The whole pipeline on a noisy sphere, solved with `--device gpu` and `--device cpu`: the
-/// indicator fields agree within the stated tolerance at every cube, and so the meshes have
-/// the same triangles with vertices within a small fraction of a cube.
+/// The whole pipeline on a noisy sphere, solved with `--device gpu` (votes and iterations on
+/// the GPU) and `--device cpu`: at most 1 % of cubes move by more than 1e-3 and 0.1 % change
+/// sign, and the meshes lie within half a cube of each other (F-score 0.99).
 #[test]
 fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
     use octstore::pipeline::{SolveOptions, ingest, solve_with_gpu};
@@ -295,7 +303,8 @@ fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
         progress: false,
     };
     let mut results = Vec::new();
-    let gpu = std::sync::Arc::new(open_gpu());
+    let Some(gpu) = open_gpu() else { return };
+    let gpu = std::sync::Arc::new(gpu);
     for device in [DeviceChoice::Cpu, DeviceChoice::Gpu] {
         let store = octstore::Store::create(dir.path().join(format!("{device:?}"))).unwrap();
         let options = IngestOptions {
@@ -342,23 +351,251 @@ fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
     );
     let (cpu_field, cpu_mesh, side) = &results[0];
     let (gpu_field, gpu_mesh, _) = &results[1];
+    // The votes are cast in f32 on the GPU (f64 on the CPU), so a cube whose value sits on a
+    // bin or pixel boundary may vote differently; the solve then moves u a little nearby.
     assert_eq!(cpu_field.len(), gpu_field.len());
-    let mut worst = 0f32;
+    let (mut moved, mut flipped, mut worst) = (0usize, 0usize, 0f32);
     for ((key_cpu, u_cpu), (key_gpu, u_gpu)) in cpu_field.iter().zip(gpu_field) {
         assert_eq!(key_cpu, key_gpu);
-        worst = worst.max((u_cpu - u_gpu).abs());
+        let du = (u_cpu - u_gpu).abs();
+        worst = worst.max(du);
+        moved += usize::from(du > 1e-3);
+        flipped += usize::from((*u_cpu < 0.0) != (*u_gpu < 0.0));
     }
-    eprintln!("{} cubes: worst |u_gpu - u_cpu| = {worst:e}", cpu_field.len());
-    assert!(worst <= 1e-3, "fields differ by {worst}");
-    assert_eq!(cpu_mesh.triangles.len(), gpu_mesh.triangles.len());
-    let shift = cpu_mesh
-        .positions
-        .iter()
-        .zip(&gpu_mesh.positions)
-        .map(|(a, b)| (glam::Vec3::from(*a) - glam::Vec3::from(*b)).length())
-        .fold(0f32, f32::max);
-    assert!(
-        f64::from(shift) <= 0.01 * side,
-        "a vertex moved by {shift} (cube side {side})"
+    let n = cpu_field.len();
+    eprintln!("{n} cubes: {moved} move by more than 1e-3, {flipped} change sign, worst |du| {worst:e}");
+    assert!(moved * 100 <= n, "{moved} of {n} cubes moved by more than 1e-3");
+    assert!(flipped * 1000 <= n, "{flipped} of {n} cubes changed sign");
+    let options = octstore::quality::evaluate::EvaluateOptions {
+        tau: 0.5 * side,
+        spacing: Some(0.5 * side),
+        crop_margin: None,
+        seed: 1,
+    };
+    let report = octstore::quality::evaluate::evaluate(gpu_mesh, cpu_mesh, &options).unwrap();
+    eprintln!(
+        "GPU mesh against the CPU mesh: F {:.4} at half a cube, Chamfer {:.2e} (cube side {side:.2e})",
+        report.f_score, report.chamfer
     );
+    assert!(report.f_score >= 0.99 && report.chamfer <= 0.05 * side, "{report:?}");
+}
+
+/// A depth map seen from far off the origin (pinhole or 360-degree), with holes, and cubes of
+/// many sizes around its surface and outside its view; with the unit origin near the cubes.
+struct VoteCase {
+    pyramid: octstore::stages::histograms::Pyramid,
+    world_to_camera: glam::DMat4,
+    centers: Vec<glam::DVec3>,
+    radii: Vec<f64>,
+    origin: glam::DVec3,
+}
+
+fn vote_case(spherical: bool, seed: u64) -> VoteCase {
+    use glam::{DMat4, DVec3};
+    use octstore::stages::depthmap::{DepthImage, DepthMapSource, ImageFormat, Kind, Projection};
+    let mut seed = seed;
+    let mut uniform = move || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (seed >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let (width, height) = if spherical { (160u32, 80u32) } else { (97, 61) };
+    let projection = if spherical {
+        Projection::Spherical
+    } else {
+        Projection::Pinhole {
+            fx: 80.0,
+            fy: 70.0,
+            cx: 48.0,
+            cy: 30.5,
+        }
+    };
+    let camera_to_world = DMat4::from_translation(DVec3::new(1000.0, -2000.0, 500.0))
+        * DMat4::from_rotation_y(0.4)
+        * DMat4::from_rotation_x(-0.3);
+    let source = DepthMapSource {
+        path: "case.pfm".into(),
+        format: ImageFormat::Pfm,
+        width,
+        height,
+        projection,
+        camera_to_world: camera_to_world.to_cols_array(),
+        kind: if spherical { Kind::Lidar } else { Kind::Photo },
+        weight: 1.0,
+    };
+    let depth_at = |i: u32, j: u32| 3.0 + 0.02 * f64::from(i) + 0.5 * (f64::from(j) * 0.1).sin();
+    let mut depth = Vec::new();
+    for j in 0..height {
+        for i in 0..width {
+            depth.push(if uniform() < 0.05 {
+                f32::NAN
+            } else {
+                depth_at(i, j) as f32
+            });
+        }
+    }
+    // The camera-space direction through pixel (u, v), unit length.
+    let ray = |u: f64, v: f64| -> DVec3 {
+        match projection {
+            Projection::Pinhole { fx, fy, cx, cy } => DVec3::new((u - cx) / fx, (v - cy) / fy, 1.0).normalize(),
+            Projection::Spherical => {
+                let azimuth = u / f64::from(width) * std::f64::consts::TAU;
+                let elevation = std::f64::consts::FRAC_PI_2 - (v + 0.5) / f64::from(height) * std::f64::consts::PI;
+                DVec3::new(
+                    elevation.cos() * azimuth.cos(),
+                    elevation.cos() * azimuth.sin(),
+                    elevation.sin(),
+                )
+            }
+        }
+    };
+    let mut centers = Vec::new();
+    let mut radii = Vec::new();
+    for _ in 0..20_000 {
+        let (u, v) = (
+            uniform() * f64::from(width + 20) - 10.0,
+            uniform() * f64::from(height + 20) - 10.0,
+        );
+        let surface = depth_at(
+            u.clamp(0.0, f64::from(width - 1)) as u32,
+            v.clamp(0.0, f64::from(height - 1)) as u32,
+        );
+        let direction = ray(u, v);
+        // Along the ray to the surface's depth (z for a pinhole, range for a 360-degree map).
+        let scale = if spherical { 1.0 } else { 1.0 / direction.z };
+        let distance = surface + (uniform() - 0.5) * 0.6;
+        centers.push(camera_to_world.transform_point3(direction * distance * scale));
+        radii.push(0.001 * 300f64.powf(uniform()));
+    }
+    let origin = centers.iter().copied().sum::<DVec3>() / centers.len() as f64 + DVec3::splat(0.37);
+    VoteCase {
+        pyramid: octstore::stages::histograms::Pyramid::new(source, DepthImage { width, height, depth }),
+        world_to_camera: camera_to_world.inverse(),
+        centers,
+        radii,
+        origin,
+    }
+}
+
+/// The bin each cube's row received (each row gets at most one vote per map).
+fn voted_bins(hist: &[f32]) -> Vec<Option<usize>> {
+    hist.chunks(8).map(|row| row.iter().position(|h| *h != 0.0)).collect()
+}
+
+fn twin_votes(case: &VoteCase) -> Vec<f32> {
+    use octstore::gpu::votes::{cube_offsets, pyramid_arrays, vote_map};
+    let n = case.centers.len();
+    let (levels, depths) = pyramid_arrays(&case.pyramid);
+    let map = octstore::gpu::votes::VoteMap {
+        levels: levels.len() as u32,
+        ..vote_map(&case.pyramid.source, &case.world_to_camera, case.origin, 1.0, n as u32)
+    };
+    let cubes = cube_offsets(case.origin, &case.centers, &case.radii);
+    let mut hist = vec![0f32; 8 * n];
+    let mut votes = vec![0u32; n];
+    for c in 0..n {
+        twins::votes(c, &map, &cubes, &levels, &depths, &mut hist, &mut votes);
+    }
+    hist
+}
+
+/// The votes twin (f32, unit-relative) against the CPU reference (f64, world coordinates):
+/// they may differ only where a value sits on a bin, level or pixel boundary.
+#[test]
+fn votes_twin_matches_the_cpu_reference() {
+    for spherical in [false, true] {
+        let case = vote_case(spherical, 17);
+        let reference: Vec<Option<usize>> = case
+            .centers
+            .iter()
+            .zip(&case.radii)
+            .map(|(c, r)| case.pyramid.vote(&case.world_to_camera, *c, *r))
+            .collect();
+        let twin = voted_bins(&twin_votes(&case));
+        let differ = reference.iter().zip(&twin).filter(|(a, b)| a != b).count();
+        let voted = reference.iter().filter(|b| b.is_some()).count();
+        let bins: std::collections::BTreeSet<usize> = reference.iter().flatten().copied().collect();
+        eprintln!(
+            "spherical {spherical}: {voted} of {} cubes vote, {differ} differ",
+            reference.len()
+        );
+        assert!(
+            voted > 5_000 && bins.len() == 8,
+            "the case exercises every bin: {bins:?}"
+        );
+        assert!(
+            differ * 1000 <= reference.len(),
+            "{differ} of {} cubes differ",
+            reference.len()
+        );
+    }
+}
+
+/// `shaders/votes.wgsl` against its twin, on the adapter `--device gpu` takes.
+#[test]
+fn votes_shader_matches_the_twin() {
+    let Some(gpu) = open_gpu() else { return };
+    for spherical in [false, true] {
+        let case = vote_case(spherical, 23);
+        let twin = twin_votes(&case);
+        let n = case.centers.len();
+        let previous: Vec<f32> = (0..8 * n).map(|i| (i % 3) as f32 * 0.5).collect();
+        let unit = gpu
+            .upload_unit(case.origin, &case.centers, &case.radii, &previous)
+            .expect("upload");
+        let map = gpu.upload_pyramid(&case.pyramid).expect("upload");
+        gpu.vote(&unit, &map, &case.pyramid.source, &case.world_to_camera, 1.0)
+            .expect("vote");
+        let (hist, votes) = gpu.finish_unit(&unit).expect("read back");
+        let on_gpu: Vec<f32> = hist.iter().zip(&previous).map(|(h, p)| h - p).collect();
+        let expected_votes = twin.iter().filter(|h| **h != 0.0).count() as u64;
+        let differ = voted_bins(&twin)
+            .iter()
+            .zip(voted_bins(&on_gpu))
+            .filter(|(a, b)| **a != *b)
+            .count();
+        eprintln!("spherical {spherical}: {differ} of {n} cubes differ, {votes} votes (twin {expected_votes})");
+        // WGSL lets atan2 and asin be far less exact than Rust's (llvmpipe moves 0.08 % of a
+        // 360-degree map's cubes across a pixel or bin boundary); the pinhole path has no
+        // transcendental function.
+        let allowed = if spherical { n / 500 } else { n / 10_000 };
+        assert!(differ <= allowed, "{differ} of {n} cubes differ");
+        assert!(votes.abs_diff(expected_votes) as usize <= allowed);
+    }
+}
+
+#[test]
+fn vote_map_matches_the_shader_layout() {
+    use octstore::gpu::votes::{VOTES_SHADER, VoteMap};
+    use std::mem::{offset_of, size_of};
+    use wgpu::naga;
+    let module = naga::front::wgsl::parse_str(VOTES_SHADER).expect("the shader parses");
+    let (members, span) = module
+        .types
+        .iter()
+        .find_map(|(_, ty)| match (&ty.name, &ty.inner) {
+            (Some(name), naga::TypeInner::Struct { members, span }) if name == "VoteMap" => {
+                Some((members.clone(), *span))
+            }
+            _ => None,
+        })
+        .expect("VoteMap in the shader");
+    assert_eq!(span as usize, size_of::<VoteMap>());
+    let offsets: Vec<(String, usize)> = members
+        .iter()
+        .map(|m| (m.name.clone().unwrap_or_default(), m.offset as usize))
+        .collect();
+    let expected = [
+        ("unit_to_camera", offset_of!(VoteMap, unit_to_camera)),
+        ("intrinsics", offset_of!(VoteMap, intrinsics)),
+        ("width", offset_of!(VoteMap, width)),
+        ("height", offset_of!(VoteMap, height)),
+        ("levels", offset_of!(VoteMap, levels)),
+        ("spherical", offset_of!(VoteMap, spherical)),
+        ("weight", offset_of!(VoteMap, weight)),
+        ("n", offset_of!(VoteMap, n)),
+        ("row_stride", offset_of!(VoteMap, row_stride)),
+        ("_padding", offset_of!(VoteMap, padding)),
+    ];
+    let expected: Vec<(String, usize)> = expected.iter().map(|(n, o)| (n.to_string(), *o)).collect();
+    assert_eq!(offsets, expected);
 }

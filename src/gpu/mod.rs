@@ -12,6 +12,7 @@
 
 pub mod tgv;
 pub mod twins;
+pub mod votes;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -88,6 +89,10 @@ pub fn adapters() -> Vec<AdapterSummary> {
         .collect()
 }
 
+fn no_adapter() -> GpuError {
+    GpuError::NoAdapter("on Debian, the package mesa-vulkan-drivers provides a software one (llvmpipe)".into())
+}
+
 /// Preference among adapters: discrete, integrated, virtual, other, then software.
 fn rank(device_type: wgpu::DeviceType) -> u8 {
     match device_type {
@@ -106,6 +111,7 @@ pub struct Gpu {
     queue: wgpu::Queue,
     limits: wgpu::Limits,
     tgv: tgv::Pipelines,
+    votes: votes::Pipeline,
     /// Set by the device-lost callback; later units go straight to the CPU.
     lost: Arc<AtomicBool>,
     /// Units whose iterations ran here, and units that fell back to the CPU.
@@ -126,12 +132,22 @@ impl Gpu {
             |a: &wgpu::Adapter| choice == DeviceChoice::Gpu || a.get_info().device_type != wgpu::DeviceType::Cpu;
         let Some(adapter) = found.into_iter().find(usable) else {
             return match choice {
-                DeviceChoice::Gpu => Err(GpuError::NoAdapter(
-                    "on Debian, the package mesa-vulkan-drivers provides a software one (llvmpipe)".into(),
-                )),
+                DeviceChoice::Gpu => Err(no_adapter()),
                 _ => Ok(None),
             };
         };
+        Gpu::on(adapter).map(Some)
+    }
+
+    /// The adapter at `index` of [`adapters`]' list, whatever its kind (for benchmarks).
+    pub fn open_adapter(index: usize) -> Result<Gpu, GpuError> {
+        let instance = instance();
+        let found = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        let adapter = found.into_iter().nth(index).ok_or_else(no_adapter)?;
+        Gpu::on(adapter)
+    }
+
+    fn on(adapter: wgpu::Adapter) -> Result<Gpu, GpuError> {
         let summary = summary(&adapter);
         // Everything the adapter allows: large leaves need large storage bindings.
         let limits = adapter.limits();
@@ -155,6 +171,7 @@ impl Gpu {
         // scopes, so anything reaching this handler is logged, not fatal.
         device.on_uncaptured_error(Arc::new(|error| tracing::error!("uncaptured GPU error: {error}")));
         let tgv = tgv::Pipelines::new(&device);
+        let votes = votes::Pipeline::new(&device);
         tracing::info!(
             "GPU: {} ({}, {}, {})",
             summary.name,
@@ -162,16 +179,17 @@ impl Gpu {
             summary.device_type,
             summary.driver
         );
-        Ok(Some(Gpu {
+        Ok(Gpu {
             adapter: summary,
             device,
             queue,
             limits,
             tgv,
+            votes,
             lost,
             units: AtomicU64::new(0),
             fallbacks: AtomicU64::new(0),
-        }))
+        })
     }
 
     /// Caps the storage bindings this process will use below the adapter's limit, so that
@@ -214,7 +232,7 @@ impl Gpu {
 
     /// Runs `work` inside out-of-memory and validation error scopes, and turns what they catch
     /// (or a lost device) into an error.
-    fn scoped<T>(&self, work: impl FnOnce() -> Result<T, GpuError>) -> Result<T, GpuError> {
+    pub(crate) fn scoped<T>(&self, work: impl FnOnce() -> Result<T, GpuError>) -> Result<T, GpuError> {
         if self.is_lost() {
             return Err(GpuError::DeviceLost("lost during an earlier unit".into()));
         }
@@ -247,3 +265,56 @@ pub fn grid(n: u32, max_per_dimension: u32) -> (u32, u32, u32) {
 
 /// `@workgroup_size` of every compute shader.
 pub const WORKGROUP_SIZE: u32 = 256;
+
+/// Copies `(buffer, bytes)` pairs into one mappable buffer and returns each one's bytes.
+pub(crate) fn read_back(gpu: &Gpu, parts: &[(&wgpu::Buffer, u64)]) -> Result<Vec<Vec<u8>>, GpuError> {
+    // Copies must be multiples of 4 bytes at offsets that are too; every part here is.
+    let total: u64 = parts.iter().map(|(_, bytes)| *bytes).sum();
+    if total == 0 {
+        return Ok(parts.iter().map(|_| Vec::new()).collect());
+    }
+    let staging = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("read back"),
+        size: total,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+        label: Some("read back"),
+    });
+    let mut offset = 0;
+    for (buffer, bytes) in parts {
+        if *bytes > 0 {
+            encoder.copy_buffer_to_buffer(buffer, 0, &staging, offset, *bytes);
+        }
+        offset += bytes;
+    }
+    gpu.queue.submit([encoder.finish()]);
+    let (sender, receiver) = std::sync::mpsc::channel();
+    staging.map_async(wgpu::MapMode::Read, .., move |result| {
+        let _ = sender.send(result);
+    });
+    gpu.device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| GpuError::Readback(e.to_string()))?;
+    receiver
+        .recv()
+        .map_err(|e| GpuError::Readback(e.to_string()))?
+        .map_err(|e| GpuError::Readback(e.to_string()))?;
+    let out = {
+        let view = staging
+            .slice(..)
+            .get_mapped_range()
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let mut out = Vec::with_capacity(parts.len());
+        let mut offset = 0usize;
+        for (_, bytes) in parts {
+            let end = offset + *bytes as usize;
+            out.push(view.get(offset..end).unwrap_or(&[]).to_vec());
+            offset = end;
+        }
+        out
+    };
+    staging.unmap();
+    Ok(out)
+}

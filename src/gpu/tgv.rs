@@ -211,41 +211,11 @@ pub fn iterate(gpu: &Gpu, kernel: &Kernel, state: &mut Packed, iterations: usize
     Ok(())
 }
 
-/// Copies each of `buffers` (`bytes` long) into one mappable buffer and reads them back.
+/// Reads each of `buffers` (`bytes` long) back as packed vectors.
 fn read_back(gpu: &Gpu, buffers: &[&wgpu::Buffer], bytes: u64) -> Result<Vec<Vec<Vec4>>, GpuError> {
-    let staging = gpu.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("read back"),
-        size: bytes * buffers.len() as u64,
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-        label: Some("read back"),
-    });
-    for (index, buffer) in buffers.iter().enumerate() {
-        encoder.copy_buffer_to_buffer(buffer, 0, &staging, index as u64 * bytes, bytes);
-    }
-    gpu.queue.submit([encoder.finish()]);
-    let (sender, receiver) = std::sync::mpsc::channel();
-    staging.map_async(wgpu::MapMode::Read, .., move |result| {
-        let _ = sender.send(result);
-    });
-    gpu.device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .map_err(|e| GpuError::Readback(e.to_string()))?;
-    receiver
-        .recv()
-        .map_err(|e| GpuError::Readback(e.to_string()))?
-        .map_err(|e| GpuError::Readback(e.to_string()))?;
-    let columns = {
-        let view = staging
-            .slice(..)
-            .get_mapped_range()
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
-        view.chunks(bytes as usize)
-            .map(bytemuck::pod_collect_to_vec::<u8, Vec4>)
-            .collect()
-    };
-    staging.unmap();
-    Ok(columns)
+    let parts: Vec<(&wgpu::Buffer, u64)> = buffers.iter().map(|buffer| (*buffer, bytes)).collect();
+    Ok(super::read_back(gpu, &parts)?
+        .iter()
+        .map(|part| bytemuck::pod_collect_to_vec(part))
+        .collect())
 }

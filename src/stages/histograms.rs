@@ -311,6 +311,8 @@ pub struct HistogramsStage {
     /// Treetop units voted together, by group id (the first member's index).
     groups: std::sync::OnceLock<BTreeMap<u64, Vec<usize>>>,
     cache: PyramidCache,
+    /// Where the votes are cast; `None` is the CPU.
+    gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
 }
 
 /// A histogram group holds at most this many times the largest treetop leaf's cubes: a cube
@@ -329,7 +331,14 @@ impl HistogramsStage {
                 capacity: DEFAULT_PYRAMID_CACHE_BYTES,
                 state: std::sync::Mutex::default(),
             },
+            gpu: None,
         }
+    }
+
+    /// Casts the votes on `gpu` (falling back to the CPU per group on a GPU failure).
+    pub fn with_gpu(mut self, gpu: Option<std::sync::Arc<crate::gpu::Gpu>>) -> HistogramsStage {
+        self.gpu = gpu;
+        self
     }
 
     /// Bounds the bytes of decoded pyramids kept between units (0 keeps none).
@@ -482,49 +491,32 @@ impl Stage for HistogramsStage {
             })?;
             voters.push(self.voter(base, plan)?);
         }
-        // One pass over the depth maps for the whole group, in id order.
-        for (id, record) in &self.depth_maps {
-            let source = &record.source;
-            let world_to_camera = source.pose().inverse();
-            // Every member the map has not voted into yet records it; the chunks of those it may
-            // see vote. A map no chunk can see is never decoded.
-            let mut needed = Vec::new();
-            for (index, voter) in voters.iter_mut().enumerate() {
-                if voter.already.contains(id) {
-                    continue;
+        let on_gpu = match self.gpu.as_deref() {
+            Some(gpu) if !gpu.is_lost() => match self.vote_on_gpu(gpu, &mut voters, unit)? {
+                Ok(()) => true,
+                Err(error) => {
+                    tracing::warn!("{error}; {} votes on the CPU", unit.label);
+                    false
                 }
-                voter.voted.insert(*id);
-                if !Pyramid::may_see(source, &world_to_camera, voter.center, voter.radius) {
-                    continue;
-                }
-                let seen: Vec<usize> = voter
-                    .chunks
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, chunk)| Pyramid::may_see(source, &world_to_camera, chunk.center, chunk.radius))
-                    .map(|(chunk, _)| chunk)
-                    .collect();
-                if !seen.is_empty() {
-                    needed.push((index, seen));
-                }
-            }
-            if needed.is_empty() {
-                continue;
-            }
-            let pyramid = self.cache.get_or_load(*id, || {
-                let image = source.load().map_err(|e| StoreError::Stage {
-                    stage: HISTOGRAMS.into(),
-                    unit: unit.label.clone(),
-                    message: e.to_string(),
-                })?;
-                Ok(Pyramid::new(source.clone(), image))
-            })?;
-            let weight = quantized_weight(source.weight);
-            for (index, seen) in needed {
-                if let Some(voter) = voters.get_mut(index) {
-                    voter.vote(&pyramid, &world_to_camera, weight, &seen);
-                }
-            }
+            },
+            _ => false,
+        };
+        if let Some(gpu) = self.gpu.as_deref() {
+            gpu.count(on_gpu);
+        }
+        if !on_gpu {
+            self.pass_over_maps(
+                &mut voters,
+                unit,
+                |voters, pyramid, _, world_to_camera, weight, needed| {
+                    for (index, seen) in needed {
+                        if let Some(voter) = voters.get_mut(index) {
+                            voter.vote(pyramid, world_to_camera, weight, &seen);
+                        }
+                    }
+                    Ok(true)
+                },
+            )?;
         }
         let mut segments = Vec::with_capacity(voters.len());
         let mut extras = Vec::with_capacity(voters.len());
@@ -624,29 +616,157 @@ fn chunks(centers: &[DVec3], radii: &[f64]) -> Vec<Chunk> {
 }
 
 impl Voter {
-    /// Votes `pyramid` into the cubes of the chunks listed in `seen`, in cube order.
+    /// Votes `pyramid` into the cubes of the chunks listed in `seen` (ascending). Chunks own
+    /// disjoint rows of the histogram, so they vote in parallel: a group of one large leaf
+    /// still uses every core, and each cube still receives the maps in id order.
     fn vote(&mut self, pyramid: &Pyramid, world_to_camera: &glam::DMat4, weight: f32, seen: &[usize]) {
+        use rayon::prelude::*;
+        let mut work = Vec::with_capacity(seen.len());
+        let mut rest: &mut [f32] = &mut self.hist;
+        let mut consumed = 0;
         for chunk in seen.iter().filter_map(|&c| self.chunks.get(c)) {
-            let cubes = self
-                .centers
-                .iter()
-                .zip(&self.radii)
-                .enumerate()
-                .take(chunk.end)
-                .skip(chunk.start);
-            for (index, (center, radius)) in cubes {
-                if let Some(bin) = pyramid.vote(world_to_camera, *center, *radius)
-                    && let Some(h) = self.hist.get_mut(index * BINS + bin)
-                {
-                    *h += weight;
-                    self.votes += 1;
-                }
-            }
+            let Some((_, tail)) = rest.split_at_mut_checked((chunk.start - consumed) * BINS) else {
+                break;
+            };
+            let Some((rows, tail)) = tail.split_at_mut_checked((chunk.end - chunk.start) * BINS) else {
+                break;
+            };
+            work.push((chunk, rows));
+            rest = tail;
+            consumed = chunk.end;
         }
+        let (centers, radii) = (&self.centers, &self.radii);
+        let votes: u64 = work
+            .into_par_iter()
+            .map(|(chunk, rows)| {
+                let cubes = centers.iter().zip(radii).take(chunk.end).skip(chunk.start);
+                let mut votes = 0u64;
+                for (row, (center, radius)) in rows.chunks_exact_mut(BINS).zip(cubes) {
+                    if let Some(bin) = pyramid.vote(world_to_camera, *center, *radius)
+                        && let Some(h) = row.get_mut(bin)
+                    {
+                        *h += weight;
+                        votes += 1;
+                    }
+                }
+                votes
+            })
+            .sum();
+        self.votes += votes;
     }
 }
 
+/// What [`HistogramsStage::pass_over_maps`] hands each decoded map's voting: the members
+/// that may see it, each with the chunks that may.
+type Needed = Vec<(usize, Vec<usize>)>;
+
 impl HistogramsStage {
+    /// One pass over the depth maps for the whole group, in id order. Every member a map has
+    /// not voted into yet records it; a map that may see some member's chunks is decoded (once
+    /// per group, or taken from the cache) and handed to `vote` with those members. `vote`
+    /// returns false to end the pass early.
+    fn pass_over_maps(
+        &self,
+        voters: &mut [Voter],
+        unit: &UnitSpec,
+        mut vote: impl FnMut(&mut [Voter], &Pyramid, &DepthMapSource, &glam::DMat4, f32, Needed) -> Result<bool>,
+    ) -> Result<()> {
+        for (id, record) in &self.depth_maps {
+            let source = &record.source;
+            let world_to_camera = source.pose().inverse();
+            let mut needed = Vec::new();
+            for (index, voter) in voters.iter_mut().enumerate() {
+                if voter.already.contains(id) {
+                    continue;
+                }
+                voter.voted.insert(*id);
+                if !Pyramid::may_see(source, &world_to_camera, voter.center, voter.radius) {
+                    continue;
+                }
+                let seen: Vec<usize> = voter
+                    .chunks
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, chunk)| Pyramid::may_see(source, &world_to_camera, chunk.center, chunk.radius))
+                    .map(|(chunk, _)| chunk)
+                    .collect();
+                if !seen.is_empty() {
+                    needed.push((index, seen));
+                }
+            }
+            if needed.is_empty() {
+                continue;
+            }
+            let pyramid = self.cache.get_or_load(*id, || {
+                let image = source.load().map_err(|e| StoreError::Stage {
+                    stage: HISTOGRAMS.into(),
+                    unit: unit.label.clone(),
+                    message: e.to_string(),
+                })?;
+                Ok(Pyramid::new(source.clone(), image))
+            })?;
+            let weight = quantized_weight(source.weight);
+            if !vote(voters, &pyramid, source, &world_to_camera, weight, needed)? {
+                break;
+            }
+        }
+        Ok(())
+    }
+
+    /// The group's votes on `gpu` (`shaders/votes.wgsl`): the members' cubes and rows stay on
+    /// the GPU for the whole pass and come back at the end. The outer error is the store's (a
+    /// depth map that fails to load); the inner one is the GPU's, after which the members'
+    /// rows are untouched and the caller votes on the CPU.
+    fn vote_on_gpu(
+        &self,
+        gpu: &crate::gpu::Gpu,
+        voters: &mut [Voter],
+        unit: &UnitSpec,
+    ) -> Result<std::result::Result<(), crate::gpu::GpuError>> {
+        let mut store_error = None;
+        let outcome = gpu.scoped(|| {
+            let units = voters
+                .iter()
+                .map(|v| gpu.upload_unit(v.center, &v.centers, &v.radii, &v.hist))
+                .collect::<std::result::Result<Vec<_>, _>>()?;
+            let mut failure = None;
+            let pass = self.pass_over_maps(voters, unit, |_, pyramid, source, world_to_camera, weight, needed| {
+                let attempt = gpu.upload_pyramid(pyramid).and_then(|map| {
+                    for (index, _) in &needed {
+                        if let Some(on_gpu) = units.get(*index) {
+                            gpu.vote(on_gpu, &map, source, world_to_camera, weight)?;
+                        }
+                    }
+                    Ok(())
+                });
+                match attempt {
+                    Ok(()) => Ok(true),
+                    Err(error) => {
+                        failure = Some(error);
+                        Ok(false)
+                    }
+                }
+            });
+            if let Err(error) = pass {
+                store_error = Some(error);
+                return Ok(Vec::new());
+            }
+            if let Some(error) = failure {
+                return Err(error);
+            }
+            units.iter().map(|u| gpu.finish_unit(u)).collect()
+        });
+        if let Some(error) = store_error {
+            return Err(error);
+        }
+        Ok(outcome.map(|rows| {
+            for (voter, (hist, votes)) in voters.iter_mut().zip(rows) {
+                voter.hist = hist;
+                voter.votes += votes;
+            }
+        }))
+    }
+
     fn voter(&self, base: &Snapshot<'_>, plan: &UnitPlan) -> Result<Voter> {
         let file = base.open_segment(&plan.octree_segment)?;
         let reader = file.reader()?;

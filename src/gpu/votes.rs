@@ -1,0 +1,246 @@
+//! Host side of `shaders/votes.wgsl`: a unit's cubes and histogram rows stay on the GPU while
+//! every depth map that may see the unit votes into them; the rows come back once, at the end.
+
+use glam::{DMat4, DVec3, Mat4, Vec4};
+use wgpu::util::DeviceExt;
+
+use super::{Gpu, GpuError, grid};
+use crate::stages::depthmap::{DepthMapSource, Projection};
+use crate::stages::histograms::{BINS, Pyramid};
+
+/// The uniform `votes.wgsl` reads (`VoteMap` in the WGSL).
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct VoteMap {
+    pub unit_to_camera: Mat4,
+    pub intrinsics: Vec4,
+    pub width: u32,
+    pub height: u32,
+    pub levels: u32,
+    pub spherical: u32,
+    pub weight: f32,
+    pub n: u32,
+    pub row_stride: u32,
+    pub padding: u32,
+}
+
+pub const VOTES_SHADER: &str = include_str!("../../shaders/votes.wgsl");
+
+/// What a map's vote reads, besides its pyramid: composed in f64, rounded to f32 once.
+pub fn vote_map(source: &DepthMapSource, world_to_camera: &DMat4, origin: DVec3, weight: f32, n: u32) -> VoteMap {
+    let unit_to_camera = *world_to_camera * DMat4::from_translation(origin);
+    let (intrinsics, spherical) = match source.projection {
+        Projection::Pinhole { fx, fy, cx, cy } => (Vec4::new(fx as f32, fy as f32, cx as f32, cy as f32), 0),
+        Projection::Spherical => (Vec4::ZERO, 1),
+    };
+    VoteMap {
+        unit_to_camera: unit_to_camera.as_mat4(),
+        intrinsics,
+        width: source.width,
+        height: source.height,
+        levels: 0,
+        spherical,
+        weight,
+        n,
+        row_stride: 0,
+        padding: 0,
+    }
+}
+
+/// The pyramid as the shader reads it: a (first index, width, height) row per level and all
+/// depths in one array, invalid pixels as -1 (the shader tests `depth > 0`, which a GPU
+/// compiler may not fold away the way it may fold a NaN test).
+pub fn pyramid_arrays(pyramid: &Pyramid) -> (Vec<[u32; 4]>, Vec<f32>) {
+    let mut levels = Vec::with_capacity(pyramid.levels.len());
+    let mut depths = Vec::new();
+    for level in &pyramid.levels {
+        levels.push([depths.len() as u32, level.width, level.height, 0]);
+        depths.extend(
+            level
+                .depth
+                .iter()
+                .map(|d| if d.is_finite() && *d > 0.0 { *d } else { -1.0 }),
+        );
+    }
+    (levels, depths)
+}
+
+/// Cube offsets from `origin` and radii, packed as the shader's `cubes`.
+pub fn cube_offsets(origin: DVec3, centers: &[DVec3], radii: &[f64]) -> Vec<Vec4> {
+    centers
+        .iter()
+        .zip(radii)
+        .map(|(c, r)| {
+            let d = *c - origin;
+            Vec4::new(d.x as f32, d.y as f32, d.z as f32, *r as f32)
+        })
+        .collect()
+}
+
+pub struct Pipeline {
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl Pipeline {
+    pub fn new(device: &wgpu::Device) -> Pipeline {
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("votes"),
+            source: wgpu::ShaderSource::Wgsl(VOTES_SHADER.into()),
+        });
+        Pipeline {
+            pipeline: device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("votes"),
+                layout: None,
+                module: &module,
+                entry_point: Some("main"),
+                compilation_options: wgpu::PipelineCompilationOptions::default(),
+                cache: None,
+            }),
+        }
+    }
+}
+
+/// One depth map's pyramid on the GPU, shared by the units of a group.
+pub struct MapOnGpu {
+    levels: wgpu::Buffer,
+    depths: wgpu::Buffer,
+    count: u32,
+}
+
+/// One unit's cubes and histogram rows on the GPU.
+pub struct UnitOnGpu {
+    origin: DVec3,
+    n: u32,
+    cubes: wgpu::Buffer,
+    hist: wgpu::Buffer,
+    votes: wgpu::Buffer,
+}
+
+impl Gpu {
+    /// Uploads a pyramid.
+    pub fn upload_pyramid(&self, pyramid: &Pyramid) -> Result<MapOnGpu, GpuError> {
+        let (levels, depths) = pyramid_arrays(pyramid);
+        self.check_binding("depth pyramid", std::mem::size_of_val(depths.as_slice()) as u64)?;
+        let storage = wgpu::BufferUsages::STORAGE;
+        Ok(MapOnGpu {
+            levels: self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("levels"),
+                contents: bytemuck::cast_slice(&levels),
+                usage: storage,
+            }),
+            depths: self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("depths"),
+                contents: bytemuck::cast_slice(&depths),
+                usage: storage,
+            }),
+            count: levels.len() as u32,
+        })
+    }
+
+    /// Uploads a unit: its cubes as offsets from `origin`, and its histogram rows so far.
+    pub fn upload_unit(
+        &self,
+        origin: DVec3,
+        centers: &[DVec3],
+        radii: &[f64],
+        hist: &[f32],
+    ) -> Result<UnitOnGpu, GpuError> {
+        let n = u32::try_from(centers.len()).map_err(|_| GpuError::TooLarge {
+            what: "cube index",
+            needed: centers.len() as u64,
+            limit: u64::from(u32::MAX),
+        })?;
+        let cubes = cube_offsets(origin, centers, radii);
+        self.check_binding("cubes", std::mem::size_of_val(cubes.as_slice()) as u64)?;
+        self.check_binding("histograms", std::mem::size_of_val(hist) as u64)?;
+        let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+        let padded = |bytes: &[u8]| -> Vec<u8> {
+            let mut bytes = bytes.to_vec();
+            bytes.resize(bytes.len().max(16), 0);
+            bytes
+        };
+        let buffer = |label: &str, contents: Vec<u8>| {
+            self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: &contents,
+                usage,
+            })
+        };
+        Ok(UnitOnGpu {
+            origin,
+            n,
+            cubes: buffer("cubes", padded(bytemuck::cast_slice(&cubes))),
+            hist: buffer("hist", padded(bytemuck::cast_slice(hist))),
+            votes: buffer("votes", padded(&vec![0u8; 4 * centers.len()])),
+        })
+    }
+
+    /// Records one map's votes into a unit (runs at the next submission).
+    pub fn vote(
+        &self,
+        unit: &UnitOnGpu,
+        map: &MapOnGpu,
+        source: &DepthMapSource,
+        world_to_camera: &DMat4,
+        weight: f32,
+    ) -> Result<(), GpuError> {
+        if unit.n == 0 {
+            return Ok(());
+        }
+        let (groups_x, groups_y, row_stride) = grid(unit.n, self.limits.max_compute_workgroups_per_dimension);
+        let uniform = VoteMap {
+            levels: map.count,
+            row_stride,
+            ..vote_map(source, world_to_camera, unit.origin, weight, unit.n)
+        };
+        let uniform = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("vote map"),
+            contents: bytemuck::bytes_of(&uniform),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let pipeline = &self.votes.pipeline;
+        let entries = [&uniform, &unit.cubes, &map.levels, &map.depths, &unit.hist, &unit.votes];
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
+            .iter()
+            .enumerate()
+            .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                binding: binding as u32,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("votes") });
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("votes"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.dispatch_workgroups(groups_x, groups_y, 1);
+        }
+        self.queue.submit([encoder.finish()]);
+        Ok(())
+    }
+
+    /// Reads a unit's histogram rows back, with the number of votes cast since its upload.
+    pub fn finish_unit(&self, unit: &UnitOnGpu) -> Result<(Vec<f32>, u64), GpuError> {
+        let n = unit.n as usize;
+        let hist_bytes = (n * BINS * std::mem::size_of::<f32>()) as u64;
+        let vote_bytes = (n * std::mem::size_of::<u32>()) as u64;
+        let bytes = super::read_back(self, &[(&unit.hist, hist_bytes), (&unit.votes, vote_bytes)])?;
+        let mut parts = bytes.into_iter();
+        let (Some(hist), Some(votes)) = (parts.next(), parts.next()) else {
+            return Err(GpuError::Readback("missing columns".into()));
+        };
+        let hist: Vec<f32> = bytemuck::pod_collect_to_vec(&hist);
+        let votes: Vec<u32> = bytemuck::pod_collect_to_vec(&votes);
+        Ok((hist, votes.iter().map(|v| u64::from(*v)).sum()))
+    }
+}
