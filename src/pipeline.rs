@@ -69,7 +69,7 @@ pub struct SolveOptions {
     pub memory_budget: u64,
     pub params: SolveParams,
     pub run: RunOptions,
-    /// Where the solver's iterations run.
+    /// Where the histogram votes and the solver's iterations run.
     pub device: crate::gpu::DeviceChoice,
 }
 
@@ -123,7 +123,8 @@ pub fn solve(store: &Store, options: &SolveOptions, on_report: impl FnMut(&RunRe
     solve_with_gpu(store, options, gpu, on_report)
 }
 
-/// [`solve`] with the solver's iterations on an already open `gpu` (`options.device` unused).
+/// [`solve`] with the votes and the solver's iterations on an already open `gpu`
+/// (`options.device` unused).
 pub fn solve_with_gpu(
     store: &Store,
     options: &SolveOptions,

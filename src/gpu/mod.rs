@@ -214,6 +214,23 @@ impl Gpu {
         self.lost.load(Ordering::SeqCst)
     }
 
+    /// A bind group of `pipeline`'s group 0 holding `buffers` whole, at bindings 0, 1, ...
+    fn bind(&self, pipeline: &wgpu::ComputePipeline, buffers: &[&wgpu::Buffer]) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
+            .iter()
+            .enumerate()
+            .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                binding: binding as u32,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        })
+    }
+
     /// Checks that one storage binding of `bytes` fits the device.
     fn check_binding(&self, what: &'static str, bytes: u64) -> Result<(), GpuError> {
         let limit = self

@@ -132,21 +132,7 @@ pub fn iterate(gpu: &Gpu, kernel: &Kernel, state: &mut Packed, iterations: usize
         let primal_constants = buffer("primal_constants", contents(&kernel.primal_constants), storage);
         let slopes = buffer("slopes", contents(&kernel.slopes), storage);
         let uv = buffer("uv", contents(&state.uv), copy_out);
-        let bind = |pipeline: &wgpu::ComputePipeline, buffers: &[&wgpu::Buffer]| {
-            let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
-                .iter()
-                .enumerate()
-                .map(|(binding, buffer)| wgpu::BindGroupEntry {
-                    binding: binding as u32,
-                    resource: buffer.as_entire_binding(),
-                })
-                .collect();
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: None,
-                layout: &pipeline.get_bind_group_layout(0),
-                entries: &entries,
-            })
-        };
+        let bind = |pipeline, buffers: &[&wgpu::Buffer]| gpu.bind(pipeline, buffers);
         let dual_group = bind(
             &gpu.tgv.dual,
             &[

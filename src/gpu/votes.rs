@@ -199,20 +199,10 @@ impl Gpu {
             usage: wgpu::BufferUsages::UNIFORM,
         });
         let pipeline = &self.votes.pipeline;
-        let entries = [&uniform, &unit.cubes, &map.levels, &map.depths, &unit.hist, &unit.votes];
-        let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
-            .iter()
-            .enumerate()
-            .map(|(binding, buffer)| wgpu::BindGroupEntry {
-                binding: binding as u32,
-                resource: buffer.as_entire_binding(),
-            })
-            .collect();
-        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: None,
-            layout: &pipeline.get_bind_group_layout(0),
-            entries: &entries,
-        });
+        let group = self.bind(
+            pipeline,
+            &[&uniform, &unit.cubes, &map.levels, &map.depths, &unit.hist, &unit.votes],
+        );
         let mut encoder = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("votes") });
