@@ -176,13 +176,21 @@ pub fn open_gpu(choice: crate::gpu::DeviceChoice) -> Result<Option<std::sync::Ar
 
 /// The stage a cluster run works on, by its catalog name: `histograms` or `solution-LL`. The
 /// octree is one global merge and is built by a single process (`solve --until octree`).
-pub fn cluster_stage(store: &Store, name: &str, params: SolveParams) -> Result<Box<dyn Stage>> {
+/// `gpu`, when given, runs the votes or the iterations (with the CPU fallback per unit).
+pub fn cluster_stage(
+    store: &Store,
+    name: &str,
+    params: SolveParams,
+    gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
+) -> Result<Box<dyn Stage>> {
     let scene = required_scene(store, name)?;
     if name == HISTOGRAMS {
-        return Ok(Box::new(HistogramsStage::new(scene, registered_depth_maps(store)?)));
+        return Ok(Box::new(
+            HistogramsStage::new(scene, registered_depth_maps(store)?).with_gpu(gpu),
+        ));
     }
     if let Some(level) = LEVEL_STAGES.iter().position(|s| *s == name) {
-        return Ok(Box::new(LevelStage::new(level as u8, scene, params)));
+        return Ok(Box::new(LevelStage::new(level as u8, scene, params).with_gpu(gpu)));
     }
     let hint = if name == OCTREE {
         "the octree is one global merge: build it with `octstore solve STORE --until octree`"
@@ -209,6 +217,8 @@ pub struct SlurmOptions {
     pub memory_budget: u64,
     /// Treetop leaf size of the octree job.
     pub leaf_cubes: u64,
+    /// `--device` of the work jobs of the histograms and the levels.
+    pub device: crate::gpu::DeviceChoice,
     /// Extract the mesh into this file at the end of the chain.
     pub output: Option<PathBuf>,
 }
@@ -288,8 +298,13 @@ pub fn slurm_jobs(store: &std::path::Path, levels: u8, options: &SlurmOptions) -
         let name = format!("{stage}-work");
         jobs.push(SlurmJob {
             script: format!(
-                "{}\n{bin} {budget} work {store} --stage {stage} --chunk \"$SLURM_ARRAY_TASK_ID\"\n",
-                header(&name, Some(options.chunks))
+                "{}\n{bin} {budget} work {store} --stage {stage} --chunk \"$SLURM_ARRAY_TASK_ID\"{}\n",
+                header(&name, Some(options.chunks)),
+                if stage == EXTRACT {
+                    String::new()
+                } else {
+                    format!(" --device {}", options.device.name())
+                }
             ),
             name,
             array: Some(options.chunks),

@@ -222,6 +222,8 @@ fn cluster_errors_are_clear() {
         "--partition",
         "big",
         "--sbatch-arg=--time=01:00:00",
+        "--device",
+        "gpu",
         "--dry-run",
     ]);
     assert!(
@@ -229,7 +231,8 @@ fn cluster_errors_are_clear() {
         "{out}"
     );
     assert!(
-        out.contains("#SBATCH --time=01:00:00") && out.contains("--chunk \"$SLURM_ARRAY_TASK_ID\""),
+        out.contains("#SBATCH --time=01:00:00")
+            && out.contains("--stage histograms --chunk \"$SLURM_ARRAY_TASK_ID\" --device gpu"),
         "{out}"
     );
     assert!(out.contains("commit") && out.contains("solution-05-plan"), "{out}");

@@ -3,6 +3,8 @@
 //! OCTSTORE_REQUIRE_GPU=1, so there a missing adapter fails these tests; elsewhere a test that
 //! needs an adapter says on stderr that it did not run, and passes.
 
+mod common;
+
 use glam::Vec4;
 use octstore::gpu::{DeviceChoice, Gpu, twins};
 use octstore::stages::tgv::{self, Kernel, Operator, Packed, Problem, State};
@@ -148,14 +150,54 @@ fn gpu_iterations_match_the_twins() {
     }
 }
 
+/// A split unit, iterated chunk by chunk with halo exchanges (on the twins), is the whole
+/// kernel bit for bit, whatever the chunk size; runs on every machine, GPU or not.
+#[test]
+fn split_units_with_halo_exchanges_are_the_kernel_bit_for_bit() {
+    use octstore::gpu::tgv::split;
+    let (problem, state) = grid_problem(9, 3);
+    let op = Operator::new(&problem);
+    let kernel = Kernel::new(&op).expect("short gather lists");
+    let mut whole = Packed::of(&state);
+    kernel.iterate(&mut whole, 30);
+    for cubes in [1, 7, 100, 364, 729, 1000] {
+        let chunks = split(&kernel, cubes);
+        assert_eq!(chunks.len(), kernel.n.div_ceil(cubes));
+        if chunks.len() > 1 {
+            assert!(chunks.iter().any(|c| !c.bar_halo.is_empty() && !c.row_halo.is_empty()));
+        }
+        let mut chunked = Packed::of(&state);
+        twins::iterate_chunks(&chunks, &mut chunked, 30);
+        assert_eq!(whole, chunked, "chunks of {cubes} cubes");
+    }
+}
+
+#[test]
+fn a_unit_over_one_binding_runs_in_chunks_with_the_same_result() {
+    let Some(gpu) = open_gpu() else { return };
+    let (problem, state) = grid_problem(8, 7);
+    let kernel = Kernel::new(&Operator::new(&problem)).expect("short gather lists");
+    let mut whole = Packed::of(&state);
+    octstore::gpu::tgv::iterate(&gpu, &kernel, &mut whole, 30).expect("the GPU runs the unit");
+    // Bindings of 1 KiB: most buffers of the 512-cube unit are larger (dual constants alone are
+    // 48 bytes a cube), so it runs in chunks of a few cubes, with halos between them.
+    let gpu = gpu.with_binding_limit(1024);
+    let mut chunked = Packed::of(&state);
+    octstore::gpu::tgv::iterate(&gpu, &kernel, &mut chunked, 30).expect("the chunks fit");
+    assert_eq!(whole, chunked, "the same shaders on the same values");
+    let mut solved = state.clone();
+    tgv::solve_on(Some(&gpu), &problem, &mut solved, 30);
+    assert_eq!(gpu.counts(), (1, 0), "the unit ran on the GPU");
+}
+
 #[test]
 fn a_unit_over_the_gpu_limits_runs_on_the_cpu_with_the_same_result() {
     let (problem, state) = grid_problem(8, 7);
     let mut cpu = state.clone();
     let cpu_energy = tgv::solve(&problem, &mut cpu, 30);
-    // Bindings of 1 KiB: every buffer of a 512-cube unit is larger.
+    // Bindings of 32 bytes: not even one cube's dual constants (48 bytes) fit.
     let Some(gpu) = open_gpu() else { return };
-    let gpu = gpu.with_binding_limit(1024);
+    let gpu = gpu.with_binding_limit(32);
     let mut fallback = state.clone();
     let fallback_energy = tgv::solve_on(Some(&gpu), &problem, &mut fallback, 30);
     assert_eq!(cpu, fallback);
@@ -261,6 +303,21 @@ fn shared_structs_match_the_shader_layout() {
             ])
         )
     );
+    {
+        use octstore::gpu::tgv::{HALO_SHADER, HaloParams};
+        assert_eq!(
+            layout(HALO_SHADER, "HaloParams"),
+            (
+                size_of::<HaloParams>() as u32,
+                offsets(&[
+                    ("count", offset_of!(HaloParams, count)),
+                    ("offset", offset_of!(HaloParams, offset)),
+                    ("row_stride", offset_of!(HaloParams, row_stride)),
+                    ("_padding", offset_of!(HaloParams, padding)),
+                ])
+            )
+        );
+    }
     // The slopes are read as a flat array of 9 floats per cube.
     assert_eq!(size_of::<tgv::Slopes>(), 9 * size_of::<f32>());
 }
@@ -598,4 +655,152 @@ fn vote_map_matches_the_shader_layout() {
     ];
     let expected: Vec<(String, usize)> = expected.iter().map(|(n, o)| (n.to_string(), *o)).collect();
     assert_eq!(offsets, expected);
+}
+
+/// Histograms voted on the GPU with bindings too small for a unit (8 KiB: room for a 40 x 30
+/// pyramid, and for batches of 256 cubes' rows) are the histograms voted with whole units, bit for bit: batches share their unit's
+/// origin, so each cube computes the same f32 values.
+#[test]
+fn votes_in_batches_that_fit_a_binding_are_the_whole_units_votes() {
+    use octstore::pipeline::{SolveOptions, SolveUntil, ingest, solve_with_gpu};
+    use octstore::scenes::{SceneSpec, Shape};
+    use octstore::stages::ingest::IngestOptions;
+    use octstore::stages::inputs::DiscoverOptions;
+    use octstore::store::RunOptions;
+
+    let Some(gpu) = open_gpu() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let center = glam::DVec3::new(0.1, 0.0, -0.2);
+    let spec = SceneSpec {
+        shapes: vec![Shape::Sphere { center, radius: 0.5 }],
+        cameras: 6,
+        distance: 2.0,
+        target: center,
+        width: 40,
+        height: 30,
+        fov_degrees: 50.0,
+        noise: None,
+        room: None,
+    };
+    let manifest = spec.write(&dir.path().join("input")).unwrap();
+    let run = RunOptions {
+        resume: false,
+        threads: 2,
+        progress: false,
+    };
+    let full = std::sync::Arc::new(gpu);
+    let batched = std::sync::Arc::new(
+        Gpu::open(DeviceChoice::Gpu)
+            .unwrap()
+            .expect("a second device on the same adapter")
+            .with_binding_limit(8 << 10),
+    );
+    let mut digests = Vec::new();
+    for (name, gpu) in [("full", &full), ("batched", &batched)] {
+        let store = octstore::Store::create(dir.path().join(name)).unwrap();
+        let options = IngestOptions {
+            max_depth: 6,
+            ..IngestOptions::default()
+        };
+        ingest(
+            &store,
+            std::slice::from_ref(&manifest),
+            &DiscoverOptions::default(),
+            &options,
+            &run,
+        )
+        .unwrap();
+        let solve_options = SolveOptions {
+            until: SolveUntil::Histograms,
+            leaf_cubes: 3000,
+            memory_budget: 256 << 20,
+            run: run.clone(),
+            device: DeviceChoice::Gpu,
+            ..SolveOptions::default()
+        };
+        solve_with_gpu(&store, &solve_options, Some(gpu.clone()), |_| {}).unwrap();
+        digests.push(store.latest().unwrap().digest(octstore::stages::HISTOGRAMS));
+    }
+    for gpu in [&full, &batched] {
+        let (units, fallbacks) = gpu.counts();
+        assert!(units > 0 && fallbacks == 0, "{units} on the GPU, {fallbacks} fell back");
+    }
+    assert_eq!(digests[0], digests[1]);
+}
+
+/// Cluster workers with `--device gpu` (`octstore work`) give the store a single `solve
+/// --device gpu` gives, byte for byte: the same shaders on the same units.
+#[test]
+fn cluster_workers_on_the_gpu_equal_a_single_gpu_solve() {
+    use common::{assert_same_store, fingerprint, octstore, stderr};
+    use octstore::scenes::{SceneSpec, Shape};
+
+    if open_gpu().is_none() {
+        return;
+    }
+    let run = |args: &[&str]| {
+        let out = octstore(args, &[]);
+        assert!(out.status.success(), "{args:?}: {}", stderr(&out));
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let center = glam::DVec3::new(0.2, -0.1, 0.3);
+    let spec = SceneSpec {
+        shapes: vec![Shape::Sphere { center, radius: 0.5 }],
+        cameras: 6,
+        distance: 2.2,
+        target: center,
+        width: 40,
+        height: 30,
+        fov_degrees: 45.0,
+        noise: None,
+        room: Some(2.6),
+    };
+    let manifest = spec.write(&dir.path().join("input")).unwrap();
+    let (cluster, single) = (dir.path().join("cluster"), dir.path().join("single"));
+    let (c, s) = (cluster.to_str().unwrap(), single.to_str().unwrap());
+    for store in [c, s] {
+        run(&[
+            "ingest",
+            store,
+            manifest.to_str().unwrap(),
+            "--max-depth",
+            "5",
+            "--quiet",
+        ]);
+        run(&["solve", store, "--until", "octree", "--leaf-cubes", "300", "--quiet"]);
+    }
+    run(&[
+        "solve",
+        s,
+        "--iterations",
+        "20",
+        "--leaf-cubes",
+        "300",
+        "--device",
+        "gpu",
+        "--quiet",
+    ]);
+    let mut stages = vec!["histograms".to_string()];
+    stages.extend((0..=5).map(|l| format!("solution-{l:02}")));
+    for stage in &stages {
+        run(&["plan", c, "--stage", stage, "--chunks", "2", "--iterations", "20"]);
+        let mut lines = String::new();
+        for chunk in ["0", "1"] {
+            let out = octstore(&["work", c, "--stage", stage, "--chunk", chunk, "--device", "gpu"], &[]);
+            assert!(out.status.success(), "{stage} chunk {chunk}: {}", stderr(&out));
+            lines += &common::stdout(&out);
+        }
+        // Each line: "N unit(s) (M on ADAPTER, F fell back to the CPU)".
+        let on_gpu = lines.lines().any(|l| l.contains(" on ") && !l.contains("(0 on "));
+        assert!(
+            on_gpu && lines.matches(" 0 fell back").count() == 2,
+            "{stage} ran on the GPU:\n{lines}"
+        );
+        run(&["commit", c, "--stage", stage, "--quiet"]);
+    }
+    assert_same_store(
+        &fingerprint(&single),
+        &fingerprint(&cluster),
+        "GPU workers vs a single GPU solve",
+    );
 }

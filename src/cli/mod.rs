@@ -115,8 +115,9 @@ pub enum Command {
         /// Treetop leaves hold fewer cubes than this.
         #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
         leaf_cubes: u64,
-        /// Where the TGV iterations run: auto takes a hardware GPU when there is one (never a
-        /// software rasteriser), gpu any adapter (llvmpipe included), cpu the CPU kernel.
+        /// Where the histogram votes and the TGV iterations run: auto takes a hardware GPU
+        /// when there is one (never a software rasteriser), gpu any adapter (llvmpipe
+        /// included), cpu the CPU code.
         #[arg(long, value_enum, default_value = "auto")]
         device: crate::gpu::DeviceChoice,
     },
@@ -148,6 +149,11 @@ pub enum Command {
         stage: String,
         #[arg(long)]
         chunk: u32,
+        /// Where this chunk's votes and iterations run, as for `solve`. Every chunk of a stage
+        /// should use the same kind of device: GPU votes may differ from the CPU's in rare
+        /// boundary cubes.
+        #[arg(long, value_enum, default_value = "auto")]
+        device: crate::gpu::DeviceChoice,
     },
     /// Cluster run, step 3: verify every chunk's output and commit the stage as one version.
     Commit {
@@ -176,6 +182,9 @@ pub enum Command {
         output: Option<PathBuf>,
         #[command(flatten)]
         solver: SolverArgs,
+        /// `--device` of the work jobs (ask Slurm for GPUs with --sbatch-arg=--gres=gpu:1).
+        #[arg(long, value_enum, default_value = "auto")]
+        device: crate::gpu::DeviceChoice,
     },
     /// Render the built-in synthetic scene, then ingest, solve and extract it (no files needed).
     Demo {
@@ -357,14 +366,18 @@ fn print_extract_summary(
 }
 
 /// The stage of a recorded cluster plan, rebuilt with the plan's solver parameters.
-fn cluster_stage_of_plan(store: &Store, stage: &str) -> Result<Box<dyn crate::store::Stage>, StoreError> {
+fn cluster_stage_of_plan(
+    store: &Store,
+    stage: &str,
+    gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
+) -> Result<Box<dyn crate::store::Stage>, StoreError> {
     let plan = store.cluster_plan(stage)?.ok_or_else(|| StoreError::Stage {
         stage: stage.into(),
         unit: "plan".into(),
         message: "no cluster plan: run `octstore plan` first".into(),
     })?;
     let params: SolveParams = crate::store::catalog::decode("cluster plan args", &plan.args)?;
-    pipeline::cluster_stage(store, stage, params)
+    pipeline::cluster_stage(store, stage, params, gpu)
 }
 
 /// Submits the chain with `sbatch --parsable`, each job after the previous one succeeded, and
@@ -620,7 +633,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 return Ok(ExitCode::SUCCESS);
             }
             let params = solver.params();
-            let runnable = pipeline::cluster_stage(&store, &stage, params)?;
+            let runnable = pipeline::cluster_stage(&store, &stage, params, None)?;
             let plan = store.plan_cluster_run(runnable.as_ref(), chunks, crate::store::catalog::encode(&params))?;
             println!(
                 "plan {stage}: {} pending unit(s) in {} chunk(s), base version {}, target {}",
@@ -633,17 +646,29 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 println!("  chunk {chunk}: {} unit(s)", plan.chunk_units(chunk).len());
             }
         }
-        Command::Work { store, stage, chunk } => {
+        Command::Work {
+            store,
+            stage,
+            chunk,
+            device,
+        } => {
             let store = Store::open_read_only(&store)?;
             let started = std::time::Instant::now();
+            let mut on_device = String::new();
             let report = if stage == pipeline::EXTRACT {
                 pipeline::work_extract(&store, chunk)?
             } else {
-                let runnable = cluster_stage_of_plan(&store, &stage)?;
-                store.work_cluster_chunk(runnable.as_ref(), chunk)?
+                let gpu = pipeline::open_gpu(device)?;
+                let runnable = cluster_stage_of_plan(&store, &stage, gpu.clone())?;
+                let report = store.work_cluster_chunk(runnable.as_ref(), chunk)?;
+                if let Some(gpu) = gpu {
+                    let (units, fallbacks) = gpu.counts();
+                    on_device = format!(" ({units} on {}, {fallbacks} fell back to the CPU)", gpu.adapter.name);
+                }
+                report
             };
             println!(
-                "work {stage} chunk {chunk}: {} unit(s), {} already done | {:.2}s | peak memory {:.0} MB",
+                "work {stage} chunk {chunk}: {} unit(s){on_device}, {} already done | {:.2}s | peak memory {:.0} MB",
                 report.units,
                 report.skipped,
                 started.elapsed().as_secs_f64(),
@@ -658,7 +683,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 print_extract_summary(&summary, &output, started);
                 return Ok(ExitCode::SUCCESS);
             }
-            let runnable = cluster_stage_of_plan(&store, &stage)?;
+            let runnable = cluster_stage_of_plan(&store, &stage, None)?;
             let report = store.commit_cluster_run(runnable.as_ref(), &run_options(&global, false))?;
             summary(&report);
         }
@@ -671,6 +696,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
             leaf_cubes,
             output,
             solver,
+            device,
         } => {
             let opened = Store::open_read_only(&store)?;
             let scene = stages::ingest::read_scene(&opened)?.ok_or_else(|| StoreError::Stage {
@@ -687,6 +713,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, StoreError> {
                 params: solver.params(),
                 memory_budget: global.memory_budget,
                 leaf_cubes,
+                device,
                 output: output
                     .map(|o| std::path::absolute(&o).map_err(crate::store::io_error("resolve", &o)))
                     .transpose()?,

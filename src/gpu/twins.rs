@@ -5,6 +5,7 @@
 
 use glam::Vec4;
 
+use super::tgv::{Chunk, HaloRun};
 use crate::stages::tgv::{DualConstants, Gather, Kernel, Packed, PrimalConstants, Slopes};
 
 const SQRT_HALF: f32 = std::f32::consts::FRAC_1_SQRT_2;
@@ -174,6 +175,113 @@ pub fn iterate(kernel: &Kernel, state: &mut Packed, iterations: usize) {
             tgv_primal(j, &mut primal);
         }
     }
+}
+
+/// Twin of `shaders/halo.wgsl`, invocation `j`: one entry of a chunk's halo from the chunk that
+/// owns it.
+pub fn halo(j: usize, source: &[Vec4], indices: &[u32], destination: &mut [Vec4], offset: u32) {
+    let Some(&index) = indices.get(j) else { return };
+    if let Some(slot) = destination.get_mut(offset as usize + j) {
+        *slot = at(source, index as usize);
+    }
+}
+
+/// Runs the halo copies of `runs` into chunk `into`'s array, reading the arrays of `all`.
+fn exchange(all: &mut [Vec<Vec4>], into: usize, runs: &[HaloRun]) {
+    for run in runs {
+        let source = all.get(run.source).cloned().unwrap_or_default();
+        if let Some(destination) = all.get_mut(into) {
+            for j in 0..run.indices.len() {
+                halo(j, &source, &run.indices, destination, run.offset);
+            }
+        }
+    }
+}
+
+/// The GPU's iteration of a split unit, on the twins: every chunk's dual pass, the row halos,
+/// every chunk's primal pass, the bar halos (and the bar halos once before the first).
+pub fn iterate_chunks(chunks: &[Chunk], state: &mut Packed, iterations: usize) {
+    let own = |chunk: &Chunk, values: &[Vec4]| -> Vec<Vec4> {
+        values
+            .get(chunk.start..chunk.start + chunk.kernel.n)
+            .unwrap_or(&[])
+            .to_vec()
+    };
+    let mut bars: Vec<Vec<Vec4>> = chunks
+        .iter()
+        .map(|c| {
+            own(c, &state.uv)
+                .into_iter()
+                .chain(c.kernel.frozen.iter().copied())
+                .collect()
+        })
+        .collect();
+    let mut rows: Vec<Vec<Vec4>> = chunks.iter().map(|c| vec![Vec4::ZERO; c.rows_len()]).collect();
+    let mut parts: Vec<Packed> = chunks
+        .iter()
+        .map(|c| Packed {
+            uv: own(c, &state.uv),
+            p: own(c, &state.p),
+            q_diag: own(c, &state.q_diag),
+            q_off: own(c, &state.q_off),
+        })
+        .collect();
+    for (index, chunk) in chunks.iter().enumerate() {
+        exchange(&mut bars, index, &chunk.bar_halo);
+    }
+    for _ in 0..iterations {
+        for ((chunk, part), (bar, rows)) in chunks.iter().zip(&mut parts).zip(bars.iter().zip(&mut rows)) {
+            let k = &chunk.kernel;
+            let mut dual = DualBuffers {
+                bar,
+                row_start: &k.row_start,
+                row_terms: &k.row_terms,
+                constants: &k.dual_constants,
+                p: &mut part.p,
+                q_diag: &mut part.q_diag,
+                q_off: &mut part.q_off,
+                rows,
+            };
+            for c in 0..k.n {
+                tgv_dual(c, &mut dual);
+            }
+        }
+        for (index, chunk) in chunks.iter().enumerate() {
+            exchange(&mut rows, index, &chunk.row_halo);
+        }
+        for ((chunk, part), (bar, rows)) in chunks.iter().zip(&mut parts).zip(bars.iter_mut().zip(&rows)) {
+            let k = &chunk.kernel;
+            let mut primal = PrimalBuffers {
+                lambda: k.lambda,
+                rows,
+                col_start: &k.col_start,
+                col_terms: &k.col_terms,
+                constants: &k.primal_constants,
+                slopes: &k.slopes,
+                uv: &mut part.uv,
+                bar,
+            };
+            for j in 0..k.n {
+                tgv_primal(j, &mut primal);
+            }
+        }
+        for (index, chunk) in chunks.iter().enumerate() {
+            exchange(&mut bars, index, &chunk.bar_halo);
+        }
+    }
+    let mut joined = Packed {
+        uv: Vec::new(),
+        p: Vec::new(),
+        q_diag: Vec::new(),
+        q_off: Vec::new(),
+    };
+    for part in parts {
+        joined.uv.extend(part.uv);
+        joined.p.extend(part.p);
+        joined.q_diag.extend(part.q_diag);
+        joined.q_off.extend(part.q_off);
+    }
+    *state = joined;
 }
 
 /// Twin of `shaders/votes.wgsl`, invocation `c`: the bin cube `c` votes into for the map

@@ -137,7 +137,16 @@ impl Gpu {
         })
     }
 
-    /// Uploads a unit: its cubes as offsets from `origin`, and its histogram rows so far.
+    /// Cubes per uploaded batch of a unit: a batch's histogram rows, its largest binding,
+    /// fit one binding. A unit with more cubes is uploaded as several batches, all resident
+    /// (the memory budget bounds a unit), each voted like a unit of its own.
+    pub fn vote_batch_cubes(&self) -> usize {
+        (self.binding_limit() / (BINS * std::mem::size_of::<f32>()) as u64).max(1) as usize
+    }
+
+    /// Uploads a unit (or a batch of one): its cubes as offsets from `origin`, and its
+    /// histogram rows so far. Batches of one unit share its `origin`, so they compute what the
+    /// whole unit would.
     pub fn upload_unit(
         &self,
         origin: DVec3,

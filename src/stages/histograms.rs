@@ -725,28 +725,59 @@ impl HistogramsStage {
     ) -> Result<std::result::Result<(), crate::gpu::GpuError>> {
         let mut store_error = None;
         let outcome = gpu.scoped(|| {
+            // Each member's cubes in batches that fit one binding: (first cube, end, batch).
+            let per_batch = gpu.vote_batch_cubes();
             let units = voters
                 .iter()
-                .map(|v| gpu.upload_unit(v.center, &v.centers, &v.radii, &v.hist))
+                .map(|v| {
+                    (0..v.centers.len())
+                        .step_by(per_batch)
+                        .map(|start| {
+                            let end = (start + per_batch).min(v.centers.len());
+                            let hist = v.hist.get(start * BINS..end * BINS).unwrap_or(&[]);
+                            let (centers, radii) = (
+                                v.centers.get(start..end).unwrap_or(&[]),
+                                v.radii.get(start..end).unwrap_or(&[]),
+                            );
+                            gpu.upload_unit(v.center, centers, radii, hist)
+                                .map(|batch| (start, end, batch))
+                        })
+                        .collect::<std::result::Result<Vec<_>, _>>()
+                })
                 .collect::<std::result::Result<Vec<_>, _>>()?;
             let mut failure = None;
-            let pass = self.pass_over_maps(voters, unit, |_, pyramid, source, world_to_camera, weight, needed| {
-                let attempt = gpu.upload_pyramid(pyramid).and_then(|map| {
-                    for (index, _) in &needed {
-                        if let Some(on_gpu) = units.get(*index) {
-                            gpu.vote(on_gpu, &map, source, world_to_camera, weight)?;
+            let pass = self.pass_over_maps(
+                voters,
+                unit,
+                |voters, pyramid, source, world_to_camera, weight, needed| {
+                    let attempt = gpu.upload_pyramid(pyramid).and_then(|map| {
+                        for (index, seen) in &needed {
+                            let (Some(batches), Some(voter)) = (units.get(*index), voters.get(*index)) else {
+                                continue;
+                            };
+                            for (start, end, on_gpu) in batches {
+                                // Only batches holding a chunk that may see the map: the others
+                                // cannot vote, as on the CPU.
+                                let seen_here = seen
+                                    .iter()
+                                    .filter_map(|&c| voter.chunks.get(c))
+                                    .any(|chunk| chunk.start < *end && chunk.end > *start);
+                                if seen_here {
+                                    gpu.vote(on_gpu, &map, source, world_to_camera, weight)?;
+                                }
+                            }
+                        }
+                        Ok(())
+                    });
+                    match attempt {
+                        Ok(()) => Ok(true),
+                        Err(error) => {
+                            failure = Some(error);
+                            Ok(false)
                         }
                     }
-                    Ok(())
-                });
-                match attempt {
-                    Ok(()) => Ok(true),
-                    Err(error) => {
-                        failure = Some(error);
-                        Ok(false)
-                    }
-                }
-            });
+                },
+            );
             if let Err(error) = pass {
                 store_error = Some(error);
                 return Ok(Vec::new());
@@ -754,7 +785,18 @@ impl HistogramsStage {
             if let Some(error) = failure {
                 return Err(error);
             }
-            units.iter().map(|u| gpu.finish_unit(u)).collect()
+            units
+                .iter()
+                .map(|batches| {
+                    let mut rows = (Vec::new(), 0u64);
+                    for (_, _, batch) in batches {
+                        let (hist, votes) = gpu.finish_unit(batch)?;
+                        rows.0.extend(hist);
+                        rows.1 += votes;
+                    }
+                    Ok(rows)
+                })
+                .collect()
         });
         if let Some(error) = store_error {
             return Err(error);

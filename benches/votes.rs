@@ -1,0 +1,111 @@
+//! Histogram votes per second (Algorithm 1): cubes tested against one depth map's pyramid, on
+//! the CPU (the histogram stage's `Pyramid::vote`, on every thread) and then on every GPU
+//! adapter wgpu finds (`shaders/votes.wgsl`; software adapters are marked as such).
+//! `cargo bench --bench votes`; OCTSTORE_BENCH_CUBES sets the cube count (default 1 million),
+//! OCTSTORE_BENCH_MAPS how many times the map is voted (default 20). A GPU figure counts the
+//! votes only: the time of one pass with its uploads and read-back is subtracted.
+
+use std::time::Instant;
+
+use glam::{DMat4, DVec3};
+use octstore::gpu::{Gpu, adapters};
+use octstore::stages::depthmap::{DepthImage, DepthMapSource, ImageFormat, Kind, Projection};
+use octstore::stages::histograms::Pyramid;
+use rayon::prelude::*;
+
+fn main() {
+    let setting = |name: &str, default: usize| -> usize {
+        std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+    };
+    let cubes = setting("OCTSTORE_BENCH_CUBES", 1_000_000);
+    let maps = setting("OCTSTORE_BENCH_MAPS", 20).max(2);
+    // A 640 x 480 view of a wavy wall 3 to 4 m away, and cubes scattered around the wall at
+    // the sizes of 1 to 8 pixel footprints, some in front, some behind, some outside the view.
+    let (width, height) = (640u32, 480u32);
+    let (fx, fy, cx, cy) = (525.0, 525.0, 319.5, 239.5);
+    let depth_at = |i: f64, j: f64| 3.0 + 0.5 * (i * 0.02).sin() * (j * 0.03).cos();
+    let depth = (0..height)
+        .flat_map(|j| (0..width).map(move |i| depth_at(f64::from(i), f64::from(j)) as f32))
+        .collect();
+    let camera_to_world = DMat4::from_translation(DVec3::new(12.0, -3.0, 1.5)) * DMat4::from_rotation_y(0.3);
+    let source = DepthMapSource {
+        path: "bench.pfm".into(),
+        format: ImageFormat::Pfm,
+        width,
+        height,
+        projection: Projection::Pinhole { fx, fy, cx, cy },
+        camera_to_world: camera_to_world.to_cols_array(),
+        kind: Kind::Photo,
+        weight: 1.0,
+    };
+    let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
+    let world_to_camera = camera_to_world.inverse();
+    let mut seed = 7u64;
+    let mut uniform = move || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (seed >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let (mut centers, mut radii) = (Vec::with_capacity(cubes), Vec::with_capacity(cubes));
+    for _ in 0..cubes {
+        let (u, v) = (
+            uniform() * f64::from(width + 64) - 32.0,
+            uniform() * f64::from(height + 64) - 32.0,
+        );
+        let z = depth_at(u, v) + (uniform() - 0.5) * 0.2;
+        let camera = DVec3::new((u - cx) / fx * z, (v - cy) / fy * z, z);
+        centers.push(camera_to_world.transform_point3(camera));
+        radii.push(z / fx * 0.5 * 8f64.powf(uniform()));
+    }
+    let started = Instant::now();
+    let mut voted = 0usize;
+    for _ in 0..maps {
+        voted = centers
+            .par_iter()
+            .zip(&radii)
+            .filter(|(c, r)| pyramid.vote(&world_to_camera, **c, **r).is_some())
+            .count();
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    println!(
+        "votes: {cubes} cubes x {maps} maps in {seconds:.2}s on {} threads: {:.2} million cube-map tests/s ({:.0} % of the cubes vote)",
+        rayon::current_num_threads(),
+        (cubes * maps) as f64 / seconds / 1e6,
+        100.0 * voted as f64 / cubes as f64
+    );
+    let origin = centers.iter().copied().sum::<DVec3>() / cubes as f64;
+    let found = adapters();
+    if found.is_empty() {
+        println!("votes: no GPU adapter found (WGPU_BACKEND chooses backends)");
+    }
+    for (index, adapter) in found.iter().enumerate() {
+        let kind = if adapter.software { "software" } else { "hardware" };
+        let gpu = match Gpu::open_adapter(index) {
+            Ok(gpu) => gpu,
+            Err(error) => {
+                println!("votes on {} ({kind}): {error}", adapter.name);
+                continue;
+            }
+        };
+        let time = |passes: usize| -> Result<(f64, u64), octstore::gpu::GpuError> {
+            let started = Instant::now();
+            let hist = vec![0f32; cubes * 8];
+            let unit = gpu.upload_unit(origin, &centers, &radii, &hist)?;
+            let map = gpu.upload_pyramid(&pyramid)?;
+            for _ in 0..passes {
+                gpu.vote(&unit, &map, &source, &world_to_camera, 1.0)?;
+            }
+            let (_, votes) = gpu.finish_unit(&unit)?;
+            Ok((started.elapsed().as_secs_f64(), votes))
+        };
+        match (time(1), time(maps)) {
+            (Ok((one, _)), Ok((all, votes))) => println!(
+                "votes on {} ({kind}, {}): {cubes} cubes x {maps} maps in {all:.2}s ({one:.2}s for one with uploads and read-back): {:.2} million cube-map tests/s ({:.0} % vote)",
+                adapter.name,
+                adapter.backend,
+                (cubes * (maps - 1)) as f64 / (all - one).max(1e-9) / 1e6,
+                100.0 * votes as f64 / (cubes * maps) as f64
+            ),
+            (Err(error), _) | (_, Err(error)) => println!("votes on {} ({kind}): {error}", adapter.name),
+        }
+    }
+}
