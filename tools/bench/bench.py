@@ -184,6 +184,7 @@ def run_worker(*args):
 
 
 STAGE_LINE = re.compile(r"^(\S+)\s.*\| ([0-9.]+)s \| peak memory ([0-9]+) MB")
+LEVEL_CUBES = re.compile(r"level [0-9]+: ([0-9]+) cubes, .*\(([0-9]+) iterations")
 OCTREE_PARTS = re.compile(r"octree: merge ([0-9.]+)s, balance ([0-9.]+)s, nodes ([0-9.]+)s, treetop ([0-9.]+)s")
 
 
@@ -208,6 +209,11 @@ def octstore(store, source, args_ingest, args_solve, mesh, budget=None):
             if match:
                 name, seconds, mb = match.group(1), float(match.group(2)), float(match.group(3))
                 stages[name] = {"seconds": seconds, "peak_mb": mb}
+                level = LEVEL_CUBES.search(line)
+                if name.startswith("solution-") and level:
+                    # The cubes of the level's cut: each is updated once per iteration.
+                    stages[name]["cubes"] = int(level.group(1))
+                    stages[name]["iterations"] = int(level.group(2))
                 peak = max(peak, mb)
         for line in stderr.splitlines():
             match = OCTREE_PARTS.search(line)
@@ -510,7 +516,11 @@ def scale(work, sizes, budget):
         info = json.loads(subprocess.run(
             [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
         ).stdout)
+        levels = [v for k, v in stages.items() if k.startswith("solution-")]
         rows.append({"blocks": n * n, "depth_maps": maps, "samples": maps * CITY_VIEW[0] * CITY_VIEW[1],
+                     "cut_cubes": sum(v.get("cubes", 0) for v in levels),
+                     "cube_iterations": sum(v.get("cubes", 0) * v.get("iterations", 0) for v in levels),
+                     "solve_s": sum(v["seconds"] for v in levels),
                      "cubes": info["cubes"], "cube_data_mb": info["cubes"] * CUBE_BYTES / 1e6, "budget": budget,
                      "wall_s": wall, "cpu_s": cpu, "peak_mb": peak, "stages": stages,
                      "solve_peak_mb": max(v["peak_mb"] for k, v in stages.items() if k not in ("extract", "octree-parts")),
@@ -567,7 +577,7 @@ def groundtruth_plots(rows, out_dir):
     return written
 
 
-def scale_plot(rows, out_dir):
+def scale_plot(rows, out_dir, name="scale.png"):
     plt = figure()
     fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5))
     samples = [r["samples"] / 1e6 for r in rows]
@@ -585,7 +595,7 @@ def scale_plot(rows, out_dir):
     right.set_ylim(bottom=0)
     right.legend()
     fig.tight_layout()
-    path = out_dir / "scale.png"
+    path = out_dir / name
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -701,32 +711,46 @@ def write_markdown(results, out_dir, path):
             for name, seconds in breakdown:
                 lines.append(f"| {name} | {seconds:.1f} s | {100 * seconds / total:.0f} % |")
         lines.append("")
-    if scale_rows:
-        budget = scale_rows[0]["budget"]
-        peaks = [r["peak_mb"] for r in scale_rows]
-        per_sample = [r["wall_s"] / r["samples"] * 1e6 for r in scale_rows]
-        per_cube = [r["wall_s"] / r["cubes"] * 1e6 for r in scale_rows]
-        largest = scale_rows[-1]
-        lines += ["## Scale: a synthetic city larger than the memory budget", "",
+    budgets = sorted({r["budget"] for r in scale_rows}, key=parse_budget, reverse=True)
+    for budget in budgets:
+        rows = [r for r in scale_rows if r["budget"] == budget]
+        peaks = [r["peak_mb"] for r in rows]
+        per_sample = [r["wall_s"] / r["samples"] * 1e6 for r in rows]
+        per_cube = [r["wall_s"] / r["cubes"] * 1e6 for r in rows]
+        title = "## Scale: a synthetic city larger than the memory budget"
+        lines += [title if budget == budgets[0] else f"### The same cities with `--memory-budget {budget}`", "",
                   f"A city of n x n blocks (20 m, 2 x 2 boxes each, random heights) on a ground slab, 8 views of "
                   f"{CITY_VIEW[0]}x{CITY_VIEW[1]} per block from 40-48 m up, rendered by `bench.py` itself. Each size "
                   f"runs ingest, solve and extract end to end with `--memory-budget {budget}` and `--max-depth 20` "
                   "(the sample radii set the resolution; cube sides snap to the root's side over a power of two, "
                   "and the root grows with the city, so cubes per sample vary a little between sizes). Cube data is "
                   f"cubes x {CUBE_BYTES} bytes (key, radius sums, 8 histogram bins, u, v, p, q). octstore commit "
-                  f"{commits(scale_rows)}.", "",
+                  f"{commits(rows)}.", "",
                   "| blocks | depth maps | samples | cubes | cube data MB | x budget | wall s | CPU s | peak MB, ingest + solve | peak MB, extract |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
-        for r in scale_rows:
+        for r in rows:
             ratio = r["cube_data_mb"] * 1e6 / parse_budget(r["budget"])
             lines.append(f"| {r['blocks']} | {r['depth_maps']} | {r['samples']:,} | {r['cubes']:,} | {r['cube_data_mb']:.0f} | "
                          f"{ratio:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['solve_peak_mb']:.0f} | {r['extract_peak_mb']:.0f} |")
-        solve_peaks = [r["solve_peak_mb"] for r in scale_rows]
+        solve_peaks = [r["solve_peak_mb"] for r in rows]
         lines += ["", f"Peak RSS of ingest and solve ranges from {min(solve_peaks):.0f} to {max(solve_peaks):.0f} MB across "
-                  f"sizes; with extract, from {min(peaks):.0f} to {max(peaks):.0f} MB. Wall time per million samples ranges "
+                  f"sizes; with extract, from {min(peaks):.0f} to {max(peaks):.0f} MB (the budget is "
+                  f"{parse_budget(budget) / 1e6:.0f} MB). Wall time per million samples ranges "
                   f"from {min(per_sample):.1f} to {max(per_sample):.1f} s (largest size: {per_sample[-1]:.1f} s); per "
-                  f"million cubes, {', '.join(f'{x:.1f}' for x in per_cube)} s.", "",
-                  f"![scale]({scale_plot(scale_rows, out_dir).relative_to(path.parent)})", ""]
+                  f"million cubes, {', '.join(f'{x:.1f}' for x in per_cube)} s."]
+        worked = [r for r in rows if r.get("cube_iterations")]
+        if worked:
+            lines += ["", "The solve's work is the sum over levels of the cut's cubes times the iterations; "
+                      "coarse leaves belong to every finer level's cut, so work per cube grows with the number of levels:", "",
+                      "| blocks | cubes | levels | cut cubes, all levels | cut cubes per cube | solve s | million cube-iterations/s |",
+                      "|---|---|---|---|---|---|---|"]
+            for r in worked:
+                levels = sum(1 for k in r["stages"] if k.startswith("solution-"))
+                lines.append(f"| {r['blocks']} | {r['cubes']:,} | {levels} | {r['cut_cubes']:,} | "
+                             f"{r['cut_cubes'] / r['cubes']:.2f} | {r['solve_s']:.0f} | "
+                             f"{r['cube_iterations'] / max(r['solve_s'], 1e-9) / 1e6:.1f} |")
+        name = "scale.png" if budget == budgets[0] else f"scale-{budget}.png"
+        lines += ["", f"![scale]({scale_plot(rows, out_dir, name).relative_to(path.parent)})", ""]
     path.write_text("\n".join(lines))
 
 
@@ -764,6 +788,9 @@ def main():
             for row in rows:
                 row["commit"] = commit()
             path = args.out / f"results-{section}.json"
+            if section == "scale" and path.exists():
+                # Sweeps at other budgets stay.
+                rows = [r for r in json.loads(path.read_text()) if r["budget"] != args.scale_budget] + rows
             if section == "redkitchen" and path.exists():
                 # Runs of other frame counts or cube sizes stay: the 1000-frame run can be made
                 # on its own.
