@@ -804,3 +804,99 @@ fn cluster_workers_on_the_gpu_equal_a_single_gpu_solve() {
         "GPU workers vs a single GPU solve",
     );
 }
+
+/// A device lost between stages (destroyed after the histograms, as a driver reset would):
+/// every later unit falls back to the CPU with a warning, and the run completes with the store
+/// of a run whose later stages ran on the CPU, byte for byte.
+#[test]
+fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
+    use common::{assert_same_store, fingerprint};
+    use octstore::pipeline::{SolveOptions, SolveUntil, ingest, solve, solve_with_gpu};
+    use octstore::scenes::{SceneSpec, Shape};
+    use octstore::stages::ingest::IngestOptions;
+    use octstore::stages::inputs::DiscoverOptions;
+    use octstore::store::RunOptions;
+
+    let Some(healthy) = open_gpu() else { return };
+    let healthy = std::sync::Arc::new(healthy);
+    let lost = std::sync::Arc::new(Gpu::open(DeviceChoice::Gpu).unwrap().expect("a second device"));
+    let dir = tempfile::tempdir().unwrap();
+    let center = glam::DVec3::new(-0.1, 0.2, 0.0);
+    let spec = SceneSpec {
+        shapes: vec![Shape::Sphere { center, radius: 0.5 }],
+        cameras: 6,
+        distance: 2.0,
+        target: center,
+        width: 40,
+        height: 30,
+        fov_degrees: 50.0,
+        noise: None,
+        room: Some(2.6),
+    };
+    let manifest = spec.write(&dir.path().join("input")).unwrap();
+    let run = RunOptions {
+        resume: false,
+        threads: 2,
+        progress: false,
+    };
+    let options = SolveOptions {
+        leaf_cubes: 300,
+        memory_budget: 256 << 20,
+        params: octstore::stages::solve::SolveParams {
+            iterations: 20,
+            ..Default::default()
+        },
+        run: run.clone(),
+        device: DeviceChoice::Gpu,
+        ..SolveOptions::default()
+    };
+    let mut stores = Vec::new();
+    for name in ["reference", "lost"] {
+        let path = dir.path().join(name);
+        let store = octstore::Store::create(&path).unwrap();
+        let ingest_options = IngestOptions {
+            max_depth: 5,
+            ..IngestOptions::default()
+        };
+        ingest(
+            &store,
+            std::slice::from_ref(&manifest),
+            &DiscoverOptions::default(),
+            &ingest_options,
+            &run,
+        )
+        .unwrap();
+        if name == "reference" {
+            let histograms = SolveOptions {
+                until: SolveUntil::Histograms,
+                ..options.clone()
+            };
+            solve_with_gpu(&store, &histograms, Some(healthy.clone()), |_| {}).unwrap();
+            let on_cpu = SolveOptions {
+                device: DeviceChoice::Cpu,
+                ..options.clone()
+            };
+            solve(&store, &on_cpu, |_| {}).unwrap();
+        } else {
+            solve_with_gpu(&store, &options, Some(lost.clone()), |report| {
+                if report.stage == octstore::stages::HISTOGRAMS {
+                    lost.destroy();
+                }
+            })
+            .unwrap();
+        }
+        drop(store);
+        stores.push(path);
+    }
+    let (units, fallbacks) = lost.counts();
+    assert!(lost.is_lost(), "the device reports its loss");
+    assert!(
+        units > 0 && fallbacks > 0,
+        "{units} units on the GPU, {fallbacks} fell back"
+    );
+    assert_same_store(
+        &fingerprint(&stores[0]),
+        &fingerprint(&stores[1]),
+        "lost device vs CPU levels",
+    );
+}

@@ -221,6 +221,16 @@ impl Gpu {
         counter.fetch_add(1, Ordering::SeqCst);
     }
 
+    /// Destroys the device, as a driver reset or a removed card would: the device-lost
+    /// callback fires and every later unit runs on the CPU (for tests of that path).
+    pub fn destroy(&self) {
+        self.device.destroy();
+        // wgpu reports the loss from its next poll; a failed poll means the same.
+        if self.device.poll(wgpu::PollType::Poll).is_err() {
+            self.lost.store(true, Ordering::SeqCst);
+        }
+    }
+
     pub fn is_lost(&self) -> bool {
         self.lost.load(Ordering::SeqCst)
     }
