@@ -663,31 +663,15 @@ fn vote_map_matches_the_shader_layout() {
 #[test]
 fn votes_in_batches_that_fit_a_binding_are_the_whole_units_votes() {
     use octstore::pipeline::{SolveOptions, SolveUntil, ingest, solve_with_gpu};
-    use octstore::scenes::{SceneSpec, Shape};
     use octstore::stages::ingest::IngestOptions;
     use octstore::stages::inputs::DiscoverOptions;
-    use octstore::store::RunOptions;
 
     let Some(gpu) = open_gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let center = glam::DVec3::new(0.1, 0.0, -0.2);
-    let spec = SceneSpec {
-        shapes: vec![Shape::Sphere { center, radius: 0.5 }],
-        cameras: 6,
-        distance: 2.0,
-        target: center,
-        width: 40,
-        height: 30,
-        fov_degrees: 50.0,
-        noise: None,
-        room: None,
-    };
-    let manifest = spec.write(&dir.path().join("input")).unwrap();
-    let run = RunOptions {
-        resume: false,
-        threads: 2,
-        progress: false,
-    };
+    let manifest = small_sphere(glam::DVec3::new(0.1, 0.0, -0.2), None)
+        .write(&dir.path().join("input"))
+        .unwrap();
+    let run = two_threads();
     let full = std::sync::Arc::new(gpu);
     let batched = std::sync::Arc::new(
         Gpu::open(DeviceChoice::Gpu)
@@ -733,7 +717,6 @@ fn votes_in_batches_that_fit_a_binding_are_the_whole_units_votes() {
 #[test]
 fn cluster_workers_on_the_gpu_equal_a_single_gpu_solve() {
     use common::{assert_same_store, fingerprint, octstore, stderr};
-    use octstore::scenes::{SceneSpec, Shape};
 
     if open_gpu().is_none() {
         return;
@@ -743,19 +726,9 @@ fn cluster_workers_on_the_gpu_equal_a_single_gpu_solve() {
         assert!(out.status.success(), "{args:?}: {}", stderr(&out));
     };
     let dir = tempfile::tempdir().unwrap();
-    let center = glam::DVec3::new(0.2, -0.1, 0.3);
-    let spec = SceneSpec {
-        shapes: vec![Shape::Sphere { center, radius: 0.5 }],
-        cameras: 6,
-        distance: 2.2,
-        target: center,
-        width: 40,
-        height: 30,
-        fov_degrees: 45.0,
-        noise: None,
-        room: Some(2.6),
-    };
-    let manifest = spec.write(&dir.path().join("input")).unwrap();
+    let manifest = small_sphere(glam::DVec3::new(0.2, -0.1, 0.3), Some(2.6))
+        .write(&dir.path().join("input"))
+        .unwrap();
     let (cluster, single) = (dir.path().join("cluster"), dir.path().join("single"));
     let (c, s) = (cluster.to_str().unwrap(), single.to_str().unwrap());
     for store in [c, s] {
@@ -812,33 +785,17 @@ fn cluster_workers_on_the_gpu_equal_a_single_gpu_solve() {
 fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
     use common::{assert_same_store, fingerprint};
     use octstore::pipeline::{SolveOptions, SolveUntil, ingest, solve, solve_with_gpu};
-    use octstore::scenes::{SceneSpec, Shape};
     use octstore::stages::ingest::IngestOptions;
     use octstore::stages::inputs::DiscoverOptions;
-    use octstore::store::RunOptions;
 
     let Some(healthy) = open_gpu() else { return };
     let healthy = std::sync::Arc::new(healthy);
     let lost = std::sync::Arc::new(Gpu::open(DeviceChoice::Gpu).unwrap().expect("a second device"));
     let dir = tempfile::tempdir().unwrap();
-    let center = glam::DVec3::new(-0.1, 0.2, 0.0);
-    let spec = SceneSpec {
-        shapes: vec![Shape::Sphere { center, radius: 0.5 }],
-        cameras: 6,
-        distance: 2.0,
-        target: center,
-        width: 40,
-        height: 30,
-        fov_degrees: 50.0,
-        noise: None,
-        room: Some(2.6),
-    };
-    let manifest = spec.write(&dir.path().join("input")).unwrap();
-    let run = RunOptions {
-        resume: false,
-        threads: 2,
-        progress: false,
-    };
+    let manifest = small_sphere(glam::DVec3::new(-0.1, 0.2, 0.0), Some(2.6))
+        .write(&dir.path().join("input"))
+        .unwrap();
+    let run = two_threads();
     let options = SolveOptions {
         leaf_cubes: 300,
         memory_budget: 256 << 20,
@@ -899,4 +856,28 @@ fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
         &fingerprint(&stores[1]),
         "lost device vs CPU levels",
     );
+}
+
+/// A sphere of radius 0.5 seen by 6 views of 40 x 30, in a room of half-side `room` if given:
+/// small enough for a whole pipeline in a few seconds on llvmpipe.
+fn small_sphere(center: glam::DVec3, room: Option<f64>) -> octstore::scenes::SceneSpec {
+    octstore::scenes::SceneSpec {
+        shapes: vec![octstore::scenes::Shape::Sphere { center, radius: 0.5 }],
+        cameras: 6,
+        distance: 2.0,
+        target: center,
+        width: 40,
+        height: 30,
+        fov_degrees: 50.0,
+        noise: None,
+        room,
+    }
+}
+
+fn two_threads() -> octstore::store::RunOptions {
+    octstore::store::RunOptions {
+        resume: false,
+        threads: 2,
+        progress: false,
+    }
 }
