@@ -327,14 +327,12 @@ fn shared_structs_match_the_shader_layout() {
 /// sign, and the meshes lie within half a cube of each other (F-score 0.99).
 #[test]
 fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
-    use octstore::pipeline::{SolveOptions, ingest, solve_with_gpu};
+    use octstore::pipeline::{SolveOptions, solve_with_gpu};
     use octstore::scenes::{Noise, SceneSpec, Shape};
     use octstore::stages::extract::{ExtractOptions, extract};
-    use octstore::stages::ingest::{IngestOptions, read_scene};
-    use octstore::stages::inputs::DiscoverOptions;
+    use octstore::stages::ingest::read_scene;
     use octstore::stages::octree_max_depth;
     use octstore::stages::solve::{LEVEL_STAGES, SolveParams, read_level_values};
-    use octstore::store::RunOptions;
 
     let dir = tempfile::tempdir().unwrap();
     let center = glam::DVec3::new(0.2, -0.1, 0.3);
@@ -354,28 +352,12 @@ fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
         room: Some(3.0),
     };
     let manifest = spec.write(&dir.path().join("input")).unwrap();
-    let run = RunOptions {
-        resume: false,
-        threads: 2,
-        progress: false,
-    };
+    let run = two_threads();
     let mut results = Vec::new();
     let Some(gpu) = open_gpu() else { return };
     let gpu = std::sync::Arc::new(gpu);
     for device in [DeviceChoice::Cpu, DeviceChoice::Gpu] {
-        let store = octstore::Store::create(dir.path().join(format!("{device:?}"))).unwrap();
-        let options = IngestOptions {
-            max_depth: 7,
-            ..IngestOptions::default()
-        };
-        ingest(
-            &store,
-            std::slice::from_ref(&manifest),
-            &DiscoverOptions::default(),
-            &options,
-            &run,
-        )
-        .unwrap();
+        let store = ingested(dir.path().join(format!("{device:?}")), &manifest, 7);
         let solve_options = SolveOptions {
             leaf_cubes: 3000,
             memory_budget: 256 << 20,
@@ -662,9 +644,7 @@ fn vote_map_matches_the_shader_layout() {
 /// origin, so each cube computes the same f32 values.
 #[test]
 fn votes_in_batches_that_fit_a_binding_are_the_whole_units_votes() {
-    use octstore::pipeline::{SolveOptions, SolveUntil, ingest, solve_with_gpu};
-    use octstore::stages::ingest::IngestOptions;
-    use octstore::stages::inputs::DiscoverOptions;
+    use octstore::pipeline::{SolveOptions, SolveUntil, solve_with_gpu};
 
     let Some(gpu) = open_gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
@@ -681,19 +661,7 @@ fn votes_in_batches_that_fit_a_binding_are_the_whole_units_votes() {
     );
     let mut digests = Vec::new();
     for (name, gpu) in [("full", &full), ("batched", &batched)] {
-        let store = octstore::Store::create(dir.path().join(name)).unwrap();
-        let options = IngestOptions {
-            max_depth: 6,
-            ..IngestOptions::default()
-        };
-        ingest(
-            &store,
-            std::slice::from_ref(&manifest),
-            &DiscoverOptions::default(),
-            &options,
-            &run,
-        )
-        .unwrap();
+        let store = ingested(dir.path().join(name), &manifest, 6);
         let solve_options = SolveOptions {
             until: SolveUntil::Histograms,
             leaf_cubes: 3000,
@@ -784,9 +752,7 @@ fn cluster_workers_on_the_gpu_equal_a_single_gpu_solve() {
 #[test]
 fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
     use common::{assert_same_store, fingerprint};
-    use octstore::pipeline::{SolveOptions, SolveUntil, ingest, solve, solve_with_gpu};
-    use octstore::stages::ingest::IngestOptions;
-    use octstore::stages::inputs::DiscoverOptions;
+    use octstore::pipeline::{SolveOptions, SolveUntil, solve, solve_with_gpu};
 
     let Some(healthy) = open_gpu() else { return };
     let healthy = std::sync::Arc::new(healthy);
@@ -810,19 +776,7 @@ fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
     let mut stores = Vec::new();
     for name in ["reference", "lost"] {
         let path = dir.path().join(name);
-        let store = octstore::Store::create(&path).unwrap();
-        let ingest_options = IngestOptions {
-            max_depth: 5,
-            ..IngestOptions::default()
-        };
-        ingest(
-            &store,
-            std::slice::from_ref(&manifest),
-            &DiscoverOptions::default(),
-            &ingest_options,
-            &run,
-        )
-        .unwrap();
+        let store = ingested(&path, &manifest, 5);
         if name == "reference" {
             let histograms = SolveOptions {
                 until: SolveUntil::Histograms,
@@ -880,4 +834,23 @@ fn two_threads() -> octstore::store::RunOptions {
         threads: 2,
         progress: false,
     }
+}
+
+/// A new store at `path` with `manifest` ingested at `max_depth`, on two threads.
+fn ingested(path: impl AsRef<std::path::Path>, manifest: &std::path::Path, max_depth: u8) -> octstore::Store {
+    use octstore::stages::ingest::IngestOptions;
+    let store = octstore::Store::create(path).unwrap();
+    let options = IngestOptions {
+        max_depth,
+        ..IngestOptions::default()
+    };
+    octstore::pipeline::ingest(
+        &store,
+        std::slice::from_ref(&manifest.to_path_buf()),
+        &octstore::stages::inputs::DiscoverOptions::default(),
+        &options,
+        &two_threads(),
+    )
+    .unwrap();
+    store
 }

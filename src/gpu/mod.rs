@@ -30,13 +30,9 @@ pub enum DeviceChoice {
 }
 
 impl DeviceChoice {
-    /// The name `--device` takes.
-    pub fn name(self) -> &'static str {
-        match self {
-            DeviceChoice::Auto => "auto",
-            DeviceChoice::Cpu => "cpu",
-            DeviceChoice::Gpu => "gpu",
-        }
+    /// The name `--device` takes, from clap's own value names.
+    pub fn name(self) -> String {
+        clap::ValueEnum::to_possible_value(&self).map_or_else(String::new, |v| v.get_name().to_string())
     }
 }
 
