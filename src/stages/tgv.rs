@@ -109,13 +109,18 @@ impl Problem {
 
     /// D applied to a scalar field with frozen values: (D x)_c for the 3 axes.
     pub fn diff(&self, c: usize, x: &[f32], frozen: impl Fn(usize) -> f32) -> [f32; 3] {
-        let xc = x[c];
+        self.diff_by(c, |t| x[t], frozen)
+    }
+
+    /// [`Problem::diff`] with the free values read through `free` (one component of v, say).
+    fn diff_by(&self, c: usize, free: impl Fn(usize) -> f32, frozen: impl Fn(usize) -> f32) -> [f32; 3] {
+        let xc = free(c);
         std::array::from_fn(|axis| {
             self.row(3 * c + axis)
                 .iter()
                 .map(|(t, w)| {
                     let t = *t as usize;
-                    let xt = if t < self.n { x[t] } else { frozen(t - self.n) };
+                    let xt = if t < self.n { free(t) } else { frozen(t - self.n) };
                     w * (xt - xc)
                 })
                 .sum()
@@ -234,6 +239,7 @@ impl<'a> Operator<'a> {
         let n = p.n;
         // |D| row sums: own coefficient plus free targets.
         let row_abs: Vec<f32> = (0..3 * n)
+            .into_par_iter()
             .map(|row| {
                 p.row(row)
                     .iter()
@@ -245,6 +251,7 @@ impl<'a> Operator<'a> {
         // row_sum) plus the rows of the cubes whose terms target this one.
         let col_abs = |weights: &[f32]| -> Vec<[f32; 3]> {
             (0..n)
+                .into_par_iter()
                 .map(|j| {
                     let mut c = [0f32; 3];
                     for (axis, slot) in c.iter_mut().enumerate() {
@@ -263,9 +270,11 @@ impl<'a> Operator<'a> {
         let col0 = col_abs(&p.alpha0);
         let inv = |s: f32| if s > 0.0 { 1.0 / s } else { 1.0 };
         let sigma_p = (0..n)
+            .into_par_iter()
             .map(|c| std::array::from_fn(|a| inv(p.alpha1[c] * (row_abs[3 * c + a] + 1.0))))
             .collect();
         let sigma_q = (0..n)
+            .into_par_iter()
             .map(|c| {
                 let r = |a: usize| row_abs[3 * c + a];
                 [
@@ -279,8 +288,9 @@ impl<'a> Operator<'a> {
                 .map(|x| inv(p.alpha0[c] * x))
             })
             .collect();
-        let tau_u = col1.iter().map(|c| inv(c[0] + c[1] + c[2])).collect();
+        let tau_u = col1.par_iter().map(|c| inv(c[0] + c[1] + c[2])).collect();
         let tau_v = (0..n)
+            .into_par_iter()
             .map(|j| {
                 let (c, w) = (col0[j], p.alpha1[j]);
                 [
@@ -383,28 +393,37 @@ fn project<const N: usize>(x: &mut [f32; N]) {
     x.iter_mut().for_each(|v| *v *= s);
 }
 
-/// Energy of a state (free cubes only).
+/// Energy of a state (free cubes only). Each cube's term is computed on its own, as
+/// [`Operator::apply`] would give it, and the terms are summed in cube order, so the value does
+/// not depend on the thread count.
 pub fn energy(op: &Operator<'_>, state: &State) -> f64 {
     let p = op.problem;
-    let (g, e) = op.apply(&state.u, &state.v, true);
-    (0..p.n)
+    let per_cube: Vec<f64> = (0..p.n)
+        .into_par_iter()
         .map(|c| {
-            let tv = g[c].iter().map(|x| x * x).sum::<f32>().sqrt();
-            let tgv = e[c].iter().map(|x| x * x).sum::<f32>().sqrt();
+            let g = p.diff(c, &state.u, |k| p.frozen_u[k]);
+            let dv: [[f32; 3]; 3] = std::array::from_fn(|i| p.diff_by(c, |t| state.v[t][i], |k| p.frozen_v[k][i]));
+            let (w1, w0) = (p.alpha1[c], p.alpha0[c]);
+            let v = state.v[c];
+            let g = [w1 * (g[0] - v[0]), w1 * (g[1] - v[1]), w1 * (g[2] - v[2])];
+            let e = Operator::sym(dv).map(|e| w0 * e);
+            let tv = g.iter().map(|x| x * x).sum::<f32>().sqrt();
+            let tgv = e.iter().map(|x| x * x).sum::<f32>().sqrt();
             let data: f32 = (0..BINS)
                 .map(|b| p.hist[c][b] * (state.u[c] - bin_center(b)).abs())
                 .sum();
             f64::from(tv) + f64::from(tgv) + f64::from(p.lambda * data)
         })
-        .sum()
+        .collect();
+    per_cube.iter().sum()
 }
 
 /// Puts the duals inside their (unit) balls; returns the starting energy.
 fn start(op: &Operator<'_>, state: &mut State) -> f64 {
-    for (p, q) in state.p.iter_mut().zip(state.q.iter_mut()) {
+    state.p.par_iter_mut().zip(state.q.par_iter_mut()).for_each(|(p, q)| {
         project(p);
         project(q);
-    }
+    });
     energy(op, state)
 }
 
@@ -538,24 +557,32 @@ impl Packed {
         Packed {
             uv: state
                 .u
-                .iter()
+                .par_iter()
                 .zip(&state.v)
                 .map(|(u, v)| Vec4::new(*u, v[0], v[1], v[2]))
                 .collect(),
-            p: state.p.iter().map(three).collect(),
-            q_diag: state.q.iter().map(|q| Vec4::new(q[0], q[1], q[2], 0.0)).collect(),
-            q_off: state.q.iter().map(|q| Vec4::new(q[3], q[4], q[5], 0.0)).collect(),
+            p: state.p.par_iter().map(three).collect(),
+            q_diag: state.q.par_iter().map(|q| Vec4::new(q[0], q[1], q[2], 0.0)).collect(),
+            q_off: state.q.par_iter().map(|q| Vec4::new(q[3], q[4], q[5], 0.0)).collect(),
         }
     }
 
     pub fn unpack_into(&self, state: &mut State) {
-        for (c, uv) in self.uv.iter().enumerate() {
-            state.u[c] = uv.x;
-            state.v[c] = [uv.y, uv.z, uv.w];
-            let (p, qd, qo) = (self.p[c], self.q_diag[c], self.q_off[c]);
-            state.p[c] = [p.x, p.y, p.z];
-            state.q[c] = [qd.x, qd.y, qd.z, qo.x, qo.y, qo.z];
-        }
+        state
+            .u
+            .par_iter_mut()
+            .zip(state.v.par_iter_mut())
+            .zip(state.p.par_iter_mut())
+            .zip(state.q.par_iter_mut())
+            .zip(self.uv.par_iter())
+            .zip(self.p.par_iter())
+            .zip(self.q_diag.par_iter().zip(self.q_off.par_iter()))
+            .for_each(|((((((u, v), p), q), uv), packed_p), (qd, qo))| {
+                *u = uv.x;
+                *v = [uv.y, uv.z, uv.w];
+                *p = [packed_p.x, packed_p.y, packed_p.z];
+                *q = [qd.x, qd.y, qd.z, qo.x, qo.y, qo.z];
+            });
     }
 }
 
@@ -583,24 +610,26 @@ impl Kernel {
             index: *index,
             weight: *weight,
         };
-        let mut dual_constants = Vec::with_capacity(n);
-        let mut primal_constants = Vec::with_capacity(n);
-        for c in 0..n {
-            let (a1, a0) = (problem.alpha1[c], problem.alpha0[c]);
-            let sp = steps.sigma_p[c].map(|s| s * a1);
-            let sq = steps.sigma_q[c].map(|s| s * a0);
-            let tv = steps.tau_v[c];
-            let own = |axis: usize| op.reverse.row_sum.get(3 * c + axis).copied().unwrap_or(0.0);
-            dual_constants.push(DualConstants {
-                sigma_p: Vec4::new(sp[0], sp[1], sp[2], a1),
-                sigma_q_diag: Vec4::new(sq[0], sq[1], sq[2], a0),
-                sigma_q_off: Vec4::new(sq[3], sq[4], sq[5], 0.0),
-            });
-            primal_constants.push(PrimalConstants {
-                tau: Vec4::new(steps.tau_u[c], tv[0], tv[1], tv[2]),
-                own: Vec4::new(own(0), own(1), own(2), 0.0),
-            });
-        }
+        let (dual_constants, primal_constants): (Vec<DualConstants>, Vec<PrimalConstants>) = (0..n)
+            .into_par_iter()
+            .map(|c| {
+                let (a1, a0) = (problem.alpha1[c], problem.alpha0[c]);
+                let sp = steps.sigma_p[c].map(|s| s * a1);
+                let sq = steps.sigma_q[c].map(|s| s * a0);
+                let tv = steps.tau_v[c];
+                let own = |axis: usize| op.reverse.row_sum.get(3 * c + axis).copied().unwrap_or(0.0);
+                let dual = DualConstants {
+                    sigma_p: Vec4::new(sp[0], sp[1], sp[2], a1),
+                    sigma_q_diag: Vec4::new(sq[0], sq[1], sq[2], a0),
+                    sigma_q_off: Vec4::new(sq[3], sq[4], sq[5], 0.0),
+                };
+                let primal = PrimalConstants {
+                    tau: Vec4::new(steps.tau_u[c], tv[0], tv[1], tv[2]),
+                    own: Vec4::new(own(0), own(1), own(2), 0.0),
+                };
+                (dual, primal)
+            })
+            .unzip();
         let len = |start: &[u32], i: usize| {
             let span = start
                 .get(i + 1)
@@ -610,6 +639,7 @@ impl Kernel {
             u16::try_from(span).ok()
         };
         let lengths = (0..n)
+            .into_par_iter()
             .map(|c| {
                 Some([
                     len(&problem.start, 3 * c)?,
@@ -623,9 +653,9 @@ impl Kernel {
             n,
             lengths,
             row_start: problem.start.clone(),
-            row_terms: problem.terms.iter().map(gather).collect(),
+            row_terms: problem.terms.par_iter().map(gather).collect(),
             col_start: op.reverse.start.clone(),
-            col_terms: op.reverse.entries.iter().map(gather).collect(),
+            col_terms: op.reverse.entries.par_iter().map(gather).collect(),
             dual_constants,
             primal_constants,
             frozen: problem
@@ -634,7 +664,7 @@ impl Kernel {
                 .zip(&problem.frozen_v)
                 .map(|(u, v)| Vec4::new(*u, v[0], v[1], v[2]))
                 .collect(),
-            slopes: problem.hist.iter().map(Slopes::of).collect(),
+            slopes: problem.hist.par_iter().map(Slopes::of).collect(),
             lambda: problem.lambda,
         })
     }
