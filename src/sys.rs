@@ -1,4 +1,5 @@
-//! The only module with `unsafe` code: memory-mapping immutable segment files.
+//! The only module with `unsafe` code: memory-mapping immutable segment files, and asking the C
+//! allocator to return freed memory.
 
 use std::fs::File;
 
@@ -13,4 +14,14 @@ pub fn map_segment(file: &File) -> std::io::Result<Mmap> {
     // leaves existing mappings intact on POSIX systems. A foreign process truncating the file
     // would violate this contract; that is outside what any mmap-based reader can defend against.
     unsafe { Mmap::map(file) }
+}
+
+/// Hands memory that the C allocator holds free back to the operating system.
+pub fn return_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks the allocator's own free lists under its locks; it takes
+    // no pointers from us and is safe to call from any thread at any time.
+    unsafe {
+        libc::malloc_trim(0);
+    }
 }

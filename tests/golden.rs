@@ -1,6 +1,7 @@
-//! Golden files: the store checked in under tests/data/golden-v1 was written by format version 1.
-//! Every later build must decode it to the same values, and encoding the same content again must
-//! give the same bytes.
+//! Golden files: the stores checked in under tests/data/golden-vN were written by catalog format
+//! version N (segment format version 1 in both). Every later build must decode them to the same
+//! values, a writable open must migrate an older one to the newest, and encoding the same content
+//! again must give the newest one's bytes.
 
 mod common;
 
@@ -12,9 +13,10 @@ use octstore::format::segment::{self, SegmentReader};
 use octstore::format::{ColumnValues, CubeKey};
 use octstore::stages::synthetic::{self, SyntheticStage};
 use octstore::store::RunOptions;
+use octstore::store::catalog::{CATALOG_FORMAT_VERSION, META};
 
-fn golden() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/golden-v1")
+fn golden(version: u32) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("tests/data/golden-v{version}"))
 }
 
 fn golden_stage() -> SyntheticStage {
@@ -37,8 +39,17 @@ fn copy_dir(from: &Path, to: &Path) {
 
 #[test]
 fn golden_v1_decodes_to_known_values() {
+    decodes_to_known_values(1);
+}
+
+#[test]
+fn golden_v2_decodes_to_known_values() {
+    decodes_to_known_values(2);
+}
+
+fn decodes_to_known_values(version: u32) {
     let dir = tempfile::tempdir().unwrap();
-    copy_dir(&golden(), dir.path());
+    copy_dir(&golden(version), dir.path());
     let store = Store::open_read_only(dir.path()).unwrap();
     assert_eq!(store.current_version().unwrap(), 1);
     let log = store.log().unwrap();
@@ -112,7 +123,38 @@ fn encoding_the_same_content_again_gives_the_same_bytes() {
     drop(store);
     let fresh = fingerprint(dir.path());
     let copy = tempfile::tempdir().unwrap();
-    copy_dir(&golden(), copy.path());
+    copy_dir(&golden(CATALOG_FORMAT_VERSION), copy.path());
     let golden = fingerprint(copy.path());
-    assert_same_store(&golden, &fresh, "golden-v1 re-encoded");
+    assert_same_store(&golden, &fresh, "the newest golden store re-encoded");
+}
+
+#[test]
+fn a_writable_open_migrates_golden_v1_to_golden_v2() {
+    let (old, new) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    copy_dir(&golden(1), old.path());
+    copy_dir(&golden(2), new.path());
+    let v1_dump = Store::open_read_only(old.path()).unwrap().canonical_dump().unwrap();
+    let v2_dump = Store::open_read_only(new.path()).unwrap().canonical_dump().unwrap();
+    assert_ne!(v1_dump, v2_dump, "the golden stores differ in their format version");
+    let migrated = Store::open(old.path()).unwrap().canonical_dump().unwrap();
+    assert_eq!(migrated, v2_dump);
+}
+
+#[test]
+fn catalogs_newer_than_this_build_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    copy_dir(&golden(CATALOG_FORMAT_VERSION), dir.path());
+    {
+        let db = redb::Database::open(dir.path().join("catalog.redb")).unwrap();
+        let txn = db.begin_write().unwrap();
+        txn.open_table(META)
+            .unwrap()
+            .insert("format_version", (CATALOG_FORMAT_VERSION + 1).to_le_bytes().as_slice())
+            .unwrap();
+        txn.commit().unwrap();
+    }
+    for result in [Store::open_read_only(dir.path()), Store::open(dir.path())] {
+        let error = result.err().expect("a newer catalog opened").to_string();
+        assert!(error.contains(&(CATALOG_FORMAT_VERSION + 1).to_string()), "{error}");
+    }
 }

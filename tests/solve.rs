@@ -344,3 +344,129 @@ fn incremental_histograms_equal_a_from_scratch_run() {
         "incremental votes differ from a from-scratch run"
     );
 }
+
+type RawStates = std::collections::BTreeMap<octstore::CubeKey, Vec<u8>>;
+type MapSets = std::collections::BTreeMap<u64, Vec<u64>>;
+
+/// The histogram states of a store's catalog (key -> raw value) and its `map_set/` entries
+/// (digest -> ids), read straight from redb.
+fn histogram_catalog(path: &std::path::Path) -> (RawStates, MapSets) {
+    use octstore::store::catalog::{self, META, UNIT_STATE};
+    use redb::{ReadableDatabase, ReadableTable};
+    let db = redb::Database::open(path.join("catalog.redb")).unwrap();
+    let txn = db.begin_read().unwrap();
+    let states = txn.open_table(UNIT_STATE).unwrap();
+    let (low, high) = (octstore::CubeKey::from_raw(0), octstore::CubeKey::from_raw(u128::MAX));
+    let states = states
+        .range(("histograms", low)..=("histograms", high))
+        .unwrap()
+        .map(|e| {
+            let (k, v) = e.unwrap();
+            (k.value().1, v.value().to_vec())
+        })
+        .collect();
+    let meta = txn.open_table(META).unwrap();
+    let sets = meta
+        .range(catalog::META_MAP_SET_PREFIX..)
+        .unwrap()
+        .map(|e| e.unwrap())
+        .map_while(|(k, v)| {
+            let digest = catalog::map_set_of_key(k.value())?;
+            Some((digest, catalog::decode::<Vec<u64>>("meta", v.value()).unwrap()))
+        })
+        .collect();
+    (states, sets)
+}
+
+#[test]
+fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
+    use octstore::stages::histograms::HistogramState;
+    use octstore::store::catalog::{self, META, UNIT_STATE};
+    let root = tempfile::tempdir().unwrap();
+    let spec = SceneSpec {
+        cameras: 6,
+        ..sphere_scene(1.0, DVec3::ZERO, None)
+    };
+    let manifest = spec.write(&root.path().join("input")).unwrap();
+    let all = discover(&[manifest], &DiscoverOptions::default()).unwrap();
+    let fixed = IngestOptions {
+        root: Some(([-4.0, -4.0, -4.0], 8.0)),
+        root_margin: 0.0,
+        max_depth: 6,
+    };
+    let path = root.path().join("store");
+    let derive = |store: &Store| {
+        let scene = octstore::stages::ingest::read_scene(store).unwrap().unwrap();
+        let octree = OctreeStage::new(scene, 400, 1 << 20, store.scratch_dir(OCTREE).unwrap());
+        store.run_stage(&octree, &options()).unwrap();
+        let histograms = HistogramsStage::new(scene, registered_depth_maps(store).unwrap());
+        store.run_stage(&histograms, &options()).unwrap();
+    };
+    let store = Store::create(&path).unwrap();
+    let mut sets_after = Vec::new();
+    for maps in [&all[..2], &all[2..4]] {
+        let stage = IngestStage::prepare(&store, maps.to_vec(), &fixed).unwrap();
+        store.run_stage(&stage, &options()).unwrap();
+        derive(&store);
+        let ids: Vec<u64> = registered_depth_maps(&store)
+            .unwrap()
+            .iter()
+            .map(|(id, _)| *id)
+            .collect();
+        sets_after.push(ids);
+    }
+    let dump = store.canonical_dump().unwrap();
+    drop(store);
+
+    // One set for all units, with the registered maps; the first run's set is gone.
+    let (states, sets) = histogram_catalog(&path);
+    assert!(states.len() > 1, "{} histogram states", states.len());
+    let mut registered = sets_after[1].clone();
+    registered.sort_unstable();
+    let digest = catalog::map_set_digest(registered.iter());
+    assert_eq!(sets, [(digest, registered.clone())].into_iter().collect());
+    for value in states.values() {
+        let state: HistogramState = catalog::decode("unit_state", value).unwrap();
+        assert_eq!(state.map_set, digest);
+        assert_eq!(value.len(), 16);
+    }
+
+    // Rewrite the catalog as version 1 wrote it: every state lists its maps, no shared sets.
+    {
+        let db = redb::Database::open(path.join("catalog.redb")).unwrap();
+        let txn = db.begin_write().unwrap();
+        {
+            let mut table = txn.open_table(UNIT_STATE).unwrap();
+            for (key, value) in &states {
+                let state: HistogramState = catalog::decode("unit_state", value).unwrap();
+                let v1 = catalog::encode(&(state.octree_digest, registered.clone()));
+                table.insert(("histograms", *key), v1.as_slice()).unwrap();
+            }
+            let mut meta = txn.open_table(META).unwrap();
+            meta.remove(catalog::map_set_key(digest).as_str()).unwrap();
+            meta.insert("format_version", 1u32.to_le_bytes().as_slice()).unwrap();
+        }
+        txn.commit().unwrap();
+    }
+    let v1 = Store::open_read_only(&path).unwrap();
+    assert_ne!(v1.canonical_dump().unwrap(), dump);
+    drop(v1);
+    // A writable open migrates it back to exactly the version-2 catalog.
+    let migrated = Store::open(&path).unwrap();
+    assert_eq!(migrated.canonical_dump().unwrap(), dump, "the migrated catalog differs");
+    // Maps added after the migration vote incrementally into the migrated units, and the
+    // histograms equal a from-scratch run over every map.
+    let stage = IngestStage::prepare(&migrated, all[4..].to_vec(), &fixed).unwrap();
+    migrated.run_stage(&stage, &options()).unwrap();
+    derive(&migrated);
+    let scratch = Store::create(root.path().join("scratch")).unwrap();
+    let stage = IngestStage::prepare(&scratch, all.clone(), &fixed).unwrap();
+    scratch.run_stage(&stage, &options()).unwrap();
+    derive(&scratch);
+    let (a, b) = (scratch.latest().unwrap(), migrated.latest().unwrap());
+    assert_eq!(
+        a.digest(octstore::stages::HISTOGRAMS),
+        b.digest(octstore::stages::HISTOGRAMS),
+        "votes after a migration differ from a from-scratch run"
+    );
+}

@@ -7,6 +7,7 @@
 
 use redb::ReadableTable;
 use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
 
 use glam::DVec3;
 use redb::WriteTransaction;
@@ -18,7 +19,7 @@ use super::scene::Scene;
 use super::treetop::Treetop;
 use super::{HISTOGRAMS, OCTREE};
 use crate::format::{Column, ColumnValues, CubeKey};
-use crate::store::catalog::{self, UNIT_STATE, UnitRecord};
+use crate::store::catalog::{self, META, UNIT_STATE, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
 pub const BINS: usize = 8;
@@ -224,15 +225,26 @@ pub fn cube_geometry(scene: &Scene, keys: &[CubeKey], sums: &[u64], counts: &[u3
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Eq)]
 pub struct HistogramState {
     pub octree_digest: u64,
-    /// Depth maps that voted (sorted ids).
-    pub depth_maps: Vec<u64>,
+    /// The set of depth maps that voted, by [`catalog::map_set_digest`]; the ids themselves
+    /// are stored once per distinct set (`catalog::map_set_key`), not once per unit, so the
+    /// catalog grows with units plus maps rather than with their product.
+    pub map_set: u64,
+}
+
+/// A unit's record in `units_done`: its members' states and votes, and the map sets they
+/// refer to (each distinct set once; nearly always just the run's whole set).
+#[derive(Serialize, Deserialize)]
+struct UnitExtra {
+    members: Vec<(CubeKey, HistogramState, u64)>,
+    map_sets: Vec<(u64, Vec<u64>)>,
 }
 
 struct UnitPlan {
     octree_segment: String,
     key: CubeKey,
-    /// Previous histogram segment to add to, and the maps already in it.
-    previous: Option<(String, BTreeSet<u64>)>,
+    /// Previous histogram segment to add to, and the maps already in it (shared by every unit
+    /// with the same set).
+    previous: Option<(String, Arc<BTreeSet<u64>>)>,
 }
 
 /// Bytes of decoded pyramids kept between units when the caller sets no budget.
@@ -352,6 +364,39 @@ impl HistogramsStage {
     }
 }
 
+/// The map sets of earlier runs, read from the catalog once per distinct set.
+#[derive(Default)]
+struct MapSets(BTreeMap<u64, Arc<BTreeSet<u64>>>);
+
+impl MapSets {
+    fn get(&mut self, base: &Snapshot<'_>, digest: u64) -> Result<Arc<BTreeSet<u64>>> {
+        if let Some(set) = self.0.get(&digest) {
+            return Ok(set.clone());
+        }
+        let txn = base.store().catalog().begin_read()?;
+        let meta = txn.open_table(META)?;
+        let key = catalog::map_set_key(digest);
+        let ids: Vec<u64> = match meta.get(key.as_str())? {
+            Some(v) => catalog::decode("meta", v.value())?,
+            None => {
+                return Err(StoreError::CatalogCorruption {
+                    table: "meta",
+                    reason: format!("histogram state refers to {key}, which is missing"),
+                });
+            }
+        };
+        let set: Arc<BTreeSet<u64>> = Arc::new(ids.into_iter().collect());
+        if catalog::map_set_digest(set.iter()) != digest {
+            return Err(StoreError::CatalogCorruption {
+                table: "meta",
+                reason: format!("{key} holds ids of another digest"),
+            });
+        }
+        self.0.insert(digest, set.clone());
+        Ok(set)
+    }
+}
+
 fn unit_state(base: &Snapshot<'_>, key: CubeKey) -> Result<Option<HistogramState>> {
     let txn = base.store().catalog().begin_read()?;
     let table = txn.open_table(UNIT_STATE)?;
@@ -382,6 +427,7 @@ impl Stage for HistogramsStage {
             .map(|(name, r)| (r.first_key, name.clone()))
             .collect();
         let all = self.all_ids();
+        let mut map_sets = MapSets::default();
         let mut plans = Vec::new();
         let mut pending = Vec::new();
         let mut replaced = BTreeSet::new();
@@ -390,11 +436,11 @@ impl Stage for HistogramsStage {
             let state = unit_state(base, unit.key)?;
             let prior = match (previous.get(&unit.record.first_key), state) {
                 (Some(name), Some(state)) if state.octree_digest == unit.record.content_digest => {
-                    Some((name.clone(), state.depth_maps.into_iter().collect::<BTreeSet<u64>>()))
+                    Some((name.clone(), map_sets.get(base, state.map_set)?))
                 }
                 _ => None,
             };
-            let up_to_date = prior.as_ref().is_some_and(|(_, maps)| *maps == all);
+            let up_to_date = prior.as_ref().is_some_and(|(_, maps)| **maps == all);
             if up_to_date {
                 if let Some((name, _)) = &prior {
                     kept.insert(name.clone());
@@ -519,13 +565,20 @@ impl Stage for HistogramsStage {
             )?;
         }
         let mut segments = Vec::with_capacity(voters.len());
-        let mut extras = Vec::with_capacity(voters.len());
+        let mut extra = UnitExtra {
+            members: Vec::with_capacity(voters.len()),
+            map_sets: Vec::new(),
+        };
         for voter in voters {
-            extras.push((
+            let map_set = catalog::map_set_digest(voter.voted.iter());
+            if !extra.map_sets.iter().any(|(digest, _)| *digest == map_set) {
+                extra.map_sets.push((map_set, voter.voted.into_iter().collect()));
+            }
+            extra.members.push((
                 voter.key,
                 HistogramState {
                     octree_digest: voter.octree_digest,
-                    depth_maps: voter.voted.into_iter().collect(),
+                    map_set,
                 },
                 voter.votes,
             ));
@@ -536,20 +589,63 @@ impl Stage for HistogramsStage {
         }
         Ok(UnitOutput {
             segments,
-            extra: catalog::encode(&extras),
+            extra: catalog::encode(&extra),
             block_rows: 0,
         })
     }
 
     fn finish(&self, txn: &WriteTransaction, _base: &Snapshot<'_>, units: &[(u64, UnitRecord)]) -> Result<String> {
         let mut table = txn.open_table(UNIT_STATE)?;
+        let mut meta = txn.open_table(META)?;
         let mut votes = 0u64;
         for (_, record) in units {
-            let members: Vec<(CubeKey, HistogramState, u64)> = catalog::decode("units_done", &record.extra)?;
-            for (key, state, unit_votes) in members {
+            let extra: UnitExtra = catalog::decode("units_done", &record.extra)?;
+            for (digest, ids) in extra.map_sets {
+                let key = catalog::map_set_key(digest);
+                if meta.get(key.as_str())?.is_none() {
+                    meta.insert(key.as_str(), catalog::encode(&ids).as_slice())?;
+                }
+            }
+            for (key, state, unit_votes) in extra.members {
                 table.insert((HISTOGRAMS, key), catalog::encode(&state).as_slice())?;
                 votes += unit_votes;
             }
+        }
+        // States of leaves the octree no longer has are dropped, then the sets that no state
+        // refers to any more (every unit was voted by newer maps since).
+        // Without a plan (never the case: every run plans first) nothing counts as an orphan.
+        let leaves: Option<BTreeSet<CubeKey>> = self
+            .units
+            .get()
+            .map(|plans| plans.iter().map(|plan| plan.key).collect());
+        let mut referenced = BTreeSet::new();
+        let mut orphans = Vec::new();
+        for entry in table.range((HISTOGRAMS, CubeKey::from_raw(0))..=(HISTOGRAMS, CubeKey::from_raw(u128::MAX)))? {
+            let (key, value) = entry?;
+            let key = key.value().1;
+            if leaves.as_ref().is_none_or(|leaves| leaves.contains(&key)) {
+                let state: HistogramState = catalog::decode("unit_state", value.value())?;
+                referenced.insert(state.map_set);
+            } else {
+                orphans.push(key);
+            }
+        }
+        for key in orphans {
+            table.remove((HISTOGRAMS, key))?;
+        }
+        let mut unreferenced = Vec::new();
+        for entry in meta.range(catalog::META_MAP_SET_PREFIX..)? {
+            let (key, _) = entry?;
+            let key = key.value();
+            let Some(digest) = catalog::map_set_of_key(key) else {
+                break;
+            };
+            if !referenced.contains(&digest) {
+                unreferenced.push(key.to_string());
+            }
+        }
+        for key in unreferenced {
+            meta.remove(key.as_str())?;
         }
         // Logged, not recorded: the counts depend on scheduling, and the catalog must not.
         let (hits, misses) = self.cache.counts();
@@ -570,7 +666,7 @@ struct Voter {
     centers: Vec<DVec3>,
     radii: Vec<f64>,
     hist: Vec<f32>,
-    already: BTreeSet<u64>,
+    already: Arc<BTreeSet<u64>>,
     voted: BTreeSet<u64>,
     votes: u64,
     octree_digest: u64,
@@ -830,7 +926,7 @@ impl HistogramsStage {
                 }
                 (hist, maps.clone())
             }
-            None => (vec![0f32; keys.len() * BINS], BTreeSet::new()),
+            None => (vec![0f32; keys.len() * BINS], Arc::default()),
         };
         let center = self.scene.cube_center(plan.key);
         let radius = self.scene.cube_side(plan.key.depth()) * 0.87 + radii.iter().copied().fold(0.0, f64::max);
@@ -841,7 +937,7 @@ impl HistogramsStage {
             centers,
             radii,
             hist,
-            voted: already.clone(),
+            voted: (*already).clone(),
             already,
             votes: 0,
             octree_digest: file_digest(base, &plan.octree_segment),

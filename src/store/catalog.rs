@@ -10,7 +10,9 @@ use super::StoreError;
 use crate::format::key::CubeKeyColumn;
 
 /// Version of the catalog schema written by this build.
-pub const CATALOG_FORMAT_VERSION: u32 = 1;
+pub const CATALOG_FORMAT_VERSION: u32 = 2;
+/// The oldest catalog version this build opens; a writable open migrates it (`migrate`).
+pub const OLDEST_CATALOG_FORMAT_VERSION: u32 = 1;
 
 /// Scalar settings: `format_version` (u32 LE), `current_version` (u64 LE), `gc_horizon` (u64 LE),
 /// and stage-specific entries (`scene`, ...).
@@ -36,6 +38,69 @@ pub const DEPTH_MAPS: TableDefinition<u64, &[u8]> = TableDefinition::new("depth_
 pub(crate) const META_FORMAT_VERSION: &str = "format_version";
 pub(crate) const META_CURRENT_VERSION: &str = "current_version";
 pub(crate) const META_GC_HORIZON: &str = "gc_horizon";
+/// `meta` key prefix of a set of depth map ids: `map_set/{digest:016x}` -> bincode `Vec<u64>`,
+/// the sorted ids whose [`map_set_digest`] is `digest`.
+pub const META_MAP_SET_PREFIX: &str = "map_set/";
+
+pub fn map_set_key(digest: u64) -> String {
+    format!("{META_MAP_SET_PREFIX}{digest:016x}")
+}
+
+/// The digest in a `map_set/` key; `None` for any other key.
+pub fn map_set_of_key(key: &str) -> Option<u64> {
+    let hex = key.strip_prefix(META_MAP_SET_PREFIX)?;
+    if hex.len() != 16 {
+        return None;
+    }
+    u64::from_str_radix(hex, 16).ok()
+}
+
+/// xxh3-64 of the ids in ascending order, each as u64 LE.
+pub fn map_set_digest<'a>(ascending_ids: impl Iterator<Item = &'a u64>) -> u64 {
+    let mut hasher = xxhash_rust::xxh3::Xxh3::new();
+    for id in ascending_ids {
+        hasher.update(&id.to_le_bytes());
+    }
+    hasher.digest()
+}
+
+/// Catalog version 1 -> 2, in `txn`: each `("histograms", key)` entry of `unit_state` held its
+/// own list of depth map ids, bincode `(u64 octree_digest, Vec<u64> ids)`; it becomes `(u64
+/// octree_digest, u64 map_set)` with the list stored once under [`map_set_key`]. A histograms
+/// run in progress recorded version-1 states in its units; it is reported back so that the
+/// caller discards it (the run starts over).
+pub(crate) fn migrate_v1(txn: &redb::WriteTransaction) -> Result<(), StoreError> {
+    const HISTOGRAMS: &str = "histograms";
+    let mut states = txn.open_table(UNIT_STATE)?;
+    let mut meta = txn.open_table(META)?;
+    let mut converted = Vec::new();
+    let low = crate::format::CubeKey::from_raw(0);
+    let high = crate::format::CubeKey::from_raw(u128::MAX);
+    for entry in states.range((HISTOGRAMS, low)..=(HISTOGRAMS, high))? {
+        let (key, value) = entry?;
+        let (octree_digest, ids): (u64, Vec<u64>) = decode("unit_state", value.value())?;
+        let mut sorted = ids.clone();
+        sorted.sort_unstable();
+        sorted.dedup();
+        if sorted != ids {
+            return Err(StoreError::CatalogCorruption {
+                table: "unit_state",
+                reason: "a version-1 histogram state lists its depth maps out of order".into(),
+            });
+        }
+        let digest = map_set_digest(ids.iter());
+        converted.push((key.value().1, octree_digest, digest, ids));
+    }
+    for (key, octree_digest, digest, ids) in converted {
+        let set_key = map_set_key(digest);
+        if meta.get(set_key.as_str())?.is_none() {
+            meta.insert(set_key.as_str(), encode(&ids).as_slice())?;
+        }
+        states.insert((HISTOGRAMS, key), encode(&(octree_digest, digest)).as_slice())?;
+    }
+    meta.insert(META_FORMAT_VERSION, CATALOG_FORMAT_VERSION.to_le_bytes().as_slice())?;
+    Ok(())
+}
 
 fn bincode_config() -> impl bincode::config::Config {
     bincode::config::standard()

@@ -33,6 +33,8 @@ pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSp
 pub use snapshot::{SegmentFile, Snapshot};
 
 pub const CATALOG_FILE: &str = "catalog.redb";
+/// The stage whose unit state changed encoding in catalog version 2 (`catalog::migrate_v1`).
+const HISTOGRAMS_STAGE: &str = "histograms";
 pub const SEGMENTS_DIR: &str = "segments";
 /// Scratch space of stages (sorted runs, level sets); never part of a version, emptied on every
 /// writable open.
@@ -63,7 +65,7 @@ pub enum StoreError {
         "{path}: the catalog was not closed cleanly; open it for writing once (for example `octstore verify`) to recover it"
     )]
     NeedsRecovery { path: PathBuf },
-    #[error("catalog format version {found} is not supported by this build (it reads version {supported})")]
+    #[error("catalog format version {found} is not supported by this build (it reads versions up to {supported})")]
     UnsupportedFormat { found: u32, supported: u32 },
     #[error("catalog error: {0}")]
     Catalog(#[from] redb::Error),
@@ -261,7 +263,9 @@ impl Store {
             faults,
             poisoned: AtomicBool::new(false),
         };
-        store.check_format()?;
+        if store.check_format()? < CATALOG_FORMAT_VERSION {
+            store.migrate()?;
+        }
         store.remove_debris()?;
         let scratch = store.root.join(SCRATCH_DIR);
         if scratch.exists() {
@@ -307,7 +311,22 @@ impl Store {
         Ok(catalog_path)
     }
 
-    fn check_format(&self) -> Result<()> {
+    /// Brings an older catalog to this build's version in one transaction (format-spec.md,
+    /// "Version changes"); a crash before its commit leaves the older catalog as it was.
+    fn migrate(&self) -> Result<()> {
+        let db = self.writable()?;
+        let txn = db.begin_write()?;
+        if txn.open_table(STAGE_RUNS)?.get(HISTOGRAMS_STAGE)?.is_some() {
+            runner::discard_run(&txn, HISTOGRAMS_STAGE)?;
+            txn.open_table(STAGE_RUNS)?.remove(HISTOGRAMS_STAGE)?;
+        }
+        catalog::migrate_v1(&txn)?;
+        txn.commit()?;
+        Ok(())
+    }
+
+    /// The catalog's format version, if this build reads it.
+    fn check_format(&self) -> Result<u32> {
         let txn = self.catalog.begin_read()?;
         let meta = txn.open_table(META).map_err(|e| StoreError::NotAStore {
             path: self.root.clone(),
@@ -329,13 +348,13 @@ impl Store {
                 });
             }
         };
-        if found != CATALOG_FORMAT_VERSION {
+        if !(catalog::OLDEST_CATALOG_FORMAT_VERSION..=CATALOG_FORMAT_VERSION).contains(&found) {
             return Err(StoreError::UnsupportedFormat {
                 found,
                 supported: CATALOG_FORMAT_VERSION,
             });
         }
-        Ok(())
+        Ok(found)
     }
 
     pub fn root(&self) -> &Path {

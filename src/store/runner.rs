@@ -303,7 +303,14 @@ impl Store {
             let mut first_error = None;
             for result in rx {
                 match result.and_then(|(unit, segments, extra)| self.commit_unit(name, unit, segments, extra)) {
-                    Ok(()) => bar.inc(1),
+                    Ok(()) => {
+                        // A unit's buffers are freed by now; without this the C allocator keeps
+                        // the pages of its worker arenas, and the process's resident size
+                        // creeps up with the number of units (13 M -> 53 M cubes: 210 -> 242 MB
+                        // at --memory-budget 256MiB; with it 208 -> 218 MB).
+                        crate::sys::return_freed_memory();
+                        bar.inc(1)
+                    }
                     Err(e) => {
                         stop.store(true, Ordering::SeqCst);
                         first_error.get_or_insert(e);
@@ -502,7 +509,7 @@ impl Store {
 
 /// Removes an interrupted run's progress and the catalog records of its segments; the files
 /// themselves become debris, removed after the transaction commits or on the next open.
-fn discard_run(txn: &WriteTransaction, stage: &str) -> Result<()> {
+pub(crate) fn discard_run(txn: &WriteTransaction, stage: &str) -> Result<()> {
     let mut done = txn.open_table(UNITS_DONE)?;
     let mut segments = txn.open_table(SEGMENTS)?;
     let units: Vec<(u64, UnitRecord)> = done
