@@ -301,39 +301,51 @@ fn one_leaf_and_many_leaves_agree_near_borders() {
     );
 }
 
-#[test]
-fn incremental_histograms_equal_a_from_scratch_run() {
-    let root = tempfile::tempdir().unwrap();
+/// `cameras` depth maps of the small sphere, and ingest options with a fixed root so that
+/// stores ingesting them in different batches share one octree grid.
+fn sphere_maps(
+    root: &std::path::Path,
+    cameras: usize,
+) -> (Vec<octstore::stages::depthmap::DepthMapSource>, IngestOptions) {
     let spec = SceneSpec {
-        cameras: 8,
+        cameras,
         ..sphere_scene(1.0, DVec3::ZERO, None)
     };
-    let manifest = spec.write(&root.path().join("input")).unwrap();
+    let manifest = spec.write(&root.join("input")).unwrap();
     let all = discover(&[manifest], &DiscoverOptions::default()).unwrap();
     let fixed = IngestOptions {
         root: Some(([-4.0, -4.0, -4.0], 8.0)),
         root_margin: 0.0,
         max_depth: 6,
     };
-    let derive = |store: &Store| {
-        let scene = octstore::stages::ingest::read_scene(store).unwrap().unwrap();
-        let octree = OctreeStage::new(scene, 400, 1 << 20, store.scratch_dir(OCTREE).unwrap());
-        store.run_stage(&octree, &options()).unwrap();
-        let histograms = HistogramsStage::new(scene, registered_depth_maps(store).unwrap());
-        store.run_stage(&histograms, &options()).unwrap()
-    };
+    (all, fixed)
+}
+
+/// Brings the octree and the histograms of `store` up to date.
+fn derive_histograms(store: &Store) -> octstore::store::RunReport {
+    let scene = octstore::stages::ingest::read_scene(store).unwrap().unwrap();
+    let octree = OctreeStage::new(scene, 400, 1 << 20, store.scratch_dir(OCTREE).unwrap());
+    store.run_stage(&octree, &options()).unwrap();
+    let histograms = HistogramsStage::new(scene, registered_depth_maps(store).unwrap());
+    store.run_stage(&histograms, &options()).unwrap()
+}
+
+#[test]
+fn incremental_histograms_equal_a_from_scratch_run() {
+    let root = tempfile::tempdir().unwrap();
+    let (all, fixed) = sphere_maps(root.path(), 8);
     let scratch = Store::create(root.path().join("scratch")).unwrap();
     let stage = IngestStage::prepare(&scratch, all.clone(), &fixed).unwrap();
     scratch.run_stage(&stage, &options()).unwrap();
-    derive(&scratch);
+    derive_histograms(&scratch);
 
     let incremental = Store::create(root.path().join("incremental")).unwrap();
     let stage = IngestStage::prepare(&incremental, all[..5].to_vec(), &fixed).unwrap();
     incremental.run_stage(&stage, &options()).unwrap();
-    derive(&incremental);
+    derive_histograms(&incremental);
     let stage = IngestStage::prepare(&incremental, all[5..].to_vec(), &fixed).unwrap();
     incremental.run_stage(&stage, &options()).unwrap();
-    let report = derive(&incremental);
+    let report = derive_histograms(&incremental);
     assert!(report.units > 0);
 
     let (a, b) = (scratch.latest().unwrap(), incremental.latest().unwrap());
@@ -383,31 +395,14 @@ fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
     use octstore::stages::histograms::HistogramState;
     use octstore::store::catalog::{self, META, UNIT_STATE};
     let root = tempfile::tempdir().unwrap();
-    let spec = SceneSpec {
-        cameras: 6,
-        ..sphere_scene(1.0, DVec3::ZERO, None)
-    };
-    let manifest = spec.write(&root.path().join("input")).unwrap();
-    let all = discover(&[manifest], &DiscoverOptions::default()).unwrap();
-    let fixed = IngestOptions {
-        root: Some(([-4.0, -4.0, -4.0], 8.0)),
-        root_margin: 0.0,
-        max_depth: 6,
-    };
+    let (all, fixed) = sphere_maps(root.path(), 6);
     let path = root.path().join("store");
-    let derive = |store: &Store| {
-        let scene = octstore::stages::ingest::read_scene(store).unwrap().unwrap();
-        let octree = OctreeStage::new(scene, 400, 1 << 20, store.scratch_dir(OCTREE).unwrap());
-        store.run_stage(&octree, &options()).unwrap();
-        let histograms = HistogramsStage::new(scene, registered_depth_maps(store).unwrap());
-        store.run_stage(&histograms, &options()).unwrap();
-    };
     let store = Store::create(&path).unwrap();
     let mut sets_after = Vec::new();
     for maps in [&all[..2], &all[2..4]] {
         let stage = IngestStage::prepare(&store, maps.to_vec(), &fixed).unwrap();
         store.run_stage(&stage, &options()).unwrap();
-        derive(&store);
+        derive_histograms(&store);
         let ids: Vec<u64> = registered_depth_maps(&store)
             .unwrap()
             .iter()
@@ -458,11 +453,11 @@ fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
     // histograms equal a from-scratch run over every map.
     let stage = IngestStage::prepare(&migrated, all[4..].to_vec(), &fixed).unwrap();
     migrated.run_stage(&stage, &options()).unwrap();
-    derive(&migrated);
+    derive_histograms(&migrated);
     let scratch = Store::create(root.path().join("scratch")).unwrap();
     let stage = IngestStage::prepare(&scratch, all.clone(), &fixed).unwrap();
     scratch.run_stage(&stage, &options()).unwrap();
-    derive(&scratch);
+    derive_histograms(&scratch);
     let (a, b) = (scratch.latest().unwrap(), migrated.latest().unwrap());
     assert_eq!(
         a.digest(octstore::stages::HISTOGRAMS),
