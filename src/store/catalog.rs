@@ -64,13 +64,15 @@ pub fn map_set_digest<'a>(ascending_ids: impl Iterator<Item = &'a u64>) -> u64 {
     hasher.digest()
 }
 
+/// The stage whose unit state changed encoding in catalog version 2.
+pub(crate) const HISTOGRAMS: &str = "histograms";
+
 /// Catalog version 1 -> 2, in `txn`: each `("histograms", key)` entry of `unit_state` held its
 /// own list of depth map ids, bincode `(u64 octree_digest, Vec<u64> ids)`; it becomes `(u64
 /// octree_digest, u64 map_set)` with the list stored once under [`map_set_key`]. A histograms
-/// run in progress recorded version-1 states in its units; it is reported back so that the
-/// caller discards it (the run starts over).
+/// run in progress recorded version-1 states in its units; the caller discards it
+/// first (the run starts over).
 pub(crate) fn migrate_v1(txn: &redb::WriteTransaction) -> Result<(), StoreError> {
-    const HISTOGRAMS: &str = "histograms";
     let mut states = txn.open_table(UNIT_STATE)?;
     let mut meta = txn.open_table(META)?;
     let mut converted = Vec::new();

@@ -33,8 +33,6 @@ pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSp
 pub use snapshot::{SegmentFile, Snapshot};
 
 pub const CATALOG_FILE: &str = "catalog.redb";
-/// The stage whose unit state changed encoding in catalog version 2 (`catalog::migrate_v1`).
-const HISTOGRAMS_STAGE: &str = "histograms";
 pub const SEGMENTS_DIR: &str = "segments";
 /// Scratch space of stages (sorted runs, level sets); never part of a version, emptied on every
 /// writable open.
@@ -316,9 +314,9 @@ impl Store {
     fn migrate(&self) -> Result<()> {
         let db = self.writable()?;
         let txn = db.begin_write()?;
-        if txn.open_table(STAGE_RUNS)?.get(HISTOGRAMS_STAGE)?.is_some() {
-            runner::discard_run(&txn, HISTOGRAMS_STAGE)?;
-            txn.open_table(STAGE_RUNS)?.remove(HISTOGRAMS_STAGE)?;
+        if txn.open_table(STAGE_RUNS)?.get(catalog::HISTOGRAMS)?.is_some() {
+            runner::discard_run(&txn, catalog::HISTOGRAMS)?;
+            txn.open_table(STAGE_RUNS)?.remove(catalog::HISTOGRAMS)?;
         }
         catalog::migrate_v1(&txn)?;
         txn.commit()?;
