@@ -177,6 +177,11 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
             std::fs::read(&path).unwrap() == std::fs::read(&streamed).unwrap(),
             "streamed {name} differs from the in-memory one"
         );
+        // Edge uses across leaves are counted on the seams, each edge retired as soon as no
+        // later leaf can use it: the counts must equal those of the whole mesh.
+        let (boundary, non_manifold) = edge_defects(&in_memory);
+        let counts = format!(" {boundary} boundary edges, {non_manifold} non-manifold edges ");
+        assert!(stdout(&out).contains(&counts), "expected{counts}in: {}", stdout(&out));
     }
     let leftovers: Vec<_> = std::fs::read_dir(a.path())
         .unwrap()

@@ -599,8 +599,10 @@ struct StreamingWeld<'t, W: MeshWriter> {
     vertex_retirements: std::collections::BTreeMap<usize, Vec<VertexId>>,
     edge_retirements: std::collections::BTreeMap<usize, Vec<(u32, u32)>>,
     summary: MeshSummary,
-    /// Most seam vertices open at once (reported, to show that memory does not grow).
+    /// Most seam vertices and seam edges open at once (reported: they are what grows with the
+    /// scene's cross-section).
     pub most_open: usize,
+    pub most_open_edges: usize,
 }
 
 /// Where a streamed mesh goes: vertices in order (normals of seam vertices are fixed later,
@@ -623,6 +625,7 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
             edge_retirements: Default::default(),
             summary: MeshSummary::default(),
             most_open: 0,
+            most_open_edges: 0,
         }
     }
 
@@ -669,8 +672,10 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                 match (x.1, y.1) {
                     (Some(lx), Some(ly)) => {
                         let uses = self.seam_edges.entry(edge).or_insert(0);
+                        // A unit uses the edge only if it produces both ends, and no unit after
+                        // the earlier of their last units produces both.
                         if *uses == 0 {
-                            self.edge_retirements.entry(lx.max(ly)).or_default().push(edge);
+                            self.edge_retirements.entry(lx.min(ly)).or_default().push(edge);
                         }
                         *uses += 1;
                     }
@@ -679,6 +684,7 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
             }
         }
         self.count_edges(local_edges.values());
+        self.most_open_edges = self.most_open_edges.max(self.seam_edges.len());
         self.retire_through(unit)
     }
 
@@ -878,10 +884,10 @@ pub fn stream_to_file(
         weld.writer.abandon();
         return Err(e);
     }
-    let most_open = weld.most_open;
+    let (most_open, most_open_edges) = (weld.most_open, weld.most_open_edges);
     let (file, summary) = weld.finish().map_err(io)?;
     file.finish(&summary).map_err(io)?;
-    tracing::info!("extract: at most {most_open} seam vertices open at once");
+    tracing::info!("extract: at most {most_open} seam vertices and {most_open_edges} seam edges open at once");
     Ok(summary)
 }
 

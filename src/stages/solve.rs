@@ -108,6 +108,22 @@ fn columns_of(values: &LevelValues) -> Vec<Column> {
     ]
 }
 
+/// Reads a level segment's keys and u only: what the indicator field needs (extraction and
+/// queries), without decoding v, p and q, which are 3.4 times the bytes.
+pub fn read_level_u(snapshot: &Snapshot<'_>, segment: &str) -> Result<LeafValues> {
+    let file = snapshot.open_segment(segment)?;
+    let reader = file.reader()?;
+    let c = |e| file.corruption(e);
+    let keys = reader.read_keys().map_err(c)?;
+    let (_, u) = reader.read_f32("u").map_err(c)?;
+    if u.len() != keys.len() {
+        return Err(file.corruption(crate::format::DecodeError::MissingColumn(
+            "u of the keys' length".into(),
+        )));
+    }
+    Ok((keys, u))
+}
+
 /// Reads a level segment.
 pub fn read_level_values(snapshot: &Snapshot<'_>, segment: &str) -> Result<LevelValues> {
     let file = snapshot.open_segment(segment)?;
@@ -641,8 +657,7 @@ impl<'a, 's> LevelCut<'a, 's> {
         if let Some(values) = self.groups.get(&id) {
             return Ok(Some(values.clone()));
         }
-        let values = read_level_values(self.snapshot, name)?;
-        let loaded = Arc::new((values.keys, values.u));
+        let loaded = Arc::new(read_level_u(self.snapshot, name)?);
         self.groups.insert(id, loaded.clone());
         Ok(Some(loaded))
     }
