@@ -62,6 +62,68 @@ fn full_side(depth: u8) -> u64 {
     1u64 << (u32::from(MAX_DEPTH) - u32::from(depth))
 }
 
+/// The cut cube containing the finest cell `cell`, and its u. The unit's own sorted cut
+/// (`keys`, `values`) is searched first, outwards from `near` (the cube whose corners are being
+/// probed, so the answer is usually a few keys away): the cut tiles the root, so a cube of the
+/// unit that contains the cell is the answer. Cells outside the unit go to the level's lookup.
+fn cut_cube_near(
+    level: &mut LevelCut<'_, '_>,
+    keys: &[CubeKey],
+    values: &[f32],
+    near: usize,
+    cell: [u32; 3],
+) -> Result<Option<(CubeKey, f32)>> {
+    let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
+    let found = partition_point_near(keys, near, probe)
+        .checked_sub(1)
+        .and_then(|i| keys.get(i).zip(values.get(i)))
+        .filter(|(key, _)| key.is_ancestor_or_self_of(probe));
+    match found {
+        Some((key, u)) => Ok(Some((*key, *u))),
+        None => level.cube_at(cell),
+    }
+}
+
+/// `keys.partition_point(|k| *k <= probe)` for sorted `keys`, found by galloping outwards from
+/// `near`: O(log d) comparisons, near the start, for an answer d keys away.
+fn partition_point_near(keys: &[CubeKey], near: usize, probe: CubeKey) -> usize {
+    let at_or_below = |i: usize| keys.get(i).is_some_and(|k| *k <= probe);
+    let near = near.min(keys.len());
+    // The answer lies in (low, high]: keys[low] <= probe (or low is the start) and
+    // keys[high] > probe (or high is the end).
+    let (low, high) = if at_or_below(near) {
+        let mut step = 1;
+        let mut low = near;
+        loop {
+            let next = near.saturating_add(step);
+            if next >= keys.len() {
+                break (low + 1, keys.len());
+            }
+            if !at_or_below(next) {
+                break (low + 1, next);
+            }
+            low = next;
+            step *= 2;
+        }
+    } else {
+        let mut step = 1;
+        let mut high = near;
+        loop {
+            let Some(next) = near.checked_sub(step) else {
+                break (0, high);
+            };
+            if at_or_below(next) {
+                break (next + 1, high);
+            }
+            high = next;
+            step *= 2;
+        }
+    };
+    low + keys
+        .get(low..high)
+        .map_or(0, |range| range.partition_point(|k| *k <= probe))
+}
+
 fn dual_cells_of_unit(
     scene: &Scene,
     level: &mut LevelCut<'_, '_>,
@@ -71,7 +133,7 @@ fn dual_cells_of_unit(
     let mut mesh = UnitMesh::default();
     let mut vertex_index: HashMap<(CornerId, CornerId), u32> = HashMap::new();
     let limit = 1u64 << 32;
-    for (key, own_u) in keys.iter().zip(values) {
+    for (index, (key, own_u)) in keys.iter().zip(values).enumerate() {
         let d = key.depth();
         let side = full_side(d);
         let [x, y, z] = key.corner_full_resolution().map(u64::from);
@@ -81,10 +143,23 @@ fn dual_cells_of_unit(
                 y + ((corner >> 1) & 1) * side,
                 z + ((corner >> 2) & 1) * side,
             ];
-            // The 8 octants around V, with the leaf (or virtual exterior cell) in each.
+            // The 8 octants around V, with the leaf (or virtual exterior cell) in each. This cube
+            // fills the octant opposite the corner; it generates V's cell only if no real leaf
+            // is deeper and none as deep comes first in octant order, so the probes stop at the
+            // first leaf that rules it out (most corners of a uniform region end at octant 0).
+            let own_octant = (7 - corner) as usize;
             let mut corners: [Option<Corner>; 8] = [None; 8];
             let mut generator_ok = true;
             for (octant, slot) in corners.iter_mut().enumerate() {
+                if octant == own_octant {
+                    *slot = Some(Corner {
+                        id: key.raw(),
+                        center: scene.cube_center(*key),
+                        u: *own_u,
+                        depth: d,
+                    });
+                    continue;
+                }
                 let o = octant as u64;
                 let cell = [
                     v[0] as i64 - 1 + (o & 1) as i64,
@@ -109,10 +184,14 @@ fn dual_cells_of_unit(
                     };
                     probe[axis] = m.clamp(0, limit as i64 - 1) as u32;
                 }
-                let Some((leaf, u)) = level.cube_at(probe)? else {
+                let Some((leaf, u)) = cut_cube_near(level, keys, values, index, probe)? else {
                     generator_ok = false;
                     break;
                 };
+                if mirrored == 0 && (leaf.depth() > d || (leaf.depth() == d && octant < own_octant)) {
+                    generator_ok = false;
+                    break;
+                }
                 let mut center = scene.cube_center(leaf);
                 if mirrored != 0 {
                     let (lo, hi) = (scene.min(), scene.min() + DVec3::splat(scene.root_side));
@@ -158,7 +237,6 @@ fn dual_cells_of_unit(
             if !generator_ok {
                 continue;
             }
-            let _ = own_u;
             let positive = corners.iter().filter(|c| c.u > 0.0).count();
             if positive == 0 || positive == 8 {
                 continue;
@@ -904,8 +982,9 @@ pub fn write_assembled(path: &Path, mesh: &Mesh) -> Result<MeshSummary> {
 }
 
 /// Extracts the surface into a mesh file. Without a region or decimation the pieces are
-/// streamed (units computed a few at a time, in parallel, welded in unit order), so memory does
-/// not grow with the surface; with either, the mesh is assembled in memory first.
+/// streamed: one worker per thread computes units' pieces, at most twice the thread count of
+/// them at once, while the calling thread welds them in unit order, so memory does not grow
+/// with the surface; with either, the mesh is assembled in memory first.
 pub fn extract_to_file(
     snapshot: &Snapshot<'_>,
     scene: &Scene,
@@ -918,26 +997,169 @@ pub fn extract_to_file(
     }
     let units = extract_units(snapshot, scene, finest, None)?;
     let treetop = Treetop::of(snapshot)?;
-    let batch = 2 * rayon::current_num_threads().max(1);
-    let pieces = units.chunks(batch).flat_map(|chunk| {
-        let meshes: Vec<Result<(usize, CubeKey, UnitMesh)>> = chunk
-            .par_iter()
-            .map(|&unit| {
-                let key = treetop
-                    .units
-                    .get(unit)
-                    .map(|u| u.key)
-                    .ok_or_else(|| StoreError::Stage {
-                        stage: "extract".into(),
-                        unit: unit.to_string(),
-                        message: "no such treetop unit".into(),
-                    })?;
-                Ok((unit, key, unit_mesh(snapshot, &treetop, scene, finest, unit)?))
-            })
-            .collect();
-        meshes
-    });
-    stream_to_file(pieces, &treetop, path)
+    let piece = |unit: usize| -> Result<(usize, CubeKey, UnitMesh)> {
+        let key = treetop
+            .units
+            .get(unit)
+            .map(|u| u.key)
+            .ok_or_else(|| StoreError::Stage {
+                stage: "extract".into(),
+                unit: unit.to_string(),
+                message: "no such treetop unit".into(),
+            })?;
+        Ok((unit, key, unit_mesh(snapshot, &treetop, scene, finest, unit)?))
+    };
+    let threads = rayon::current_num_threads().max(1);
+    in_order_while_computing(&units, threads, 2 * threads, piece, |pieces| {
+        stream_to_file(pieces, &treetop, path)
+    })
+}
+
+/// Runs `consume` on `compute(item)` for every item, in item order, while `threads` workers
+/// compute the next pieces: at most `window` pieces exist at once (the one being consumed
+/// included), so memory stays bounded, and consuming overlaps computing. The consumer sees
+/// the items' order whatever the workers' timing.
+fn in_order_while_computing<I: Copy + Send + Sync, T: Send, R>(
+    items: &[I],
+    threads: usize,
+    window: usize,
+    compute: impl Fn(I) -> Result<T> + Sync,
+    consume: impl FnOnce(&mut dyn Iterator<Item = Result<T>>) -> R,
+) -> R {
+    let window = window.max(2);
+    let shared = InOrder {
+        state: std::sync::Mutex::new(InOrderState {
+            next_item: 0,
+            taken: 0,
+            done: std::collections::BTreeMap::new(),
+            stop: false,
+            worker_panicked: false,
+        }),
+        changed: std::sync::Condvar::new(),
+    };
+    std::thread::scope(|scope| {
+        for _ in 0..threads {
+            scope.spawn(|| {
+                let _guard = PanicFlag(&shared);
+                while let Some(index) = shared.claim(items.len(), window) {
+                    let Some(&item) = items.get(index) else {
+                        break;
+                    };
+                    let result = compute(item);
+                    shared.lock().done.insert(index, result);
+                    shared.changed.notify_all();
+                }
+            });
+        }
+        let mut pieces = InOrderPieces {
+            shared: &shared,
+            count: items.len(),
+        };
+        consume(&mut pieces)
+    })
+}
+
+struct InOrder<T> {
+    state: std::sync::Mutex<InOrderState<T>>,
+    changed: std::sync::Condvar,
+}
+
+struct InOrderState<T> {
+    /// The next item a worker may claim.
+    next_item: usize,
+    /// Pieces handed to the consumer so far; piece `taken - 1` may still be in use.
+    taken: usize,
+    done: std::collections::BTreeMap<usize, Result<T>>,
+    stop: bool,
+    worker_panicked: bool,
+}
+
+impl<T> InOrder<T> {
+    /// The state; a worker that panicked holds no lock across its work, so a poisoned lock
+    /// still holds consistent state.
+    fn lock(&self) -> std::sync::MutexGuard<'_, InOrderState<T>> {
+        self.state.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// The next item for a worker, once it is within `window` of the consumer; `None` when
+    /// all are claimed or the consumer has stopped.
+    fn claim(&self, count: usize, window: usize) -> Option<usize> {
+        let mut state = self.lock();
+        loop {
+            if state.stop || state.next_item >= count {
+                return None;
+            }
+            // Pieces taken - 1 (in use) up to next_item must number at most `window`.
+            if state.next_item + 1 < state.taken + window {
+                state.next_item += 1;
+                return Some(state.next_item - 1);
+            }
+            state = self
+                .changed
+                .wait(state)
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+        }
+    }
+}
+
+/// Sets the worker-panicked flag when a worker unwinds, so the consumer does not wait forever.
+struct PanicFlag<'a, T>(&'a InOrder<T>);
+
+impl<T> Drop for PanicFlag<'_, T> {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            let mut state = self.0.lock();
+            state.worker_panicked = true;
+            state.stop = true;
+            drop(state);
+            self.0.changed.notify_all();
+        }
+    }
+}
+
+/// The consumer's side: pieces in item order. Dropping it stops the workers.
+struct InOrderPieces<'a, T> {
+    shared: &'a InOrder<T>,
+    count: usize,
+}
+
+impl<T> Iterator for InOrderPieces<'_, T> {
+    type Item = Result<T>;
+
+    fn next(&mut self) -> Option<Result<T>> {
+        let mut state = self.shared.lock();
+        loop {
+            let taken = state.taken;
+            if let Some(piece) = state.done.remove(&taken) {
+                state.taken += 1;
+                drop(state);
+                self.shared.changed.notify_all();
+                return Some(piece);
+            }
+            if state.worker_panicked {
+                return Some(Err(StoreError::Stage {
+                    stage: "extract".into(),
+                    unit: taken.to_string(),
+                    message: "a worker thread panicked".into(),
+                }));
+            }
+            if taken >= self.count {
+                return None;
+            }
+            state = self
+                .shared
+                .changed
+                .wait(state)
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+        }
+    }
+}
+
+impl<T> Drop for InOrderPieces<'_, T> {
+    fn drop(&mut self) {
+        self.shared.lock().stop = true;
+        self.shared.changed.notify_all();
+    }
 }
 
 /// Cuts a mesh at a box: triangles are clipped against its six planes (new vertices on the box
@@ -1112,4 +1334,111 @@ pub fn read_ply(path: &Path) -> Result<Mesh, String> {
         mesh.triangles.push([index(0)?, index(1)?, index(2)?]);
     }
     Ok(mesh)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    use super::*;
+
+    fn random(seed: &mut u64) -> u64 {
+        *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        *seed >> 33
+    }
+
+    #[test]
+    fn galloping_search_agrees_with_binary_search_from_every_start() {
+        let mut seed = 7;
+        for len in [0usize, 1, 2, 3, 17, 300] {
+            // Sorted keys at mixed depths; probes on, between, below and above them.
+            let mut keys: Vec<CubeKey> = (0..len)
+                .map(|_| {
+                    let depth = 1 + (random(&mut seed) % 12) as u8;
+                    let mask = (1u64 << depth) as u32 - 1;
+                    let mut c = || random(&mut seed) as u32 & mask;
+                    CubeKey::new(depth, c(), c(), c())
+                })
+                .collect();
+            keys.sort();
+            keys.dedup();
+            let cells: Vec<CubeKey> = (0..64)
+                .map(|_| {
+                    let mut c = || (random(&mut seed) as u32) << 1;
+                    CubeKey::new(MAX_DEPTH, c(), c(), c())
+                })
+                .collect();
+            for probe in keys.iter().copied().chain(cells) {
+                let expected = keys.partition_point(|k| *k <= probe);
+                for near in 0..keys.len() + 2 {
+                    assert_eq!(
+                        partition_point_near(&keys, near, probe),
+                        expected,
+                        "{len} keys, from {near}, probe {probe:?}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Counts the pieces alive at once.
+    struct Piece<'a> {
+        item: usize,
+        alive: &'a AtomicUsize,
+    }
+
+    impl Drop for Piece<'_> {
+        fn drop(&mut self) {
+            self.alive.fetch_sub(1, Ordering::SeqCst);
+        }
+    }
+
+    #[test]
+    fn pieces_come_in_item_order_and_at_most_a_window_exist_at_once() {
+        let items: Vec<usize> = (0..300).collect();
+        let (alive, most) = (AtomicUsize::new(0), AtomicUsize::new(0));
+        let window = 4;
+        let compute = |item: usize| -> Result<Piece<'_>> {
+            let now = alive.fetch_add(1, Ordering::SeqCst) + 1;
+            most.fetch_max(now, Ordering::SeqCst);
+            // Uneven work, so pieces finish out of order.
+            std::thread::sleep(std::time::Duration::from_micros((item * 7919 % 13) as u64 * 50));
+            Ok(Piece { item, alive: &alive })
+        };
+        let seen = in_order_while_computing(&items, 3, window, compute, |pieces| {
+            pieces.map(|piece| piece.map(|p| p.item)).collect::<Result<Vec<_>>>()
+        })
+        .expect("no piece fails");
+        assert_eq!(seen, items);
+        let most = most.load(Ordering::SeqCst);
+        assert!(most <= window, "{most} pieces existed at once, window {window}");
+        assert_eq!(alive.load(Ordering::SeqCst), 0);
+    }
+
+    #[test]
+    fn a_failed_piece_ends_the_stream_with_its_error() {
+        let items: Vec<usize> = (0..100).collect();
+        let compute = |item: usize| -> Result<usize> {
+            if item == 37 {
+                return Err(StoreError::Stage {
+                    stage: "extract".into(),
+                    unit: item.to_string(),
+                    message: "bad unit".into(),
+                });
+            }
+            Ok(item)
+        };
+        let (before, error) = in_order_while_computing(&items, 2, 4, compute, |pieces| {
+            let mut before = Vec::new();
+            for piece in pieces {
+                match piece {
+                    Ok(item) => before.push(item),
+                    Err(error) => return (before, Some(error.to_string())),
+                }
+            }
+            (before, None)
+        });
+        assert_eq!(before, (0..37).collect::<Vec<_>>());
+        assert!(error.is_some_and(|e| e.contains("bad unit")));
+    }
 }
