@@ -623,6 +623,18 @@ def stage_breakdown(stages):
     return rows
 
 
+def table_one(stages, run, row, heading):
+    """Markdown lines: the stage breakdown of one run in the paper's Table 1 format."""
+    breakdown = stage_breakdown(stages)
+    total = sum(seconds for _, seconds in breakdown) or 1.0
+    lines = ["", f"{heading} Stage breakdown of the largest run, {run} (the paper's Table 1 format)", "",
+             f"{row['cubes']:,} cubes; {row['wall_s'] / 60:.1f} min in all on this machine, peak RSS "
+             f"{row['peak_mb']:.0f} MB.", "", "| processing stage | time | time in % |", "|---|---|---|"]
+    for name, seconds in breakdown:
+        lines.append(f"| {name} | {seconds:.1f} s | {100 * seconds / total:.0f} % |")
+    return lines
+
+
 def machine():
     model = "unknown CPU"
     try:
@@ -702,14 +714,8 @@ def write_markdown(results, out_dir, path):
         largest = max((r for r in rk_rows if r["method"] == "octstore" and r.get("stages")),
                       key=lambda r: (r["cubes"], r["frames"]), default=None)
         if largest:
-            breakdown = stage_breakdown(largest["stages"])
-            total = sum(seconds for _, seconds in breakdown) or 1.0
-            lines += ["", f"### Stage breakdown of the largest run, {largest['frames']} frames, `--max-depth` "
-                      f"{largest.get('max_depth') or 'default'} (the paper's Table 1 format)", "",
-                      f"{largest['cubes']:,} cubes; {largest['wall_s'] / 60:.1f} min in all on this machine, peak RSS "
-                      f"{largest['peak_mb']:.0f} MB.", "", "| processing stage | time | time in % |", "|---|---|---|"]
-            for name, seconds in breakdown:
-                lines.append(f"| {name} | {seconds:.1f} s | {100 * seconds / total:.0f} % |")
+            lines += table_one(largest["stages"], f"{largest['frames']} frames, `--max-depth` "
+                               f"{largest.get('max_depth') or 'default'}", largest, "###")
         lines.append("")
     budgets = sorted({r["budget"] for r in scale_rows}, key=parse_budget, reverse=True)
     for budget in budgets:
@@ -751,6 +757,10 @@ def write_markdown(results, out_dir, path):
                              f"{r['cube_iterations'] / max(r['solve_s'], 1e-9) / 1e6:.1f} |")
         name = "scale.png" if budget == budgets[0] else f"scale-{budget}.png"
         lines += ["", f"![scale]({scale_plot(rows, out_dir, name).relative_to(path.parent)})", ""]
+        largest = max((r for r in rows if r.get("stages")), key=lambda r: r["cubes"], default=None)
+        if largest:
+            lines += table_one(largest["stages"], f"{largest['blocks']} blocks, `--memory-budget {budget}`",
+                               largest, "####" if budget != budgets[0] else "###")
     path.write_text("\n".join(lines))
 
 
