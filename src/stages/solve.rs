@@ -668,6 +668,16 @@ impl<'a, 's> LevelCut<'a, 's> {
             return Ok(v.clone());
         }
         let own = match self.group(unit)? {
+            // A leaf unit's keys are one range in key order (its subtree's), so when the
+            // group's first and last keys are the unit's, all are, and the group itself is the
+            // answer, without a copy. The top unit's keys are scattered between the leaves'.
+            Some(group)
+                if self.treetop.units.get(unit).is_some_and(|u| !u.top)
+                    && group.0.first().is_some_and(|k| self.treetop.unit_of(*k) == unit)
+                    && group.0.last().is_some_and(|k| self.treetop.unit_of(*k) == unit) =>
+            {
+                Some(group)
+            }
             Some(group) => {
                 let (keys, u): (Vec<CubeKey>, Vec<f32>) = group
                     .0
