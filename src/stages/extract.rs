@@ -1015,10 +1015,10 @@ pub fn extract_to_file(
     })
 }
 
-/// Runs `consume` on `compute(item)` for every item, in item order, while `threads` workers
-/// compute the next pieces: at most `window` pieces exist at once (the one being consumed
-/// included), so memory stays bounded, and consuming overlaps computing. The consumer sees
-/// the items' order whatever the workers' timing.
+/// Hands `consume` the results of `compute(item)` for every item, as an iterator in item
+/// order, while `threads` workers compute the next ones: at most `window` results exist at
+/// once (the one being consumed included), so memory stays bounded, and consuming overlaps
+/// computing. The order does not depend on the workers' timing.
 fn in_order_while_computing<I: Copy + Send + Sync, T: Send, R>(
     items: &[I],
     threads: usize,
