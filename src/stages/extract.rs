@@ -11,6 +11,10 @@
 //! welded, wherever the edge appears: on both sides of a level change and of a treetop border.
 
 use std::collections::HashMap;
+
+/// Hash tables keyed by surface-vertex and edge names: nothing depends on their iteration
+/// order, so a fast fixed-seed hasher replaces SipHash.
+type FastMap<K, V> = HashMap<K, V, foldhash::fast::FixedState>;
 use std::io::Write;
 use std::path::Path;
 
@@ -131,7 +135,7 @@ fn dual_cells_of_unit(
     values: &[f32],
 ) -> Result<UnitMesh> {
     let mut mesh = UnitMesh::default();
-    let mut vertex_index: HashMap<(CornerId, CornerId), u32> = HashMap::new();
+    let mut vertex_index: FastMap<(CornerId, CornerId), u32> = FastMap::default();
     let limit = 1u64 << 32;
     for (index, (key, own_u)) in keys.iter().zip(values).enumerate() {
         let d = key.depth();
@@ -670,9 +674,9 @@ struct StreamingWeld<'t, W: MeshWriter> {
     writer: W,
     treetop: &'t Treetop,
     /// Open seam vertices: global index, normal summed so far, last unit that can produce it.
-    seam: HashMap<VertexId, (u32, DVec3, usize)>,
+    seam: FastMap<VertexId, (u32, DVec3, usize)>,
     /// Uses of edges between two open seam vertices (only those can span units).
-    seam_edges: HashMap<(u32, u32), u32>,
+    seam_edges: FastMap<(u32, u32), u32>,
     /// When each open seam vertex and edge can be retired: after this unit.
     vertex_retirements: std::collections::BTreeMap<usize, Vec<VertexId>>,
     edge_retirements: std::collections::BTreeMap<usize, Vec<(u32, u32)>>,
@@ -697,8 +701,8 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
         StreamingWeld {
             writer,
             treetop,
-            seam: HashMap::new(),
-            seam_edges: HashMap::new(),
+            seam: FastMap::default(),
+            seam_edges: FastMap::default(),
             vertex_retirements: Default::default(),
             edge_retirements: Default::default(),
             summary: MeshSummary::default(),
@@ -738,7 +742,7 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
             map.push((index, Some(last)));
         }
         self.most_open = self.most_open.max(self.seam.len());
-        let mut local_edges: HashMap<(u32, u32), u32> = HashMap::new();
+        let mut local_edges: FastMap<(u32, u32), u32> = FastMap::default();
         for t in &mesh.triangles {
             let [Some(a), Some(b), Some(c)] = t.map(|v| map.get(v as usize).copied()) else {
                 continue;
