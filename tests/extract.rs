@@ -158,6 +158,8 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
     assert_eq!(info["digest"], info_b["digest"]);
     assert_same_store(&fingerprint(&store_a), &fingerprint(&store_b), "1 vs 2 threads");
 
+    assert_cut_around_each_leaf_answers_like_the_whole_cut(&store_a);
+
     // The CLI streams the mesh leaf by leaf, holding only the seams between leaves; it writes
     // exactly what welding the whole mesh in memory writes, in PLY and in OBJ.
     let opened = octstore::Store::open_read_only(&store_a).unwrap();
@@ -404,4 +406,48 @@ fn the_indicator_field_can_be_read_from_code_and_the_cli() {
         "{}",
         stderr(&out)
     );
+}
+
+/// Extraction reads a leaf's neighbours through `LevelCut::around`, which keeps only the cubes
+/// within one finest cell of the leaf: on every finest cell of that shell and inside, it must
+/// find the same cut cube and u as the whole level's cut.
+fn assert_cut_around_each_leaf_answers_like_the_whole_cut(store: &Path) {
+    use octstore::stages::solve::LevelCut;
+    use octstore::stages::treetop::Treetop;
+    let opened = octstore::Store::open_read_only(store).unwrap();
+    let snapshot = opened.latest().unwrap();
+    let finest = octstore::stages::octree_max_depth(&opened).unwrap();
+    let treetop = Treetop::of(&snapshot).unwrap();
+    let cell = 1u64 << (32 - u32::from(finest));
+    let mut whole = LevelCut::new(&snapshot, &treetop, finest);
+    let mut probes = 0;
+    for unit in treetop.units.iter().filter(|u| !u.top) {
+        let mut around = LevelCut::around(&snapshot, &treetop, finest, unit.key);
+        let corner = unit.key.corner_full_resolution().map(i64::from);
+        let side = 1i64 << (32 - u32::from(unit.key.depth()));
+        // The cells just outside each face, and every finest cell inside.
+        let steps: Vec<i64> = std::iter::once(-1)
+            .chain((0..side / cell as i64).map(|i| i * cell as i64))
+            .chain(std::iter::once(side))
+            .collect();
+        for dx in &steps {
+            for dy in &steps {
+                for dz in &steps {
+                    let p = [corner[0] + dx, corner[1] + dy, corner[2] + dz];
+                    if p.iter().any(|&c| !(0..1i64 << 32).contains(&c)) {
+                        continue;
+                    }
+                    let p = p.map(|c| c as u32);
+                    assert_eq!(
+                        around.cube_at(p).unwrap(),
+                        whole.cube_at(p).unwrap(),
+                        "leaf {:?}, cell {p:?}",
+                        unit.key
+                    );
+                    probes += 1;
+                }
+            }
+        }
+    }
+    assert!(probes > 1000, "{probes} probes");
 }

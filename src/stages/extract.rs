@@ -22,7 +22,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::scene::Scene;
-use super::solve::{LEVEL_STAGES, LevelCut};
+use super::solve::{LEVEL_STAGES, LevelCut, cut_cube_ending_at};
 use super::treetop::Treetop;
 use crate::format::{CubeKey, MAX_DEPTH};
 use crate::store::{Result, Snapshot, StoreError};
@@ -78,13 +78,9 @@ fn cut_cube_near(
     cell: [u32; 3],
 ) -> Result<Option<(CubeKey, f32)>> {
     let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
-    let found = partition_point_near(keys, near, probe)
-        .checked_sub(1)
-        .and_then(|i| keys.get(i).zip(values.get(i)))
-        .filter(|(key, _)| key.is_ancestor_or_self_of(probe));
-    match found {
-        Some((key, u)) => Ok(Some((*key, *u))),
-        None => level.cube_at(cell),
+    match cut_cube_ending_at(keys, values, partition_point_near(keys, near, probe), probe) {
+        Some(found) => Ok(Some(found)),
+        None => level.cube_containing(probe),
     }
 }
 
@@ -553,7 +549,11 @@ pub fn unit_mesh(
     finest: u8,
     unit: usize,
 ) -> Result<UnitMesh> {
-    let mut level = LevelCut::new(snapshot, treetop, finest);
+    let Some(key) = treetop.units.get(unit).map(|u| u.key) else {
+        return Ok(UnitMesh::default());
+    };
+    // Every probe of the unit's dual cells lies within one finest cell of its cube.
+    let mut level = LevelCut::around(snapshot, treetop, finest, key);
     match level.unit(unit)? {
         Some(values) => dual_cells_of_unit(scene, &mut level, &values.0, &values.1),
         None => Ok(UnitMesh::default()),
@@ -714,13 +714,15 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
     /// Adds unit `unit`'s piece; units must come in increasing index order.
     fn add(&mut self, unit: usize, key: CubeKey, mesh: &UnitMesh) -> std::io::Result<()> {
         let private = private_to(key);
-        // Global index and, for seam vertices, the last unit that can produce them.
-        let mut map: Vec<(u32, Option<usize>)> = Vec::with_capacity(mesh.vertices.len());
+        // Global index and, for seam vertices, the last unit that can produce them (PRIVATE
+        // for the others): 8 bytes per vertex of the largest piece, not 24 with an Option.
+        const PRIVATE: u32 = u32::MAX;
+        let mut map: Vec<(u32, u32)> = Vec::with_capacity(mesh.vertices.len());
         for (edge, p, n) in &mesh.vertices {
             if private(edge) {
                 let index = self.next_index()?;
                 self.writer.vertex(*p, n.normalize_or_zero())?;
-                map.push((index, None));
+                map.push((index, PRIVATE));
                 continue;
             }
             let (index, last) = match self.seam.get_mut(edge) {
@@ -739,7 +741,11 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                     (index, last)
                 }
             };
-            map.push((index, Some(last)));
+            let last = u32::try_from(last)
+                .ok()
+                .filter(|&last| last != PRIVATE)
+                .ok_or_else(|| std::io::Error::other("more than 2^32 - 1 treetop units"))?;
+            map.push((index, last));
         }
         self.most_open = self.most_open.max(self.seam.len());
         let mut local_edges: FastMap<(u32, u32), u32> = FastMap::default();
@@ -752,12 +758,12 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
             for (x, y) in [(a, b), (b, c), (c, a)] {
                 let edge = (x.0.min(y.0), x.0.max(y.0));
                 match (x.1, y.1) {
-                    (Some(lx), Some(ly)) => {
+                    (lx, ly) if lx != PRIVATE && ly != PRIVATE => {
                         let uses = self.seam_edges.entry(edge).or_insert(0);
                         // A unit uses the edge only if it produces both ends, and no unit after
                         // the earlier of their last units produces both.
                         if *uses == 0 {
-                            self.edge_retirements.entry(lx.min(ly)).or_default().push(edge);
+                            self.edge_retirements.entry(lx.min(ly) as usize).or_default().push(edge);
                         }
                         *uses += 1;
                     }

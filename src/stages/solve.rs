@@ -625,6 +625,11 @@ impl Stage for LevelStage {
     }
 }
 
+/// The side of `cube` in finest cells.
+fn full_resolution_side(cube: CubeKey) -> u64 {
+    1u64 << (u32::from(MAX_DEPTH) - u32::from(cube.depth().min(MAX_DEPTH)))
+}
+
 /// Sorted cut keys of a unit at one level and their u.
 pub type LeafValues = (Vec<CubeKey>, Vec<f32>);
 
@@ -634,6 +639,9 @@ pub struct LevelCut<'a, 's> {
     snapshot: &'a Snapshot<'s>,
     treetop: &'a Treetop,
     segments: LevelSegments,
+    /// When set, only points in this box (full-resolution cells, `[low, high)` per axis) are
+    /// asked about, and groups keep only the cubes that meet it.
+    window: Option<[[u64; 3]; 2]>,
     groups: BTreeMap<u64, Arc<LeafValues>>,
     units: BTreeMap<usize, Option<Arc<LeafValues>>>,
 }
@@ -644,8 +652,22 @@ impl<'a, 's> LevelCut<'a, 's> {
             snapshot,
             treetop,
             segments: LevelSegments::of(snapshot, LEVEL_STAGES[usize::from(level.min(MAX_DEPTH))]),
+            window: None,
             groups: BTreeMap::new(),
             units: BTreeMap::new(),
+        }
+    }
+
+    /// A cut that is only asked about points within one finest cell of `cube` (its cube, the
+    /// cubes touching it and its own units): a group decoded for a neighbour then keeps only
+    /// the cubes that reach that shell, so memory follows `cube`'s surface, not the neighbours'
+    /// volumes. Asking about a point outside gives `None` or a cube that does not hold it.
+    pub fn around(snapshot: &'a Snapshot<'s>, treetop: &'a Treetop, level: u8, cube: CubeKey) -> LevelCut<'a, 's> {
+        let corner = cube.corner_full_resolution().map(u64::from);
+        let side = full_resolution_side(cube);
+        LevelCut {
+            window: Some([corner.map(|c| c.saturating_sub(1)), corner.map(|c| c + side + 1)]),
+            ..LevelCut::new(snapshot, treetop, level)
         }
     }
 
@@ -657,7 +679,20 @@ impl<'a, 's> LevelCut<'a, 's> {
         if let Some(values) = self.groups.get(&id) {
             return Ok(Some(values.clone()));
         }
-        let loaded = Arc::new(read_level_u(self.snapshot, name)?);
+        let mut loaded = read_level_u(self.snapshot, name)?;
+        if let Some([low, high]) = self.window {
+            // Only a cube that meets the window can hold a point of it, and dropping the others
+            // leaves that cube the last key at or before such a point (the cut has no keys
+            // between a cube and its descendants).
+            let meets = |key: &CubeKey| {
+                let corner = key.corner_full_resolution().map(u64::from);
+                let side = full_resolution_side(*key);
+                (0..3).all(|axis| corner[axis] < high[axis] && corner[axis] + side > low[axis])
+            };
+            let (keys, u) = loaded;
+            loaded = keys.into_iter().zip(u).filter(|(key, _)| meets(key)).unzip();
+        }
+        let loaded = Arc::new(loaded);
         self.groups.insert(id, loaded.clone());
         Ok(Some(loaded))
     }
@@ -696,7 +731,11 @@ impl<'a, 's> LevelCut<'a, 's> {
 
     /// The cut cube containing the finest cell at full-resolution coordinates `cell`, and its u.
     pub fn cube_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, f32)>> {
-        let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
+        self.cube_containing(CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]))
+    }
+
+    /// The cut cube that is `probe` or an ancestor of it, and its u.
+    pub fn cube_containing(&mut self, probe: CubeKey) -> Result<Option<(CubeKey, f32)>> {
         let unit = self.treetop.unit_of(probe);
         // The group's cut tiles its units' cubes, so the one ancestor of the probe among its
         // keys is the answer.
@@ -704,11 +743,22 @@ impl<'a, 's> LevelCut<'a, 's> {
             return Ok(None);
         };
         let (keys, u) = (&values.0, &values.1);
-        let position = keys.partition_point(|k| *k <= probe);
-        Ok(position
-            .checked_sub(1)
-            .and_then(|i| keys.get(i).zip(u.get(i)))
-            .filter(|(k, _)| k.is_ancestor_or_self_of(probe))
-            .map(|(k, u)| (*k, *u)))
+        Ok(cut_cube_ending_at(
+            keys,
+            u,
+            keys.partition_point(|k| *k <= probe),
+            probe,
+        ))
     }
+}
+
+/// The cube of a sorted cut (`keys`, their `u`) just before `position`, the cut's first key
+/// after `probe`, when it contains `probe`: the cut tiles what it covers, so that cube is the
+/// only candidate.
+pub fn cut_cube_ending_at(keys: &[CubeKey], u: &[f32], position: usize, probe: CubeKey) -> Option<(CubeKey, f32)> {
+    position
+        .checked_sub(1)
+        .and_then(|i| keys.get(i).zip(u.get(i)))
+        .filter(|(k, _)| k.is_ancestor_or_self_of(probe))
+        .map(|(k, u)| (*k, *u))
 }
