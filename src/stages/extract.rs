@@ -11,6 +11,7 @@
 //! welded, wherever the edge appears: on both sides of a level change and of a treetop border.
 
 use std::collections::HashMap;
+use std::hash::BuildHasher;
 
 /// Hash tables keyed by surface-vertex and edge names: nothing depends on their iteration
 /// order, so a fast fixed-seed hasher replaces SipHash.
@@ -131,7 +132,10 @@ fn dual_cells_of_unit(
     values: &[f32],
 ) -> Result<UnitMesh> {
     let mut mesh = UnitMesh::default();
-    let mut vertex_index: FastMap<(CornerId, CornerId), u32> = FastMap::default();
+    // The unit's vertices by edge name, held as indices into `mesh.vertices` (4 bytes a
+    // vertex, where a map keyed by the 32-byte name took about 100 with its load factor).
+    let mut vertex_index: hashbrown::HashTable<u32> = hashbrown::HashTable::new();
+    let name_hasher = foldhash::fast::FixedState::default();
     let limit = 1u64 << 32;
     for (index, (key, own_u)) in keys.iter().zip(values).enumerate() {
         let d = key.depth();
@@ -272,13 +276,24 @@ fn dual_cells_of_unit(
                 let mut vertex = |a: usize, b: usize, mesh: &mut UnitMesh| -> u32 {
                     let (ca, cb) = (t[a], t[b]);
                     let edge = if ca.id <= cb.id { (ca.id, cb.id) } else { (cb.id, ca.id) };
-                    *vertex_index.entry(edge).or_insert_with(|| {
-                        let (lo, hi) = if ca.id <= cb.id { (ca, cb) } else { (cb, ca) };
-                        let s = f64::from(lo.u) / (f64::from(lo.u) - f64::from(hi.u));
-                        let position = lo.center + (hi.center - lo.center) * s;
-                        mesh.vertices.push((edge, position, DVec3::ZERO));
-                        (mesh.vertices.len() - 1) as u32
-                    })
+                    let vertices = &mesh.vertices;
+                    let name_of = |&i: &u32| vertices.get(i as usize).map(|v| v.0);
+                    let entry = vertex_index.entry(
+                        name_hasher.hash_one(edge),
+                        |i| name_of(i) == Some(edge),
+                        |i| name_of(i).map_or(0, |name| name_hasher.hash_one(name)),
+                    );
+                    match entry {
+                        hashbrown::hash_table::Entry::Occupied(found) => *found.get(),
+                        hashbrown::hash_table::Entry::Vacant(slot) => {
+                            let (lo, hi) = if ca.id <= cb.id { (ca, cb) } else { (cb, ca) };
+                            let s = f64::from(lo.u) / (f64::from(lo.u) - f64::from(hi.u));
+                            let position = lo.center + (hi.center - lo.center) * s;
+                            let index = mesh.vertices.len() as u32;
+                            mesh.vertices.push((edge, position, DVec3::ZERO));
+                            *slot.insert(index).get()
+                        }
+                    }
                 };
                 let mut polygon: Vec<u32> = Vec::new();
                 if inside.len() == 1 || outside.len() == 1 {
@@ -674,17 +689,97 @@ struct StreamingWeld<'t, W: MeshWriter> {
     writer: W,
     treetop: &'t Treetop,
     /// Open seam vertices: global index, normal summed so far, last unit that can produce it.
-    seam: FastMap<VertexId, (u32, DVec3, usize)>,
+    seam: OpenSeam,
     /// Uses of edges between two open seam vertices (only those can span units).
     seam_edges: FastMap<(u32, u32), u32>,
     /// When each open seam vertex and edge can be retired: after this unit.
-    vertex_retirements: std::collections::BTreeMap<usize, Vec<VertexId>>,
+    vertex_retirements: std::collections::BTreeMap<usize, Vec<u32>>,
     edge_retirements: std::collections::BTreeMap<usize, Vec<(u32, u32)>>,
     summary: MeshSummary,
     /// Most seam vertices and seam edges open at once (reported: they are what grows with the
     /// scene's cross-section).
     pub most_open: usize,
     pub most_open_edges: usize,
+}
+
+/// An open seam vertex.
+#[derive(Clone, Copy)]
+struct SeamVertex {
+    name: VertexId,
+    /// Normal summed over the units that produced it so far.
+    normal: DVec3,
+    /// Global index in the mesh file.
+    index: u32,
+    /// The last unit that can produce it.
+    last: u32,
+}
+
+/// Open seam vertices by name: a slab of 64-byte records, whose freed slots are reused, and a
+/// hash table of 4-byte slot numbers. A map from the 32-byte name to the record took 80 bytes a
+/// bucket, and a table of a million or more buckets doubles at once; here the doubling moves 4
+/// bytes a bucket (on the 135 M-cube city the seams reach 884,244 vertices).
+#[derive(Default)]
+struct OpenSeam {
+    slots: Vec<SeamVertex>,
+    free: Vec<u32>,
+    by_name: hashbrown::HashTable<u32>,
+    hasher: foldhash::fast::FixedState,
+}
+
+impl OpenSeam {
+    fn len(&self) -> usize {
+        self.by_name.len()
+    }
+
+    fn slot_hash(&self, slot: u32) -> u64 {
+        self.slots
+            .get(slot as usize)
+            .map_or(0, |open| self.hasher.hash_one(open.name))
+    }
+
+    fn get_mut(&mut self, name: &VertexId) -> Option<&mut SeamVertex> {
+        let slots = &self.slots;
+        let found = self
+            .by_name
+            .find(self.hasher.hash_one(*name), |&slot| {
+                slots.get(slot as usize).is_some_and(|open| open.name == *name)
+            })
+            .copied()?;
+        self.slots.get_mut(found as usize)
+    }
+
+    /// Adds a vertex that is not open yet; returns its slot.
+    fn insert(&mut self, vertex: SeamVertex) -> u32 {
+        let slot = match self.free.pop() {
+            Some(slot) => {
+                if let Some(place) = self.slots.get_mut(slot as usize) {
+                    *place = vertex;
+                }
+                slot
+            }
+            None => {
+                self.slots.push(vertex);
+                (self.slots.len() - 1) as u32
+            }
+        };
+        let (slots, hasher) = (&self.slots, &self.hasher);
+        self.by_name
+            .insert_unique(hasher.hash_one(vertex.name), slot, |&other| {
+                slots.get(other as usize).map_or(0, |open| hasher.hash_one(open.name))
+            });
+        slot
+    }
+
+    /// Closes the vertex in `slot`, returning it.
+    fn remove(&mut self, slot: u32) -> Option<SeamVertex> {
+        let entry = self
+            .by_name
+            .find_entry(self.slot_hash(slot), |&other| other == slot)
+            .ok()?;
+        entry.remove();
+        self.free.push(slot);
+        self.slots.get(slot as usize).copied()
+    }
 }
 
 /// Where a streamed mesh goes: vertices in order (normals of seam vertices are fixed later,
@@ -701,7 +796,7 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
         StreamingWeld {
             writer,
             treetop,
-            seam: FastMap::default(),
+            seam: OpenSeam::default(),
             seam_edges: FastMap::default(),
             vertex_retirements: Default::default(),
             edge_retirements: Default::default(),
@@ -726,9 +821,9 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                 continue;
             }
             let (index, last) = match self.seam.get_mut(edge) {
-                Some((index, normal, last)) => {
-                    *normal += *n;
-                    (*index, *last)
+                Some(open) => {
+                    open.normal += *n;
+                    (open.index, open.last)
                 }
                 None => {
                     let index = self.next_index()?;
@@ -736,15 +831,20 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                     let last = last_unit_around(self.treetop, edge.0)
                         .min(last_unit_around(self.treetop, edge.1))
                         .max(unit);
-                    self.seam.insert(*edge, (index, *n, last));
-                    self.vertex_retirements.entry(last).or_default().push(*edge);
+                    let last = u32::try_from(last)
+                        .ok()
+                        .filter(|&last| last != PRIVATE)
+                        .ok_or_else(|| std::io::Error::other("more than 2^32 - 1 treetop units"))?;
+                    let slot = self.seam.insert(SeamVertex {
+                        name: *edge,
+                        normal: *n,
+                        index,
+                        last,
+                    });
+                    self.vertex_retirements.entry(last as usize).or_default().push(slot);
                     (index, last)
                 }
             };
-            let last = u32::try_from(last)
-                .ok()
-                .filter(|&last| last != PRIVATE)
-                .ok_or_else(|| std::io::Error::other("more than 2^32 - 1 treetop units"))?;
             map.push((index, last));
         }
         self.most_open = self.most_open.max(self.seam.len());
@@ -783,8 +883,8 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
         let mut fixes: Vec<(u32, DVec3)> = due
             .into_values()
             .flatten()
-            .filter_map(|edge| self.seam.remove(&edge))
-            .map(|(index, normal, _)| (index, normal.normalize_or_zero()))
+            .filter_map(|slot| self.seam.remove(slot))
+            .map(|open| (open.index, open.normal.normalize_or_zero()))
             .collect();
         fixes.sort_by_key(|(index, _)| *index);
         self.writer.fix_normals(&fixes)?;
@@ -1401,6 +1501,40 @@ mod tests {
         fn drop(&mut self) {
             self.alive.fetch_sub(1, Ordering::SeqCst);
         }
+    }
+
+    #[test]
+    fn open_seam_finds_what_is_open_and_reuses_closed_slots() {
+        let name = |i: u128| (i, i * 7 + 1);
+        let vertex = |i: u128| SeamVertex {
+            name: name(i),
+            normal: DVec3::splat(i as f64),
+            index: i as u32,
+            last: 0,
+        };
+        let mut seam = OpenSeam::default();
+        let mut slots = std::collections::HashMap::new();
+        let mut seed = 11u64;
+        for round in 0..20_000u128 {
+            let i = u128::from(random(&mut seed) % 3000);
+            match seam.get_mut(&name(i)) {
+                Some(open) => {
+                    assert_eq!(open.index, i as u32, "round {round}");
+                    let slot = slots.remove(&i).expect("open in the model");
+                    let closed = seam.remove(slot).expect("open slot");
+                    assert_eq!(closed.name, name(i));
+                    assert!(seam.get_mut(&name(i)).is_none());
+                }
+                None => {
+                    assert!(!slots.contains_key(&i), "round {round}: {i} lost");
+                    slots.insert(i, seam.insert(vertex(i)));
+                }
+            }
+            assert_eq!(seam.len(), slots.len());
+        }
+        // Slots of closed vertices are reused: never more slots than were open at once.
+        assert!(seam.slots.len() <= 3000);
+        assert!(seam.remove(u32::MAX).is_none());
     }
 
     #[test]
