@@ -132,10 +132,8 @@ fn dual_cells_of_unit(
     values: &[f32],
 ) -> Result<UnitMesh> {
     let mut mesh = UnitMesh::default();
-    // The unit's vertices by edge name, held as indices into `mesh.vertices` (4 bytes a
-    // vertex, where a map keyed by the 32-byte name took about 100 with its load factor).
-    let mut vertex_index: hashbrown::HashTable<u32> = hashbrown::HashTable::new();
-    let name_hasher = foldhash::fast::FixedState::default();
+    // The unit's vertices by name, as indices into `mesh.vertices`.
+    let mut vertex_index = NameIndex::default();
     let limit = 1u64 << 32;
     for (index, (key, own_u)) in keys.iter().zip(values).enumerate() {
         let d = key.depth();
@@ -277,13 +275,7 @@ fn dual_cells_of_unit(
                     let (ca, cb) = (t[a], t[b]);
                     let edge = if ca.id <= cb.id { (ca.id, cb.id) } else { (cb.id, ca.id) };
                     let vertices = &mesh.vertices;
-                    let name_of = |&i: &u32| vertices.get(i as usize).map(|v| v.0);
-                    let entry = vertex_index.entry(
-                        name_hasher.hash_one(edge),
-                        |i| name_of(i) == Some(edge),
-                        |i| name_of(i).map_or(0, |name| name_hasher.hash_one(name)),
-                    );
-                    match entry {
+                    match vertex_index.entry(edge, |i| vertices.get(i as usize).map(|v| v.0)) {
                         hashbrown::hash_table::Entry::Occupied(found) => *found.get(),
                         hashbrown::hash_table::Entry::Vacant(slot) => {
                             let (lo, hi) = if ca.id <= cb.id { (ca, cb) } else { (cb, ca) };
@@ -714,16 +706,62 @@ struct SeamVertex {
     last: u32,
 }
 
-/// Open seam vertices by name: a slab of 64-byte records, whose freed slots are reused, and a
-/// hash table of 4-byte slot numbers. A map from the 32-byte name to the record took 80 bytes a
-/// bucket, and a table of a million or more buckets doubles at once; here the doubling moves 4
-/// bytes a bucket (on the 135 M-cube city the seams reach 884,244 vertices).
+/// Positions of records kept in a list elsewhere, found by the records' vertex names: 4 bytes
+/// a bucket, where a map keyed by the 32-byte name takes 48 to 80 (and a table of a million or
+/// more buckets doubles at once). `name_of` gives the name of the record at a position; the
+/// owner keeps the table and the list in step.
+#[derive(Default)]
+struct NameIndex {
+    table: hashbrown::HashTable<u32>,
+    hasher: foldhash::fast::FixedState,
+}
+
+impl NameIndex {
+    fn len(&self) -> usize {
+        self.table.len()
+    }
+
+    fn entry(
+        &mut self,
+        name: VertexId,
+        name_of: impl Fn(u32) -> Option<VertexId>,
+    ) -> hashbrown::hash_table::Entry<'_, u32> {
+        let (table, hasher) = (&mut self.table, &self.hasher);
+        table.entry(
+            hasher.hash_one(name),
+            |&i| name_of(i) == Some(name),
+            |&i| name_of(i).map_or(0, |name| hasher.hash_one(name)),
+        )
+    }
+
+    fn find(&self, name: VertexId, name_of: impl Fn(u32) -> Option<VertexId>) -> Option<u32> {
+        self.table
+            .find(self.hasher.hash_one(name), |&i| name_of(i) == Some(name))
+            .copied()
+    }
+
+    /// Adds `position` for a name that is not in the index.
+    fn insert_new(&mut self, name: VertexId, position: u32, name_of: impl Fn(u32) -> Option<VertexId>) {
+        let (table, hasher) = (&mut self.table, &self.hasher);
+        table.insert_unique(hasher.hash_one(name), position, |&i| {
+            name_of(i).map_or(0, |name| hasher.hash_one(name))
+        });
+    }
+
+    /// Removes `position`, filed under `name`; whether it was there.
+    fn remove(&mut self, name: VertexId, position: u32) -> bool {
+        let found = self.table.find_entry(self.hasher.hash_one(name), |&i| i == position);
+        found.map(|entry| entry.remove()).is_ok()
+    }
+}
+
+/// Open seam vertices: a slab of 64-byte records, whose closed slots are reused, indexed by
+/// name (on the 135 M-cube city the seams reach 884,244 vertices).
 #[derive(Default)]
 struct OpenSeam {
     slots: Vec<SeamVertex>,
     free: Vec<u32>,
-    by_name: hashbrown::HashTable<u32>,
-    hasher: foldhash::fast::FixedState,
+    by_name: NameIndex,
 }
 
 impl OpenSeam {
@@ -731,20 +769,11 @@ impl OpenSeam {
         self.by_name.len()
     }
 
-    fn slot_hash(&self, slot: u32) -> u64 {
-        self.slots
-            .get(slot as usize)
-            .map_or(0, |open| self.hasher.hash_one(open.name))
-    }
-
     fn get_mut(&mut self, name: &VertexId) -> Option<&mut SeamVertex> {
         let slots = &self.slots;
         let found = self
             .by_name
-            .find(self.hasher.hash_one(*name), |&slot| {
-                slots.get(slot as usize).is_some_and(|open| open.name == *name)
-            })
-            .copied()?;
+            .find(*name, |slot| slots.get(slot as usize).map(|open| open.name))?;
         self.slots.get_mut(found as usize)
     }
 
@@ -762,23 +791,21 @@ impl OpenSeam {
                 (self.slots.len() - 1) as u32
             }
         };
-        let (slots, hasher) = (&self.slots, &self.hasher);
-        self.by_name
-            .insert_unique(hasher.hash_one(vertex.name), slot, |&other| {
-                slots.get(other as usize).map_or(0, |open| hasher.hash_one(open.name))
-            });
+        let slots = &self.slots;
+        self.by_name.insert_new(vertex.name, slot, |other| {
+            slots.get(other as usize).map(|open| open.name)
+        });
         slot
     }
 
     /// Closes the vertex in `slot`, returning it.
     fn remove(&mut self, slot: u32) -> Option<SeamVertex> {
-        let entry = self
-            .by_name
-            .find_entry(self.slot_hash(slot), |&other| other == slot)
-            .ok()?;
-        entry.remove();
+        let open = self.slots.get(slot as usize).copied()?;
+        if !self.by_name.remove(open.name, slot) {
+            return None;
+        }
         self.free.push(slot);
-        self.slots.get(slot as usize).copied()
+        Some(open)
     }
 }
 
