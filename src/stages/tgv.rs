@@ -678,6 +678,9 @@ impl Kernel {
     /// Runs `iterations` steps on the packed state. Each pass computes every output from a
     /// fixed gather list in a fixed order, so the result does not depend on the thread count.
     /// The per-cube columns are walked with zipped iterators, so only the gathers check bounds.
+    /// Cubes go through the passes in groups of [`LANES`] with cubes as lanes (the pointwise
+    /// steps then cost one 4-wide operation per value instead of a partly used one per cube),
+    /// and a chunk's last few cubes one at a time; both give the same bits.
     pub fn iterate(&self, state: &mut Packed, iterations: usize) {
         let n = self.n;
         let mut bar: Vec<Vec4> = state.uv.iter().chain(&self.frozen).copied().collect();
@@ -699,6 +702,23 @@ impl Kernel {
                         let mut terms = self
                             .terms_from(&self.row_start, &self.row_terms, 3 * chunk * CHUNK)
                             .iter();
+                        let (p_lanes, p) = p.as_chunks_mut::<LANES>();
+                        let (qd_lanes, qd) = qd.as_chunks_mut::<LANES>();
+                        let (qo_lanes, qo) = qo.as_chunks_mut::<LANES>();
+                        let (rows_lanes, rows) = rows.as_chunks_mut::<{ 3 * LANES }>();
+                        let (k_lanes, constants) = constants.as_chunks::<LANES>();
+                        let (lengths_lanes, lengths) = lengths.as_chunks::<LANES>();
+                        let (centres_lanes, centres) = centres.as_chunks::<LANES>();
+                        let groups = p_lanes
+                            .iter_mut()
+                            .zip(qd_lanes.iter_mut())
+                            .zip(qo_lanes.iter_mut())
+                            .zip(rows_lanes.iter_mut())
+                            .zip(k_lanes.iter().zip(lengths_lanes).zip(centres_lanes));
+                        for ((((p, qd), qo), rows), ((k, lengths), centres)) in groups {
+                            dual_lanes(&mut terms, bar, centres, k, lengths, p, qd, qo, rows);
+                        }
+                        // The chunk's last cubes, fewer than LANES: the same steps one at a time.
                         let cubes = p
                             .iter_mut()
                             .zip(qd.iter_mut())
@@ -723,6 +743,20 @@ impl Kernel {
                     .enumerate()
                     .for_each(|(chunk, (((((uv, bar), own_rows), constants), lengths), slopes))| {
                         let mut terms = self.terms_from(&self.col_start, &self.col_terms, chunk * CHUNK).iter();
+                        let (uv_lanes, uv) = uv.as_chunks_mut::<LANES>();
+                        let (bar_lanes, bar) = bar.as_chunks_mut::<LANES>();
+                        let (own_lanes, own_rows) = own_rows.as_chunks::<{ 3 * LANES }>();
+                        let (k_lanes, constants) = constants.as_chunks::<LANES>();
+                        let (lengths_lanes, lengths) = lengths.as_chunks::<LANES>();
+                        let (slopes_lanes, slopes) = slopes.as_chunks::<LANES>();
+                        let groups = uv_lanes
+                            .iter_mut()
+                            .zip(bar_lanes.iter_mut())
+                            .zip(own_lanes)
+                            .zip(k_lanes.iter().zip(lengths_lanes).zip(slopes_lanes));
+                        for (((uv, bar), own_rows), ((k, lengths), slopes)) in groups {
+                            primal_lanes(&mut terms, rows, own_rows, k, lengths, slopes, self.lambda, uv, bar);
+                        }
                         let cubes = uv
                             .iter_mut()
                             .zip(bar.iter_mut())
@@ -816,6 +850,170 @@ fn primal(
     new.x = prox_slopes(new.x, k.tau.x * lambda, slopes);
     *uv = new;
     *bar = 2.0 * new - old;
+}
+
+/// Cubes per lane group of [`dual_lanes`] and [`primal_lanes`]: one `Vec4` holds one value of
+/// each of 4 cubes.
+const LANES: usize = 4;
+
+/// The transpose of 4 vectors: lane i of the result's column j is lane j of `x[i]`.
+#[inline]
+fn transpose(x: [Vec4; LANES]) -> [Vec4; 4] {
+    let t = Mat4::from_cols(x[0], x[1], x[2], x[3]).transpose();
+    [t.x_axis, t.y_axis, t.z_axis, t.w_axis]
+}
+
+/// `1 / max(sqrt(s), 1)` per lane: [`unit_ball_scale`] of 4 cubes. `max` returns its second
+/// operand when the first is NaN, as `f32::max` does here.
+#[inline]
+fn unit_ball_scale_lanes(squared_norm: Vec4) -> Vec4 {
+    Vec4::ONE / sqrt_lanes(squared_norm).max(Vec4::ONE)
+}
+
+/// Square roots of 4 lanes, correctly rounded as `f32::sqrt` is.
+#[inline]
+fn sqrt_lanes(x: Vec4) -> Vec4 {
+    x.map(f32::sqrt)
+}
+
+/// `x.x^2 + x.y^2 + x.z^2` of 4 cubes, summed in [`sum3`]'s order.
+#[inline]
+fn sum3_lanes(x: [Vec4; 3]) -> Vec4 {
+    x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
+}
+
+/// [`dual`] of 4 consecutive cubes with cubes as lanes: the gathers run per cube as in
+/// [`dual`], the rest on transposed values. Every cube sees the same float operations in the
+/// same order as in [`dual`], so both give the same bits (the GPU twins check this).
+#[inline]
+#[expect(clippy::too_many_arguments, reason = "4 cubes' columns, borrowed apart")]
+fn dual_lanes(
+    terms: &mut std::slice::Iter<'_, Gather>,
+    bar: &[Vec4],
+    centres: &[Vec4; LANES],
+    k: &[DualConstants; LANES],
+    lengths: &[[u16; 4]; LANES],
+    p: &mut [Vec4; LANES],
+    q_diag: &mut [Vec4; LANES],
+    q_off: &mut [Vec4; LANES],
+    rows: &mut [Vec4; 3 * LANES],
+) {
+    // acc[cube][axis] = (D_axis u, D_axis v0, D_axis v1, D_axis v2) of that cube.
+    let acc: [[Vec4; 3]; LANES] = std::array::from_fn(|cube| {
+        let centre = centres[cube];
+        std::array::from_fn(|axis| {
+            let mut acc = Vec4::ZERO;
+            for term in terms.by_ref().take(usize::from(lengths[cube][axis])) {
+                let t = bar.get(term.index as usize).copied().unwrap_or(centre);
+                acc += term.weight * (t - centre);
+            }
+            acc
+        })
+    });
+    // d[axis] = [D_axis u, D_axis v0, D_axis v1, D_axis v2], each over the 4 cubes.
+    let d: [[Vec4; 4]; 3] = std::array::from_fn(|axis| transpose(acc.map(|a| a[axis])));
+    let [_, v0, v1, v2] = transpose(*centres);
+    let v = [v0, v1, v2];
+    let [sp0, sp1, sp2, a1] = transpose(k.map(|k| k.sigma_p));
+    let [sqd0, sqd1, sqd2, a0] = transpose(k.map(|k| k.sigma_q_diag));
+    let [sqo0, sqo1, sqo2, _] = transpose(k.map(|k| k.sigma_q_off));
+    let sp = [sp0, sp1, sp2];
+    let [p0, p1, p2, _] = transpose(*p);
+    let old_p = [p0, p1, p2];
+    let new_p: [Vec4; 3] = std::array::from_fn(|axis| old_p[axis] + sp[axis] * (d[axis][0] - v[axis]));
+    let scale = unit_ball_scale_lanes(sum3_lanes(new_p));
+    let new_p = new_p.map(|x| x * scale);
+    // dv(i, axis) = D_axis v_i.
+    let dv = |i: usize, axis: usize| d[axis][i + 1];
+    let diag = [dv(0, 0), dv(1, 1), dv(2, 2)];
+    let off = [
+        SQRT_HALF * (dv(0, 1) + dv(1, 0)),
+        SQRT_HALF * (dv(0, 2) + dv(2, 0)),
+        SQRT_HALF * (dv(1, 2) + dv(2, 1)),
+    ];
+    let [qd0, qd1, qd2, _] = transpose(*q_diag);
+    let [qo0, qo1, qo2, _] = transpose(*q_off);
+    let qd = [qd0 + sqd0 * diag[0], qd1 + sqd1 * diag[1], qd2 + sqd2 * diag[2]];
+    let qo = [qo0 + sqo0 * off[0], qo1 + sqo1 * off[1], qo2 + sqo2 * off[2]];
+    let s = unit_ball_scale_lanes(sum3_lanes(qd) + sum3_lanes(qo));
+    let (qd, qo) = (qd.map(|x| x * s), qo.map(|x| x * s));
+    *p = transpose([new_p[0], new_p[1], new_p[2], Vec4::ZERO]);
+    *q_diag = transpose([qd[0], qd[1], qd[2], Vec4::ZERO]);
+    *q_off = transpose([qo[0], qo[1], qo[2], Vec4::ZERO]);
+    // The packed rows of [`dual`], built over the lanes and transposed back to one per cube.
+    let a1p = new_p.map(|x| a1 * x);
+    let a0qd = qd.map(|x| a0 * x);
+    let a0o = qo.map(|x| a0 * (SQRT_HALF * x));
+    let packed = [
+        transpose([a1p[0], a0qd[0], a0o[0], a0o[1]]),
+        transpose([a1p[1], a0o[0], a0qd[1], a0o[2]]),
+        transpose([a1p[2], a0o[1], a0o[2], a0qd[2]]),
+    ];
+    for (cube, rows) in rows.chunks_exact_mut(3).enumerate() {
+        for (axis, row) in rows.iter_mut().enumerate() {
+            *row = packed[axis][cube];
+        }
+    }
+}
+
+/// [`primal`] of 4 consecutive cubes with cubes as lanes: the adjoint is gathered per cube as
+/// in [`primal`], the steps and the prox run on transposed values, with the same float
+/// operations in the same order, so both give the same bits.
+#[inline]
+#[expect(clippy::too_many_arguments, reason = "4 cubes' columns, borrowed apart")]
+fn primal_lanes(
+    terms: &mut std::slice::Iter<'_, Gather>,
+    rows: &[Vec4],
+    own_rows: &[Vec4; 3 * LANES],
+    k: &[PrimalConstants; LANES],
+    lengths: &[[u16; 4]; LANES],
+    slopes: &[Slopes; LANES],
+    lambda: f32,
+    uv: &mut [Vec4; LANES],
+    bar: &mut [Vec4; LANES],
+) {
+    let adjoint: [Vec4; LANES] = std::array::from_fn(|cube| {
+        let [r0, r1, r2] = [0, 1, 2].map(|axis| own_rows[3 * cube + axis]);
+        let own = k[cube].own;
+        let mut adjoint = -(own.x * r0 + own.y * r1 + own.z * r2);
+        for term in terms.by_ref().take(usize::from(lengths[cube][3])) {
+            adjoint += term.weight * rows.get(term.index as usize).copied().unwrap_or(Vec4::ZERO);
+        }
+        adjoint - Vec4::new(0.0, r0.x, r1.x, r2.x)
+    });
+    let old = transpose(*uv);
+    let tau = transpose(k.map(|k| k.tau));
+    let adjoint = transpose(adjoint);
+    let mut new: [Vec4; 4] = std::array::from_fn(|i| old[i] - tau[i] * adjoint[i]);
+    new[0] = prox_slopes_lanes(new[0], tau[0] * lambda, slopes);
+    *uv = transpose(new);
+    *bar = transpose(std::array::from_fn(|i| 2.0 * new[i] - old[i]));
+}
+
+/// [`prox_slopes`] of 4 cubes, with the same operations in the same order per cube.
+#[inline]
+fn prox_slopes_lanes(u_tilde: Vec4, tau_lambda: Vec4, slopes: &[Slopes; LANES]) -> Vec4 {
+    let [s0, s1, s2, s3] = transpose(slopes.map(|s| Vec4::new(s.0[0], s.0[1], s.0[2], s.0[3])));
+    let [s4, s5, s6, s7] = transpose(slopes.map(|s| Vec4::new(s.0[4], s.0[5], s.0[6], s.0[7])));
+    let s8 = Vec4::from_array(slopes.map(|s| s.0[BINS]));
+    let clamp = |s: Vec4, i: usize| {
+        (u_tilde + tau_lambda * s)
+            .max(Vec4::splat(INTERVAL_LOW[i]))
+            .min(Vec4::splat(INTERVAL_HIGH[i]))
+    };
+    // prox_slopes pairs interval i with i + 4, then sums the pairs as (0 + 1) + (2 + 3).
+    let pair = [
+        clamp(s0, 0) + clamp(s4, 4),
+        clamp(s1, 1) + clamp(s5, 5),
+        clamp(s2, 2) + clamp(s6, 6),
+        clamp(s3, 3) + clamp(s7, 7),
+    ];
+    let last = (u_tilde + tau_lambda * s8).max(Vec4::splat(INTERVAL_LOW[BINS]));
+    let sum = (pair[0] + pair[1]) + (pair[2] + pair[3]) + last;
+    // f32::clamp's semantics, NaN included: below -> -1, above -> 1, otherwise unchanged.
+    let (low, high) = (Vec4::NEG_ONE, Vec4::ONE);
+    let sum = Vec4::select(sum.cmplt(low), low, sum);
+    Vec4::select(sum.cmpgt(high), high, sum)
 }
 
 /// Runs `iterations` preconditioned primal-dual steps from `state`; returns the energy before
@@ -952,6 +1150,127 @@ mod tests {
             for k in 0..6 {
                 assert!((a.q[c][k] - b.q[c][k]).abs() < 1e-4);
             }
+        }
+    }
+
+    /// The lane groups must give exactly the bits of the one-cube steps, projections active or
+    /// not, with signed zeros among the inputs, so that where a chunk's cubes fall into groups
+    /// (and so the thread count) changes nothing.
+    #[test]
+    fn lane_groups_are_the_one_cube_steps_bit_for_bit() {
+        struct Draw(u64);
+        impl Draw {
+            fn unit(&mut self) -> f32 {
+                self.0 = self
+                    .0
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (self.0 >> 40) as f32 / (1u64 << 24) as f32
+            }
+            fn value(&mut self, scale: f32) -> f32 {
+                match (self.unit() * 10.0) as u32 {
+                    0 => 0.0,
+                    1 => -0.0,
+                    _ => (self.unit() * 2.0 - 1.0) * scale,
+                }
+            }
+            fn v4(&mut self, scale: f32) -> Vec4 {
+                Vec4::new(
+                    self.value(scale),
+                    self.value(scale),
+                    self.value(scale),
+                    self.value(scale),
+                )
+            }
+            fn v3(&mut self, scale: f32) -> Vec4 {
+                Vec4::new(self.value(scale), self.value(scale), self.value(scale), 0.0)
+            }
+        }
+        let mut draw = Draw(99);
+        for _ in 0..300 {
+            let scale = if draw.unit() < 0.5 { 3.0 } else { 0.2 };
+            let bar: Vec<Vec4> = (0..8).map(|_| draw.v4(scale)).collect();
+            let rows: Vec<Vec4> = (0..12).map(|_| draw.v4(scale)).collect();
+            let lengths: [[u16; 4]; LANES] =
+                std::array::from_fn(|_| std::array::from_fn(|_| (draw.unit() * 4.0) as u16));
+            let gathers: Vec<Gather> = (0..64)
+                .map(|_| Gather {
+                    // Some indices past the end: the gathers' fallbacks are part of the twin.
+                    index: (draw.unit() * 14.0) as u32,
+                    weight: draw.value(4.0),
+                })
+                .collect();
+            let dual_k: [DualConstants; LANES] = std::array::from_fn(|_| DualConstants {
+                sigma_p: draw.v4(2.0).abs(),
+                sigma_q_diag: draw.v4(2.0).abs(),
+                sigma_q_off: draw.v3(2.0).abs(),
+            });
+            let primal_k: [PrimalConstants; LANES] = std::array::from_fn(|_| PrimalConstants {
+                tau: draw.v4(1.0).abs(),
+                own: draw.v3(2.0),
+            });
+            let slopes: [Slopes; LANES] = std::array::from_fn(|_| Slopes(std::array::from_fn(|_| draw.value(6.0))));
+            let centres: [Vec4; LANES] = std::array::from_fn(|_| draw.v4(scale));
+            let (p, qd, qo): ([Vec4; LANES], [Vec4; LANES], [Vec4; LANES]) = (
+                std::array::from_fn(|_| draw.v3(scale)),
+                std::array::from_fn(|_| draw.v3(scale)),
+                std::array::from_fn(|_| draw.v3(scale)),
+            );
+            let bits = |x: &[Vec4]| {
+                x.iter()
+                    .flat_map(|v| v.to_array().map(f32::to_bits))
+                    .collect::<Vec<_>>()
+            };
+
+            let (mut lp, mut lqd, mut lqo, mut lrows) = (p, qd, qo, [Vec4::ZERO; 3 * LANES]);
+            let mut terms = gathers.iter();
+            dual_lanes(
+                &mut terms, &bar, &centres, &dual_k, &lengths, &mut lp, &mut lqd, &mut lqo, &mut lrows,
+            );
+            let lanes_left = terms.len();
+            let (mut op, mut oqd, mut oqo, mut orows) = (p, qd, qo, [Vec4::ZERO; 3 * LANES]);
+            let mut terms = gathers.iter();
+            for c in 0..LANES {
+                let rows = &mut orows[3 * c..3 * c + 3];
+                dual(
+                    &mut terms,
+                    &bar,
+                    centres[c],
+                    &dual_k[c],
+                    &lengths[c],
+                    &mut op[c],
+                    &mut oqd[c],
+                    &mut oqo[c],
+                    rows,
+                );
+            }
+            assert_eq!(lanes_left, terms.len(), "both walk the same terms");
+            assert_eq!(bits(&lrows), bits(&orows));
+            assert_eq!((bits(&lp), bits(&lqd), bits(&lqo)), (bits(&op), bits(&oqd), bits(&oqo)));
+
+            let uv: [Vec4; LANES] = std::array::from_fn(|_| draw.v4(1.5));
+            let (mut luv, mut lbar) = (uv, [Vec4::ZERO; LANES]);
+            let mut terms = gathers.iter();
+            primal_lanes(
+                &mut terms, &rows, &lrows, &primal_k, &lengths, &slopes, 0.3, &mut luv, &mut lbar,
+            );
+            let (mut ouv, mut obar) = (uv, [Vec4::ZERO; LANES]);
+            let mut terms = gathers.iter();
+            for c in 0..LANES {
+                let own = &lrows[3 * c..3 * c + 3];
+                primal(
+                    &mut terms,
+                    &rows,
+                    own,
+                    &primal_k[c],
+                    &lengths[c],
+                    &slopes[c],
+                    0.3,
+                    &mut ouv[c],
+                    &mut obar[c],
+                );
+            }
+            assert_eq!((bits(&luv), bits(&lbar)), (bits(&ouv), bits(&obar)));
         }
     }
 
