@@ -109,9 +109,23 @@ fn worst(reference: &[Vec4], other: &[Vec4]) -> f32 {
 fn twins_are_the_cpu_kernel_bit_for_bit() {
     let (problem, state) = grid_problem(9, 3);
     let op = Operator::new(&problem);
-    let kernel = Kernel::new(&op).expect("short gather lists");
+    let mut kernel = Kernel::new(&op).expect("short gather lists");
+    let constants = |k: &Kernel| {
+        let bytes = |x: &[u8]| x.to_vec();
+        (
+            bytes(bytemuck::cast_slice(&k.dual_constants)),
+            bytes(bytemuck::cast_slice(&k.primal_constants)),
+            bytes(bytemuck::cast_slice(&k.slopes)),
+        )
+    };
+    let before = constants(&kernel);
     let mut cpu = Packed::of(&state);
     kernel.iterate(&mut cpu, 40);
+    // The CPU kernel works on a lane layout of its constants and puts them back.
+    assert!(
+        before == constants(&kernel),
+        "iterate left the kernel's constants changed"
+    );
     let mut twin = Packed::of(&state);
     twins::iterate(&kernel, &mut twin, 40);
     assert_eq!(cpu, twin);
@@ -157,7 +171,7 @@ fn split_units_with_halo_exchanges_are_the_kernel_bit_for_bit() {
     use octstore::gpu::tgv::split;
     let (problem, state) = grid_problem(9, 3);
     let op = Operator::new(&problem);
-    let kernel = Kernel::new(&op).expect("short gather lists");
+    let mut kernel = Kernel::new(&op).expect("short gather lists");
     let mut whole = Packed::of(&state);
     kernel.iterate(&mut whole, 30);
     for cubes in [1, 7, 100, 364, 729, 1000] {

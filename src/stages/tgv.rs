@@ -680,11 +680,15 @@ impl Kernel {
     /// The per-cube columns are walked with zipped iterators, so only the gathers check bounds.
     /// Cubes go through the passes in groups of [`LANES`] with cubes as lanes (the pointwise
     /// steps then cost one 4-wide operation per value instead of a partly used one per cube),
-    /// and a chunk's last few cubes one at a time; both give the same bits.
-    pub fn iterate(&self, state: &mut Packed, iterations: usize) {
+    /// and a unit's last few cubes one at a time; both give the same bits. While it runs, the
+    /// constants and `state` of the full groups are in lane layout ([`DualLanes`],
+    /// [`PrimalLanes`]), rewritten in place; both are back in their per-cube layout when it
+    /// returns, which is why it takes `&mut self`.
+    pub fn iterate(&mut self, state: &mut Packed, iterations: usize) {
         let n = self.n;
         let mut bar: Vec<Vec4> = state.uv.iter().chain(&self.frozen).copied().collect();
         let mut rows = vec![Vec4::ZERO; 3 * n];
+        relayout(self, state, true);
         for _ in 0..iterations {
             {
                 let bar = &bar;
@@ -716,6 +720,7 @@ impl Kernel {
                             .zip(rows_lanes.iter_mut())
                             .zip(k_lanes.iter().zip(lengths_lanes).zip(centres_lanes));
                         for ((((p, qd), qo), rows), ((k, lengths), centres)) in groups {
+                            let k = bytemuck::cast_ref(k);
                             dual_lanes(&mut terms, bar, centres, k, lengths, p, qd, qo, rows);
                         }
                         // The chunk's last cubes, fewer than LANES: the same steps one at a time.
@@ -755,6 +760,7 @@ impl Kernel {
                             .zip(own_lanes)
                             .zip(k_lanes.iter().zip(lengths_lanes).zip(slopes_lanes));
                         for (((uv, bar), own_rows), ((k, lengths), slopes)) in groups {
+                            let (k, slopes) = (bytemuck::cast_ref(k), bytemuck::cast_ref(slopes));
                             primal_lanes(&mut terms, rows, own_rows, k, lengths, slopes, self.lambda, uv, bar);
                         }
                         let cubes = uv
@@ -768,6 +774,7 @@ impl Kernel {
                     });
             }
         }
+        relayout(self, state, false);
     }
 }
 
@@ -883,19 +890,20 @@ fn sum3_lanes(x: [Vec4; 3]) -> Vec4 {
 }
 
 /// [`dual`] of 4 consecutive cubes with cubes as lanes: the gathers run per cube as in
-/// [`dual`], the rest on transposed values. Every cube sees the same float operations in the
-/// same order as in [`dual`], so both give the same bits (the GPU twins check this).
+/// [`dual`], the rest on lane-layout values (`p`, `q_diag`, `q_off` hold one vector per
+/// component, their w lanes stay 0). Every cube sees the same float operations in the same
+/// order as in [`dual`], so both give the same bits (the GPU twins check this).
 #[inline]
 #[expect(clippy::too_many_arguments, reason = "4 cubes' columns, borrowed apart")]
 fn dual_lanes(
     terms: &mut std::slice::Iter<'_, Gather>,
     bar: &[Vec4],
     centres: &[Vec4; LANES],
-    k: &[DualConstants; LANES],
+    k: &DualLanes,
     lengths: &[[u16; 4]; LANES],
-    p: &mut [Vec4; LANES],
-    q_diag: &mut [Vec4; LANES],
-    q_off: &mut [Vec4; LANES],
+    p: &mut [Vec4; 4],
+    q_diag: &mut [Vec4; 4],
+    q_off: &mut [Vec4; 4],
     rows: &mut [Vec4; 3 * LANES],
 ) {
     // acc[cube][axis] = (D_axis u, D_axis v0, D_axis v1, D_axis v2) of that cube.
@@ -914,13 +922,11 @@ fn dual_lanes(
     let d: [[Vec4; 4]; 3] = std::array::from_fn(|axis| transpose(acc.map(|a| a[axis])));
     let [_, v0, v1, v2] = transpose(*centres);
     let v = [v0, v1, v2];
-    let [sp0, sp1, sp2, a1] = transpose(k.map(|k| k.sigma_p));
-    let [sqd0, sqd1, sqd2, a0] = transpose(k.map(|k| k.sigma_q_diag));
-    let [sqo0, sqo1, sqo2, _] = transpose(k.map(|k| k.sigma_q_off));
+    let [sp0, sp1, sp2, a1] = k.sigma_p;
+    let [sqd0, sqd1, sqd2, a0] = k.sigma_q_diag;
+    let [sqo0, sqo1, sqo2, _] = k.sigma_q_off;
     let sp = [sp0, sp1, sp2];
-    let [p0, p1, p2, _] = transpose(*p);
-    let old_p = [p0, p1, p2];
-    let new_p: [Vec4; 3] = std::array::from_fn(|axis| old_p[axis] + sp[axis] * (d[axis][0] - v[axis]));
+    let new_p: [Vec4; 3] = std::array::from_fn(|axis| p[axis] + sp[axis] * (d[axis][0] - v[axis]));
     let scale = unit_ball_scale_lanes(sum3_lanes(new_p));
     let new_p = new_p.map(|x| x * scale);
     // dv(i, axis) = D_axis v_i.
@@ -931,15 +937,22 @@ fn dual_lanes(
         SQRT_HALF * (dv(0, 2) + dv(2, 0)),
         SQRT_HALF * (dv(1, 2) + dv(2, 1)),
     ];
-    let [qd0, qd1, qd2, _] = transpose(*q_diag);
-    let [qo0, qo1, qo2, _] = transpose(*q_off);
-    let qd = [qd0 + sqd0 * diag[0], qd1 + sqd1 * diag[1], qd2 + sqd2 * diag[2]];
-    let qo = [qo0 + sqo0 * off[0], qo1 + sqo1 * off[1], qo2 + sqo2 * off[2]];
+    let qd = [
+        q_diag[0] + sqd0 * diag[0],
+        q_diag[1] + sqd1 * diag[1],
+        q_diag[2] + sqd2 * diag[2],
+    ];
+    let qo = [
+        q_off[0] + sqo0 * off[0],
+        q_off[1] + sqo1 * off[1],
+        q_off[2] + sqo2 * off[2],
+    ];
     let s = unit_ball_scale_lanes(sum3_lanes(qd) + sum3_lanes(qo));
     let (qd, qo) = (qd.map(|x| x * s), qo.map(|x| x * s));
-    *p = transpose([new_p[0], new_p[1], new_p[2], Vec4::ZERO]);
-    *q_diag = transpose([qd[0], qd[1], qd[2], Vec4::ZERO]);
-    *q_off = transpose([qo[0], qo[1], qo[2], Vec4::ZERO]);
+    // The w lanes (index 3) stay 0, as [`dual`]'s w components do.
+    [p[0], p[1], p[2]] = new_p;
+    [q_diag[0], q_diag[1], q_diag[2]] = qd;
+    [q_off[0], q_off[1], q_off[2]] = qo;
     // The packed rows of [`dual`], built over the lanes and transposed back to one per cube.
     let a1p = new_p.map(|x| a1 * x);
     let a0qd = qd.map(|x| a0 * x);
@@ -957,63 +970,183 @@ fn dual_lanes(
 }
 
 /// [`primal`] of 4 consecutive cubes with cubes as lanes: the adjoint is gathered per cube as
-/// in [`primal`], the steps and the prox run on transposed values, with the same float
-/// operations in the same order, so both give the same bits.
+/// in [`primal`], the steps and the prox run on lane-layout values (`uv` holds u, v0, v1, v2 of
+/// the 4 cubes), with the same float operations in the same order, so both give the same bits.
 #[inline]
 #[expect(clippy::too_many_arguments, reason = "4 cubes' columns, borrowed apart")]
 fn primal_lanes(
     terms: &mut std::slice::Iter<'_, Gather>,
     rows: &[Vec4],
     own_rows: &[Vec4; 3 * LANES],
-    k: &[PrimalConstants; LANES],
+    k: &PrimalLanes,
     lengths: &[[u16; 4]; LANES],
-    slopes: &[Slopes; LANES],
+    slopes: &SlopeLanes,
     lambda: f32,
-    uv: &mut [Vec4; LANES],
+    uv: &mut [Vec4; 4],
     bar: &mut [Vec4; LANES],
 ) {
     let adjoint: [Vec4; LANES] = std::array::from_fn(|cube| {
         let [r0, r1, r2] = [0, 1, 2].map(|axis| own_rows[3 * cube + axis]);
-        let own = k[cube].own;
+        let own = k.own[cube];
         let mut adjoint = -(own.x * r0 + own.y * r1 + own.z * r2);
         for term in terms.by_ref().take(usize::from(lengths[cube][3])) {
             adjoint += term.weight * rows.get(term.index as usize).copied().unwrap_or(Vec4::ZERO);
         }
         adjoint - Vec4::new(0.0, r0.x, r1.x, r2.x)
     });
-    let old = transpose(*uv);
-    let tau = transpose(k.map(|k| k.tau));
+    let old = *uv;
     let adjoint = transpose(adjoint);
-    let mut new: [Vec4; 4] = std::array::from_fn(|i| old[i] - tau[i] * adjoint[i]);
-    new[0] = prox_slopes_lanes(new[0], tau[0] * lambda, slopes);
-    *uv = transpose(new);
+    let mut new: [Vec4; 4] = std::array::from_fn(|i| old[i] - k.tau[i] * adjoint[i]);
+    new[0] = prox_slopes_lanes(new[0], k.tau[0] * lambda, slopes);
+    *uv = new;
     *bar = transpose(std::array::from_fn(|i| 2.0 * new[i] - old[i]));
 }
 
 /// [`prox_slopes`] of 4 cubes, with the same operations in the same order per cube.
 #[inline]
-fn prox_slopes_lanes(u_tilde: Vec4, tau_lambda: Vec4, slopes: &[Slopes; LANES]) -> Vec4 {
-    let [s0, s1, s2, s3] = transpose(slopes.map(|s| Vec4::new(s.0[0], s.0[1], s.0[2], s.0[3])));
-    let [s4, s5, s6, s7] = transpose(slopes.map(|s| Vec4::new(s.0[4], s.0[5], s.0[6], s.0[7])));
-    let s8 = Vec4::from_array(slopes.map(|s| s.0[BINS]));
-    let clamp = |s: Vec4, i: usize| {
-        (u_tilde + tau_lambda * s)
+fn prox_slopes_lanes(u_tilde: Vec4, tau_lambda: Vec4, slopes: &SlopeLanes) -> Vec4 {
+    let slope = |i: usize| {
+        let at = LANES * i;
+        match slopes.get(at..at + LANES) {
+            Some(&[a, b, c, d]) => Vec4::new(a, b, c, d),
+            _ => Vec4::ZERO,
+        }
+    };
+    let clamp = |i: usize| {
+        (u_tilde + tau_lambda * slope(i))
             .max(Vec4::splat(INTERVAL_LOW[i]))
             .min(Vec4::splat(INTERVAL_HIGH[i]))
     };
     // prox_slopes pairs interval i with i + 4, then sums the pairs as (0 + 1) + (2 + 3).
     let pair = [
-        clamp(s0, 0) + clamp(s4, 4),
-        clamp(s1, 1) + clamp(s5, 5),
-        clamp(s2, 2) + clamp(s6, 6),
-        clamp(s3, 3) + clamp(s7, 7),
+        clamp(0) + clamp(4),
+        clamp(1) + clamp(5),
+        clamp(2) + clamp(6),
+        clamp(3) + clamp(7),
     ];
-    let last = (u_tilde + tau_lambda * s8).max(Vec4::splat(INTERVAL_LOW[BINS]));
+    let last = (u_tilde + tau_lambda * slope(BINS)).max(Vec4::splat(INTERVAL_LOW[BINS]));
     let sum = (pair[0] + pair[1]) + (pair[2] + pair[3]) + last;
     // f32::clamp's semantics, NaN included: below -> -1, above -> 1, otherwise unchanged.
     let (low, high) = (Vec4::NEG_ONE, Vec4::ONE);
     let sum = Vec4::select(sum.cmplt(low), low, sum);
     Vec4::select(sum.cmpgt(high), high, sum)
+}
+
+/// [`DualConstants`] of a group of [`LANES`] cubes in lane layout: each field's 4 vectors are
+/// the transpose of the 4 cubes' values, so `sigma_p[axis]` holds that axis's sigma_p of all 4
+/// cubes and `sigma_p[3]` their alpha1. Same size and alignment as `[DualConstants; LANES]`,
+/// whose memory it reuses.
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct DualLanes {
+    pub sigma_p: [Vec4; 4],
+    pub sigma_q_diag: [Vec4; 4],
+    pub sigma_q_off: [Vec4; 4],
+}
+
+/// [`PrimalConstants`] of a group in lane layout: `tau` transposed, `own` kept per cube (the
+/// adjoint is gathered per cube). Reuses the memory of `[PrimalConstants; LANES]`.
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct PrimalLanes {
+    pub tau: [Vec4; 4],
+    pub own: [Vec4; LANES],
+}
+
+/// [`Slopes`] of a group in lane layout: entry `4 i + cube` is slope i of that cube. Reuses the
+/// memory of `[Slopes; LANES]`.
+type SlopeLanes = [f32; (BINS + 1) * LANES];
+
+/// A group of [`LANES`] cubes' values in lane layout, stored in the memory of the per-cube
+/// values (`Self` and `[Self::Cube; LANES]` have the same size and alignment).
+trait LaneLayout: bytemuck::Pod + Send {
+    type Cube: bytemuck::Pod + Send;
+    fn of(cubes: &[Self::Cube; LANES]) -> Self;
+    fn cubes(&self) -> [Self::Cube; LANES];
+}
+
+impl LaneLayout for DualLanes {
+    type Cube = DualConstants;
+
+    fn of(cubes: &[DualConstants; LANES]) -> DualLanes {
+        DualLanes {
+            sigma_p: transpose(cubes.map(|k| k.sigma_p)),
+            sigma_q_diag: transpose(cubes.map(|k| k.sigma_q_diag)),
+            sigma_q_off: transpose(cubes.map(|k| k.sigma_q_off)),
+        }
+    }
+
+    fn cubes(&self) -> [DualConstants; LANES] {
+        let (p, d, o) = (
+            transpose(self.sigma_p),
+            transpose(self.sigma_q_diag),
+            transpose(self.sigma_q_off),
+        );
+        std::array::from_fn(|cube| DualConstants {
+            sigma_p: p[cube],
+            sigma_q_diag: d[cube],
+            sigma_q_off: o[cube],
+        })
+    }
+}
+
+impl LaneLayout for PrimalLanes {
+    type Cube = PrimalConstants;
+
+    fn of(cubes: &[PrimalConstants; LANES]) -> PrimalLanes {
+        PrimalLanes {
+            tau: transpose(cubes.map(|k| k.tau)),
+            own: cubes.map(|k| k.own),
+        }
+    }
+
+    fn cubes(&self) -> [PrimalConstants; LANES] {
+        let tau = transpose(self.tau);
+        std::array::from_fn(|cube| PrimalConstants {
+            tau: tau[cube],
+            own: self.own[cube],
+        })
+    }
+}
+
+impl LaneLayout for SlopeLanes {
+    type Cube = Slopes;
+
+    fn of(cubes: &[Slopes; LANES]) -> SlopeLanes {
+        std::array::from_fn(|at| cubes[at % LANES].0[at / LANES])
+    }
+
+    fn cubes(&self) -> [Slopes; LANES] {
+        std::array::from_fn(|cube| Slopes(std::array::from_fn(|i| self[LANES * i + cube])))
+    }
+}
+
+/// Rewrites the full groups of `column` between the per-cube and the lane layout, in place.
+fn relayout_column<L: LaneLayout>(column: &mut [L::Cube], to_lanes: bool) {
+    let (groups, _) = column.as_chunks_mut::<LANES>();
+    groups.par_iter_mut().for_each(|group| {
+        let lanes: &mut L = bytemuck::cast_mut(group);
+        *lanes = if to_lanes {
+            L::of(bytemuck::cast_ref(lanes))
+        } else {
+            bytemuck::cast(lanes.cubes())
+        };
+    });
+}
+
+/// Rewrites every full group of [`LANES`] cubes of the kernel's constants and of `state` between
+/// the per-cube layout and the lane layout, in place (a chunk's cubes form whole groups except
+/// the last few cubes of the unit, which stay per cube). Pure data movement, so a round trip
+/// returns the same bits.
+fn relayout(kernel: &mut Kernel, state: &mut Packed, to_lanes: bool) {
+    relayout_column::<DualLanes>(&mut kernel.dual_constants, to_lanes);
+    relayout_column::<PrimalLanes>(&mut kernel.primal_constants, to_lanes);
+    relayout_column::<SlopeLanes>(&mut kernel.slopes, to_lanes);
+    // The transpose of a 4x4 block is its own inverse.
+    for column in [&mut state.uv, &mut state.p, &mut state.q_diag, &mut state.q_off] {
+        let (groups, _) = column.as_chunks_mut::<LANES>();
+        groups.par_iter_mut().for_each(|group| *group = transpose(*group));
+    }
 }
 
 /// Runs `iterations` preconditioned primal-dual steps from `state`; returns the energy before
@@ -1027,7 +1160,7 @@ pub fn solve(problem: &Problem, state: &mut State, iterations: usize) -> (f64, f
 /// from the same starting state.
 pub fn solve_on(gpu: Option<&crate::gpu::Gpu>, problem: &Problem, state: &mut State, iterations: usize) -> (f64, f64) {
     let op = Operator::new(problem);
-    let Some(kernel) = Kernel::new(&op) else {
+    let Some(mut kernel) = Kernel::new(&op) else {
         return solve_reference(problem, state, iterations);
     };
     let before = start(&op, state);
@@ -1222,11 +1355,21 @@ mod tests {
                     .collect::<Vec<_>>()
             };
 
-            let (mut lp, mut lqd, mut lqo, mut lrows) = (p, qd, qo, [Vec4::ZERO; 3 * LANES]);
+            // The lane path reads and writes the lane layout that `relayout` makes.
+            let (mut lp, mut lqd, mut lqo) = (transpose(p), transpose(qd), transpose(qo));
+            let mut lrows = [Vec4::ZERO; 3 * LANES];
             let mut terms = gathers.iter();
-            dual_lanes(
-                &mut terms, &bar, &centres, &dual_k, &lengths, &mut lp, &mut lqd, &mut lqo, &mut lrows,
+            let lane_k = DualLanes::of(&dual_k);
+            assert_eq!(
+                lane_k
+                    .cubes()
+                    .map(|k| bits(&[k.sigma_p, k.sigma_q_diag, k.sigma_q_off])),
+                dual_k.map(|k| bits(&[k.sigma_p, k.sigma_q_diag, k.sigma_q_off]))
             );
+            dual_lanes(
+                &mut terms, &bar, &centres, &lane_k, &lengths, &mut lp, &mut lqd, &mut lqo, &mut lrows,
+            );
+            let (lp, lqd, lqo) = (transpose(lp), transpose(lqd), transpose(lqo));
             let lanes_left = terms.len();
             let (mut op, mut oqd, mut oqo, mut orows) = (p, qd, qo, [Vec4::ZERO; 3 * LANES]);
             let mut terms = gathers.iter();
@@ -1249,11 +1392,29 @@ mod tests {
             assert_eq!((bits(&lp), bits(&lqd), bits(&lqo)), (bits(&op), bits(&oqd), bits(&oqo)));
 
             let uv: [Vec4; LANES] = std::array::from_fn(|_| draw.v4(1.5));
-            let (mut luv, mut lbar) = (uv, [Vec4::ZERO; LANES]);
+            let (mut luv, mut lbar) = (transpose(uv), [Vec4::ZERO; LANES]);
             let mut terms = gathers.iter();
-            primal_lanes(
-                &mut terms, &rows, &lrows, &primal_k, &lengths, &slopes, 0.3, &mut luv, &mut lbar,
+            let (lane_k, lane_slopes) = (PrimalLanes::of(&primal_k), SlopeLanes::of(&slopes));
+            assert_eq!(
+                lane_slopes.cubes().map(|s| s.0.map(f32::to_bits)),
+                slopes.map(|s| s.0.map(f32::to_bits))
             );
+            assert_eq!(
+                lane_k.cubes().map(|k| bits(&[k.tau, k.own])),
+                primal_k.map(|k| bits(&[k.tau, k.own]))
+            );
+            primal_lanes(
+                &mut terms,
+                &rows,
+                &lrows,
+                &lane_k,
+                &lengths,
+                &lane_slopes,
+                0.3,
+                &mut luv,
+                &mut lbar,
+            );
+            let luv = transpose(luv);
             let (mut ouv, mut obar) = (uv, [Vec4::ZERO; LANES]);
             let mut terms = gathers.iter();
             for c in 0..LANES {
