@@ -111,11 +111,10 @@ fn twins_are_the_cpu_kernel_bit_for_bit() {
     let op = Operator::new(&problem);
     let mut kernel = Kernel::new(&op).expect("short gather lists");
     let constants = |k: &Kernel| {
-        let bytes = |x: &[u8]| x.to_vec();
         (
-            bytes(bytemuck::cast_slice(&k.dual_constants)),
-            bytes(bytemuck::cast_slice(&k.primal_constants)),
-            bytes(bytemuck::cast_slice(&k.slopes)),
+            bytemuck::cast_slice::<_, u8>(&k.dual_constants).to_vec(),
+            bytemuck::cast_slice::<_, u8>(&k.primal_constants).to_vec(),
+            bytemuck::cast_slice::<_, u8>(&k.slopes).to_vec(),
         )
     };
     let before = constants(&kernel);

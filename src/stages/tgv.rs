@@ -863,6 +863,10 @@ fn primal(
 /// each of 4 cubes.
 const LANES: usize = 4;
 
+// `relayout` groups a unit's cubes from cube 0 and `iterate` groups each chunk's cubes from the
+// chunk's first cube: the two agree only while chunks hold whole groups.
+const _: () = assert!(CHUNK.is_multiple_of(LANES), "a chunk must hold whole lane groups");
+
 /// The transpose of 4 vectors: lane i of the result's column j is lane j of `x[i]`.
 #[inline]
 fn transpose(x: [Vec4; LANES]) -> [Vec4; 4] {
@@ -874,13 +878,8 @@ fn transpose(x: [Vec4; LANES]) -> [Vec4; 4] {
 /// operand when the first is NaN, as `f32::max` does here.
 #[inline]
 fn unit_ball_scale_lanes(squared_norm: Vec4) -> Vec4 {
-    Vec4::ONE / sqrt_lanes(squared_norm).max(Vec4::ONE)
-}
-
-/// Square roots of 4 lanes, correctly rounded as `f32::sqrt` is.
-#[inline]
-fn sqrt_lanes(x: Vec4) -> Vec4 {
-    x.map(f32::sqrt)
+    // f32::sqrt is correctly rounded, so each lane is the one-cube value; LLVM emits sqrtps.
+    Vec4::ONE / squared_norm.map(f32::sqrt).max(Vec4::ONE)
 }
 
 /// `x.x^2 + x.y^2 + x.z^2` of 4 cubes, summed in [`sum3`]'s order.
