@@ -9,7 +9,7 @@
 use std::time::Instant;
 
 use octstore::gpu::{Gpu, adapters};
-use octstore::stages::tgv::{Kernel, Operator, Packed, Problem, State, solve};
+use octstore::kernels::tgv::{Kernel, Operator, Packed, Problem, State, solve};
 
 fn main() {
     let n: usize = std::env::var("OCTSTORE_BENCH_GRID")
@@ -106,7 +106,8 @@ fn main() {
         let time = |steps: usize| {
             let mut packed = Packed::of(&state);
             let started = Instant::now();
-            octstore::gpu::tgv::iterate(&gpu, &kernel, &mut packed, steps).map(|()| started.elapsed().as_secs_f64())
+            octstore::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut packed, steps)
+                .map(|()| started.elapsed().as_secs_f64())
         };
         match (time(1), time(iterations)) {
             (Ok(one), Ok(all)) => println!(

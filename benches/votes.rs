@@ -9,8 +9,8 @@ use std::time::Instant;
 
 use glam::{DMat4, DVec3};
 use octstore::gpu::{Gpu, adapters};
-use octstore::stages::depthmap::{DepthImage, DepthMapSource, ImageFormat, Kind, Projection};
-use octstore::stages::histograms::Pyramid;
+use octstore::inputs::{DepthImage, DepthMapSource, ImageFormat, Kind, Projection};
+use octstore::kernels::votes::Pyramid;
 use rayon::prelude::*;
 
 fn main() {

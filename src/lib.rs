@@ -1,26 +1,57 @@
 //! octstore: an embedded storage engine for one huge adaptive octree, and the out-of-core
 //! surface reconstruction pipeline that runs on it (Poliarnyi 2021, global TGV minimisation).
 //!
-//! Architecture, bottom up:
-//! - [`format`]: cube keys and the immutable segment file format (byte slices in, values out);
+//! `ARCHITECTURE.md` in the repository describes every folder and the invariants a
+//! contributor must keep. Bottom up:
+//! - [`format`]: cube keys, the immutable segment format, the root cube (byte slices in,
+//!   values out);
 //! - [`store`]: the versioned store: redb catalog, segment files, commit protocol, snapshots,
-//!   the stage runner, verify and gc;
+//!   the stage runner, the cluster protocol, verify and gc;
+//! - [`inputs`]: finding and reading depth maps (RGB-D folders, manifests, COLMAP, LIDAR);
+//! - [`kernels`]: CPU reference kernels that need no store (TGV, votes);
+//! - [`gpu`]: the same kernels as wgpu compute shaders, tested against [`kernels`];
+//! - [`mesh`]: the mesh type, mesh files, clipping, decimation, previews;
 //! - [`stages`]: the pipeline stages that run on the store;
-//! - [`pipeline`]: ingest and solve as library calls;
-//! - [`quality`]: ground-truth rendering and mesh evaluation (the quality tools);
+//! - [`query`]: reading the indicator field of a pinned version from code;
+//! - [`pipeline`]: ingest, solve, the demo and cluster runs as library calls;
+//! - [`quality`]: synthetic scenes, ground-truth rendering and mesh evaluation;
 //! - [`cli`]: the `octstore` command line.
+//!
+//! The names most programs need are re-exported here: open a [`Store`], pin a [`Snapshot`],
+//! read the field through [`IndicatorField`], or run the pipeline with [`pipeline`]'s calls and
+//! their options ([`IngestOptions`], [`DiscoverOptions`], [`SolveParams`]).
+
+#![deny(unsafe_code)]
+#![deny(missing_docs)]
 
 pub mod cli;
 pub mod format;
+#[doc(hidden)]
 pub mod gpu;
+pub mod inputs;
+#[doc(hidden)]
+pub mod kernels;
+pub mod mesh;
 pub mod pipeline;
+#[doc(hidden)]
 pub mod quality;
-pub mod render;
-pub mod scenes;
+pub mod query;
+#[doc(hidden)]
 pub mod stages;
 pub mod store;
+#[allow(
+    unsafe_code,
+    reason = "memory maps of immutable segment files and malloc_trim: see sys.rs"
+)]
 mod sys;
 
-pub use format::CubeKey;
-pub use stages::query::IndicatorField;
-pub use store::{Snapshot, Store, StoreError};
+pub use format::{BoundingBox, CubeKey, Scene};
+pub use inputs::{DiscoverOptions, InputError};
+pub use mesh::{Mesh, MeshReadError, MeshSummary};
+pub use pipeline::{PipelineError, SolveOptions, SolveUntil};
+pub use quality::synthetic_scenes::SceneSpec;
+pub use query::{CubeInfo, IndicatorField, LeafInfo};
+pub use stages::extract::ExtractOptions;
+pub use stages::ingest::IngestOptions;
+pub use stages::solve::SolveParams;
+pub use store::{RunOptions, RunReport, Snapshot, Store, StoreError};

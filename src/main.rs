@@ -2,7 +2,22 @@ use std::process::ExitCode;
 
 use clap::Parser;
 
+/// Environment variables that keep the Vulkan probe of `--device auto` quiet on a normal run:
+/// Mesa's device-select layer connects to a Wayland display when the instance enables the
+/// Wayland surface extension (wgpu enables every surface extension there is), and libwayland
+/// prints "error: XDG_RUNTIME_DIR is invalid or not set" to stderr when there is none, which
+/// reads as a failure. octstore presents nothing and ranks adapters itself, so the layer is
+/// not needed. A variable the user set is left alone.
+const QUIET_VULKAN_PROBES: &[(&str, &str)] = &[("NODEVICE_SELECT", "1")];
+
 fn main() -> ExitCode {
+    for (name, value) in QUIET_VULKAN_PROBES {
+        if std::env::var_os(name).is_none() {
+            // SAFETY: the first statement of `main`: no other thread exists yet, so nothing can
+            // read or write the environment concurrently.
+            unsafe { std::env::set_var(name, value) };
+        }
+    }
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_target(false)

@@ -7,8 +7,10 @@ use std::path::Path;
 
 use common::*;
 use glam::DVec3;
-use octstore::scenes::{SceneSpec, Shape};
-use octstore::stages::extract::{ExtractOptions, Region, edge_defects, extract, read_ply};
+use octstore::format::BoundingBox;
+use octstore::mesh::{edge_defects, read_mesh};
+use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
+use octstore::stages::extract::{ExtractOptions, extract};
 
 fn sphere() -> SceneSpec {
     let center = DVec3::new(0.2, -0.1, 0.3);
@@ -68,7 +70,7 @@ fn a_closed_object_gives_a_closed_manifold_mesh_on_the_surface() {
     let spec = sphere();
     let manifest = spec.write(&dir.path().join("input")).unwrap();
     run_cli(dir.path(), &manifest, "1000000", "2");
-    let mesh = read_ply(&dir.path().join("mesh.ply")).unwrap();
+    let mesh = read_mesh(&dir.path().join("mesh.ply")).unwrap();
     assert!(mesh.triangles.len() > 500);
     assert_eq!(edge_defects(&mesh), (0, 0));
     // Normals (from the gradient of u) point outwards on the sphere.
@@ -117,7 +119,7 @@ fn a_closed_object_gives_a_closed_manifold_mesh_on_the_surface() {
         &[],
     );
     assert!(out.status.success(), "{}", stderr(&out));
-    let small = read_ply(&small).unwrap();
+    let small = read_mesh(&small).unwrap();
     assert_eq!(edge_defects(&small), (0, 0));
     assert!(
         small.triangles.len() * 100 < mesh.triangles.len() * 40,
@@ -168,7 +170,7 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
     let in_memory = extract(&opened.latest().unwrap(), &scene, finest, &ExtractOptions::default()).unwrap();
     for name in ["whole.ply", "whole.obj"] {
         let path = a.path().join(name);
-        octstore::stages::extract::write_mesh(&path, &in_memory).unwrap();
+        octstore::mesh::write_mesh(&path, &in_memory).unwrap();
         let streamed = a.path().join(format!("streamed-{name}"));
         let out = octstore(
             &["extract", store_a.to_str().unwrap(), "-o", streamed.to_str().unwrap()],
@@ -194,7 +196,7 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
 
     // Decimation per leaf never moves a vertex shared with another leaf: still closed and
     // manifold, every kept vertex is an original one, and threads do not change the bytes.
-    let full = read_ply(&a.path().join("mesh.ply")).unwrap();
+    let full = read_mesh(&a.path().join("mesh.ply")).unwrap();
     let mut decimated = Vec::new();
     for (store, threads) in [(&store_a, "1"), (&store_b, "2")] {
         let ply = store.with_file_name("decimated.ply");
@@ -218,7 +220,7 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
         decimated[0] == decimated[1],
         "decimated meshes differ between 1 and 2 threads"
     );
-    let small = read_ply(&a.path().join("decimated.ply")).unwrap();
+    let small = read_mesh(&a.path().join("decimated.ply")).unwrap();
     assert_eq!(edge_defects(&small), (0, 0), "decimation opened a seam");
     assert!(
         // Many tiny leaves: most vertices lie on a leaf border and stay (measured: 3626 of 6212).
@@ -246,8 +248,8 @@ fn region_extraction_cuts_cleanly_at_the_box() {
     let spec = sphere();
     let manifest = spec.write(&dir.path().join("input")).unwrap();
     let store = run_cli(dir.path(), &manifest, "400", "2");
-    let full = read_ply(&dir.path().join("mesh.ply")).unwrap();
-    let region = Region {
+    let full = read_mesh(&dir.path().join("mesh.ply")).unwrap();
+    let region = BoundingBox {
         min: DVec3::new(0.2, -2.0, -2.0),
         max: DVec3::new(2.0, 2.0, 2.0),
     };
@@ -264,7 +266,7 @@ fn region_extraction_cuts_cleanly_at_the_box() {
         &[],
     );
     assert!(out.status.success(), "{}", stderr(&out));
-    let half = read_ply(&out_path).unwrap();
+    let half = read_mesh(&out_path).unwrap();
     assert!(half.triangles.len() > 100 && half.triangles.len() < full.triangles.len());
     let eps = 1e-5;
     for p in &half.positions {
@@ -339,7 +341,7 @@ fn the_indicator_field_can_be_read_from_code_and_the_cli() {
     assert!(inside < 0.0 && outside > 0.0, "inside {inside}, outside {outside}");
     assert_eq!(snapshot.indicator_at(DVec3::splat(1.0e6)).unwrap(), None);
     // Cubes in a box around the sphere's top, with their histograms.
-    let region = Region {
+    let region = BoundingBox {
         min: center + DVec3::new(-0.2, -0.2, 0.35),
         max: center + DVec3::new(0.2, 0.2, 0.65),
     };

@@ -8,19 +8,19 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::*;
+use octstore::RunOptions;
 use octstore::Store;
 use octstore::format::segment::{self, SegmentReader};
 use octstore::format::{ColumnValues, CubeKey};
-use octstore::stages::synthetic::{self, SyntheticStage};
-use octstore::store::RunOptions;
+use octstore::stages::exercise::{self, ExerciseStage};
 use octstore::store::catalog::{CATALOG_FORMAT_VERSION, META};
 
 fn golden(version: u32) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("tests/data/golden-v{version}"))
 }
 
-fn golden_stage() -> SyntheticStage {
-    SyntheticStage {
+fn golden_stage() -> ExerciseStage {
+    ExerciseStage {
         units: 2,
         rows_per_unit: 20,
         seed: 42,
@@ -59,8 +59,8 @@ fn decodes_to_known_values(version: u32) {
         ("synthetic", "2 unit(s)")
     );
     let snap = store.latest().unwrap();
-    assert_eq!(format!("{:016x}", snap.digest(synthetic::NAME)), "4b58d934915774dd");
-    let segments = snap.segments(synthetic::NAME);
+    assert_eq!(format!("{:016x}", snap.digest(exercise::NAME)), "4b58d934915774dd");
+    let segments = snap.segments(exercise::NAME);
     let names: Vec<&str> = segments.iter().map(|(n, _)| n.as_str()).collect();
     assert_eq!(
         names,

@@ -7,7 +7,7 @@ mod common;
 
 use glam::Vec4;
 use octstore::gpu::{DeviceChoice, Gpu, twins};
-use octstore::stages::tgv::{self, Kernel, Operator, Packed, Problem, State};
+use octstore::kernels::tgv::{self, Kernel, Operator, Packed, Problem, State};
 
 /// A g x g x g grid of cubes with D's terms to the `+` neighbour, frozen neighbours on part of
 /// the boundary, rows of four finer terms here and there (level jumps), random weights,
@@ -95,6 +95,33 @@ fn open_gpu() -> Option<Gpu> {
     }
 }
 
+#[test]
+fn probing_for_a_gpu_prints_no_error_line() {
+    // Without a Wayland session (no XDG_RUNTIME_DIR), Mesa's device-select layer made libwayland
+    // print "error: XDG_RUNTIME_DIR is invalid or not set" on every adapter probe, so a normal
+    // `solve` looked like a failure. The command switches the layer off.
+    if open_gpu().is_none() {
+        return;
+    }
+    let out = std::process::Command::new(common::octstore_bin())
+        .args(["info", "--devices"])
+        .env_remove("XDG_RUNTIME_DIR")
+        .env_remove("NODEVICE_SELECT")
+        .output()
+        .expect("run octstore");
+    let stderr = common::stderr(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        common::stdout(&out).contains("0: "),
+        "an adapter is listed: {}",
+        common::stdout(&out)
+    );
+    assert!(
+        !stderr.lines().any(|line| line.starts_with("error:")),
+        "a successful run printed an error line:\n{stderr}"
+    );
+}
+
 /// Largest difference relative to 1 + |reference|, over every lane of every value.
 fn worst(reference: &[Vec4], other: &[Vec4]) -> f32 {
     assert_eq!(reference.len(), other.len());
@@ -145,7 +172,7 @@ fn gpu_iterations_match_the_twins() {
         let mut twin = Packed::of(&state);
         twins::iterate(&kernel, &mut twin, 100);
         let mut on_gpu = Packed::of(&state);
-        octstore::gpu::tgv::iterate(&gpu, &kernel, &mut on_gpu, 100).expect("the GPU runs the unit");
+        octstore::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut on_gpu, 100).expect("the GPU runs the unit");
         for (name, a, b) in [
             ("uv", &twin.uv, &on_gpu.uv),
             ("p", &twin.p, &on_gpu.p),
@@ -167,7 +194,7 @@ fn gpu_iterations_match_the_twins() {
 /// kernel bit for bit, whatever the chunk size; runs on every machine, GPU or not.
 #[test]
 fn split_units_with_halo_exchanges_are_the_kernel_bit_for_bit() {
-    use octstore::gpu::tgv::split;
+    use octstore::gpu::tgv_dispatch::split;
     let (problem, state) = grid_problem(9, 3);
     let op = Operator::new(&problem);
     let mut kernel = Kernel::new(&op).expect("short gather lists");
@@ -191,15 +218,15 @@ fn a_unit_over_one_binding_runs_in_chunks_with_the_same_result() {
     let (problem, state) = grid_problem(8, 7);
     let kernel = Kernel::new(&Operator::new(&problem)).expect("short gather lists");
     let mut whole = Packed::of(&state);
-    octstore::gpu::tgv::iterate(&gpu, &kernel, &mut whole, 30).expect("the GPU runs the unit");
+    octstore::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut whole, 30).expect("the GPU runs the unit");
     // Bindings of 1 KiB: most buffers of the 512-cube unit are larger (dual constants alone are
     // 48 bytes a cube), so it runs in chunks of a few cubes, with halos between them.
     let gpu = gpu.with_binding_limit(1024);
     let mut chunked = Packed::of(&state);
-    octstore::gpu::tgv::iterate(&gpu, &kernel, &mut chunked, 30).expect("the chunks fit");
+    octstore::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut chunked, 30).expect("the chunks fit");
     assert_eq!(whole, chunked, "the same shaders on the same values");
     let mut solved = state.clone();
-    tgv::solve_on(Some(&gpu), &problem, &mut solved, 30);
+    octstore::gpu::solve_on(Some(&gpu), &problem, &mut solved, 30);
     assert_eq!(gpu.counts(), (1, 0), "the unit ran on the GPU");
 }
 
@@ -212,11 +239,11 @@ fn a_unit_over_the_gpu_limits_runs_on_the_cpu_with_the_same_result() {
     let Some(gpu) = open_gpu() else { return };
     let gpu = gpu.with_binding_limit(32);
     let mut fallback = state.clone();
-    let fallback_energy = tgv::solve_on(Some(&gpu), &problem, &mut fallback, 30);
+    let fallback_energy = octstore::gpu::solve_on(Some(&gpu), &problem, &mut fallback, 30);
     assert_eq!(cpu, fallback);
     assert_eq!(cpu_energy, fallback_energy);
     assert_eq!(gpu.counts(), (0, 1), "the unit fell back");
-    let too_large = octstore::gpu::tgv::iterate(
+    let too_large = octstore::gpu::tgv_dispatch::iterate(
         &gpu,
         &Kernel::new(&Operator::new(&problem)).expect("short gather lists"),
         &mut Packed::of(&state),
@@ -235,7 +262,7 @@ fn solve_on_the_gpu_lowers_the_energy_like_the_cpu() {
     let mut cpu = state.clone();
     let (cpu_before, cpu_after) = tgv::solve(&problem, &mut cpu, 60);
     let mut on_gpu = state.clone();
-    let (gpu_before, gpu_after) = tgv::solve_on(Some(&gpu), &problem, &mut on_gpu, 60);
+    let (gpu_before, gpu_after) = octstore::gpu::solve_on(Some(&gpu), &problem, &mut on_gpu, 60);
     assert_eq!(cpu_before, gpu_before);
     assert!(gpu_after < gpu_before);
     assert!(
@@ -255,8 +282,8 @@ fn solve_on_the_gpu_lowers_the_energy_like_the_cpu() {
 /// a field added on one side only fails here, not as garbage on a GPU.
 #[test]
 fn shared_structs_match_the_shader_layout() {
-    use octstore::gpu::tgv::{DUAL_SHADER, PRIMAL_SHADER, Params};
-    use octstore::stages::tgv::{DualConstants, Gather, PrimalConstants};
+    use octstore::gpu::tgv_dispatch::{DUAL_SHADER, PRIMAL_SHADER, Params};
+    use octstore::kernels::tgv::{DualConstants, Gather, PrimalConstants};
     use std::mem::{offset_of, size_of};
     use wgpu::naga;
 
@@ -317,7 +344,7 @@ fn shared_structs_match_the_shader_layout() {
         )
     );
     {
-        use octstore::gpu::tgv::{HALO_SHADER, HaloParams};
+        use octstore::gpu::tgv_dispatch::{HALO_SHADER, HaloParams};
         assert_eq!(
             layout(HALO_SHADER, "HaloParams"),
             (
@@ -341,7 +368,7 @@ fn shared_structs_match_the_shader_layout() {
 #[test]
 fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
     use octstore::pipeline::{SolveOptions, solve_with_gpu};
-    use octstore::scenes::{Noise, SceneSpec, Shape};
+    use octstore::quality::synthetic_scenes::{Noise, SceneSpec, Shape};
     use octstore::stages::extract::{ExtractOptions, extract};
     use octstore::stages::ingest::read_scene;
     use octstore::stages::octree_max_depth;
@@ -435,7 +462,7 @@ fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
 /// A depth map seen from far off the origin (pinhole or 360-degree), with holes, and cubes of
 /// many sizes around its surface and outside its view; with the unit origin near the cubes.
 struct VoteCase {
-    pyramid: octstore::stages::histograms::Pyramid,
+    pyramid: octstore::kernels::votes::Pyramid,
     world_to_camera: glam::DMat4,
     centers: Vec<glam::DVec3>,
     radii: Vec<f64>,
@@ -444,7 +471,7 @@ struct VoteCase {
 
 fn vote_case(spherical: bool, seed: u64) -> VoteCase {
     use glam::{DMat4, DVec3};
-    use octstore::stages::depthmap::{DepthImage, DepthMapSource, ImageFormat, Kind, Projection};
+    use octstore::inputs::{DepthImage, DepthMapSource, ImageFormat, Kind, Projection};
     let mut seed = seed;
     let mut uniform = move || {
         seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
@@ -520,7 +547,7 @@ fn vote_case(spherical: bool, seed: u64) -> VoteCase {
     }
     let origin = centers.iter().copied().sum::<DVec3>() / centers.len() as f64 + DVec3::splat(0.37);
     VoteCase {
-        pyramid: octstore::stages::histograms::Pyramid::new(source, DepthImage { width, height, depth }),
+        pyramid: octstore::kernels::votes::Pyramid::new(source, DepthImage { width, height, depth }),
         world_to_camera: camera_to_world.inverse(),
         centers,
         radii,
@@ -534,10 +561,10 @@ fn voted_bins(hist: &[f32]) -> Vec<Option<usize>> {
 }
 
 fn twin_votes(case: &VoteCase) -> Vec<f32> {
-    use octstore::gpu::votes::{cube_offsets, pyramid_arrays, vote_map};
+    use octstore::gpu::votes_dispatch::{cube_offsets, pyramid_arrays, vote_map};
     let n = case.centers.len();
     let (levels, depths) = pyramid_arrays(&case.pyramid);
-    let map = octstore::gpu::votes::VoteMap {
+    let map = octstore::gpu::votes_dispatch::VoteMap {
         levels: levels.len() as u32,
         ..vote_map(&case.pyramid.source, &case.world_to_camera, case.origin, 1.0, n as u32)
     };
@@ -617,7 +644,7 @@ fn votes_shader_matches_the_twin() {
 
 #[test]
 fn vote_map_matches_the_shader_layout() {
-    use octstore::gpu::votes::{VOTES_SHADER, VoteMap};
+    use octstore::gpu::votes_dispatch::{VOTES_SHADER, VoteMap};
     use std::mem::{offset_of, size_of};
     use wgpu::naga;
     let module = naga::front::wgsl::parse_str(VOTES_SHADER).expect("the shader parses");
@@ -827,9 +854,9 @@ fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
 
 /// A sphere of radius 0.5 seen by 6 views of 40 x 30, in a room of half-side `room` if given:
 /// small enough for a whole pipeline in a few seconds on llvmpipe.
-fn small_sphere(center: glam::DVec3, room: Option<f64>) -> octstore::scenes::SceneSpec {
-    octstore::scenes::SceneSpec {
-        shapes: vec![octstore::scenes::Shape::Sphere { center, radius: 0.5 }],
+fn small_sphere(center: glam::DVec3, room: Option<f64>) -> octstore::SceneSpec {
+    octstore::SceneSpec {
+        shapes: vec![octstore::quality::synthetic_scenes::Shape::Sphere { center, radius: 0.5 }],
         cameras: 6,
         distance: 2.0,
         target: center,
@@ -851,7 +878,7 @@ fn two_threads() -> octstore::store::RunOptions {
 
 /// A new store at `path` with `manifest` ingested at `max_depth`, on two threads.
 fn ingested(path: impl AsRef<std::path::Path>, manifest: &std::path::Path, max_depth: u8) -> octstore::Store {
-    use octstore::stages::ingest::IngestOptions;
+    use octstore::IngestOptions;
     let store = octstore::Store::create(path).unwrap();
     let options = IngestOptions {
         max_depth,
@@ -860,7 +887,7 @@ fn ingested(path: impl AsRef<std::path::Path>, manifest: &std::path::Path, max_d
     octstore::pipeline::ingest(
         &store,
         std::slice::from_ref(&manifest.to_path_buf()),
-        &octstore::stages::inputs::DiscoverOptions::default(),
+        &octstore::DiscoverOptions::default(),
         &options,
         &two_threads(),
     )

@@ -6,14 +6,14 @@ use std::path::{Path, PathBuf};
 
 use common::*;
 use glam::{DMat4, DVec3};
+use octstore::RunOptions;
 use octstore::Store;
-use octstore::scenes::{SceneSpec, Shape};
-use octstore::stages::depthmap::{DepthImage, ImageFormat, write_pfm};
+use octstore::inputs::{DepthImage, ImageFormat, write_pfm};
+use octstore::inputs::{DiscoverOptions, discover};
+use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
 use octstore::stages::ingest::{IngestOptions, IngestStage, back_project};
-use octstore::stages::inputs::{DiscoverOptions, discover};
 use octstore::stages::octree::{OctreeStage, check_octree_keys};
 use octstore::stages::{INGEST, OCTREE};
-use octstore::store::RunOptions;
 
 fn kitchen() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/7scenes-redkitchen")
@@ -259,19 +259,19 @@ fn invalid_depths_are_skipped_and_counted() {
     image.depth[103] = 1.0e9;
     let _ = valid_before;
     write_pfm(&root.path().join("v.pfm"), &image).unwrap();
-    let source = octstore::stages::depthmap::DepthMapSource {
+    let source = octstore::inputs::DepthMapSource {
         path: root.path().join("v.pfm"),
         format: ImageFormat::Pfm,
         width: spec.width,
         height: spec.height,
-        projection: octstore::stages::depthmap::Projection::Pinhole {
+        projection: octstore::inputs::Projection::Pinhole {
             fx: spec.focal(),
             fy: spec.focal(),
             cx: 24.0,
             cy: 18.0,
         },
         camera_to_world: pose.to_cols_array(),
-        kind: octstore::stages::depthmap::Kind::Photo,
+        kind: octstore::inputs::Kind::Photo,
         weight: 1.0,
     };
     let loaded = source.load().unwrap();

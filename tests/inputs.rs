@@ -7,12 +7,12 @@ use std::path::{Path, PathBuf};
 
 use common::*;
 use glam::{DMat3, DMat4, DVec3};
-use octstore::scenes::{SceneSpec, Shape};
-use octstore::stages::colmap::{WorkspaceWriter, write_colmap_depth};
-use octstore::stages::depthmap::{DepthImage, ImageFormat, Kind, Projection};
+use octstore::inputs::write_ptx_scan;
+use octstore::inputs::{DepthImage, ImageFormat, Kind, Projection};
+use octstore::inputs::{DiscoverOptions, InputFormat, discover};
+use octstore::inputs::{WorkspaceWriter, write_colmap_depth};
+use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
 use octstore::stages::ingest::back_project;
-use octstore::stages::inputs::{DiscoverOptions, InputFormat, discover};
-use octstore::stages::lidar::write_ptx_scan;
 
 fn sphere_scene() -> SceneSpec {
     SceneSpec {

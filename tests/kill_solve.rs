@@ -5,7 +5,7 @@ mod common;
 
 use common::*;
 use glam::DVec3;
-use octstore::scenes::{SceneSpec, Shape};
+use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
 
 const TRIALS: u64 = 20;
 

@@ -1,9 +1,9 @@
 //! 2:1 balance and completeness of the octree built from random requested cubes.
 
+use octstore::Scene;
 use octstore::Store;
 use octstore::format::{Column, ColumnValues, CubeKey};
 use octstore::stages::octree::{OctreeStage, check_octree_keys};
-use octstore::stages::scene::Scene;
 use octstore::stages::{INGEST, OCTREE};
 use octstore::store::{Plan, Replace, Result, RunOptions, Snapshot, Stage, UnitOutput, UnitSpec};
 use proptest::prelude::*;

@@ -8,9 +8,9 @@ mod common;
 use std::path::Path;
 
 use common::*;
+use octstore::mesh::read_mesh;
 use octstore::quality::evaluate::{EvaluateOptions, evaluate};
-use octstore::quality::gt_render::{GroundTruth, Layout, NoiseModel, Rig, bounds};
-use octstore::quality::meshio::read_mesh;
+use octstore::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig, bounds};
 
 /// Renders the bunny inside a room of half-size `room` diagonals with `noise`, reconstructs it
 /// through the CLI (max depth 9, 100 iterations) and measures it at tau = 1 % of its diagonal.

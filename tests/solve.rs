@@ -1,17 +1,17 @@
 //! Histograms and the TGV solve on synthetic scenes with known truth.
 
 use glam::DVec3;
+use octstore::RunOptions;
+use octstore::Scene;
 use octstore::Store;
-use octstore::scenes::{Noise, SceneSpec, Shape};
+use octstore::inputs::{DiscoverOptions, discover};
+use octstore::kernels::tgv::{Operator, State, energy, solve};
+use octstore::quality::synthetic_scenes::{Noise, SceneSpec, Shape};
 use octstore::stages::histograms::HistogramsStage;
 use octstore::stages::ingest::{IngestOptions, IngestStage, registered_depth_maps};
-use octstore::stages::inputs::{DiscoverOptions, discover};
 use octstore::stages::octree::OctreeStage;
-use octstore::stages::scene::Scene;
 use octstore::stages::solve::{LEVEL_STAGES, LevelStage, SolveParams, read_level_values};
-use octstore::stages::tgv::{Operator, State, energy, solve};
 use octstore::stages::{OCTREE, octree_max_depth};
-use octstore::store::RunOptions;
 
 fn options() -> RunOptions {
     RunOptions {
@@ -303,10 +303,7 @@ fn one_leaf_and_many_leaves_agree_near_borders() {
 
 /// `cameras` depth maps of the small sphere, and ingest options with a fixed root so that
 /// stores ingesting them in different batches share one octree grid.
-fn sphere_maps(
-    root: &std::path::Path,
-    cameras: usize,
-) -> (Vec<octstore::stages::depthmap::DepthMapSource>, IngestOptions) {
+fn sphere_maps(root: &std::path::Path, cameras: usize) -> (Vec<octstore::inputs::DepthMapSource>, IngestOptions) {
     let spec = SceneSpec {
         cameras,
         ..sphere_scene(1.0, DVec3::ZERO, None)

@@ -5,11 +5,11 @@ mod common;
 use common::*;
 use octstore::Store;
 use octstore::format::{ColumnValues, CubeKey};
-use octstore::stages::synthetic::{self, SyntheticStage};
+use octstore::stages::exercise::{self, ExerciseStage};
 use octstore::store::{IoFaults, RunOptions, StoreError};
 
-fn stage(units: u32, seed: u64) -> SyntheticStage {
-    SyntheticStage {
+fn stage(units: u32, seed: u64) -> ExerciseStage {
+    ExerciseStage {
         units,
         rows_per_unit: 300,
         seed,
@@ -34,7 +34,7 @@ fn stage_output_is_readable_through_a_snapshot() {
     assert_eq!(report.version, Some(1));
     assert_eq!(report.units, 5);
     let snap = store.latest().unwrap();
-    let segments = snap.segments(synthetic::NAME);
+    let segments = snap.segments(exercise::NAME);
     assert_eq!(segments.len(), 5);
     for (unit, (name, record)) in segments.iter().enumerate() {
         let expected = s.unit_columns(unit as u64);
@@ -61,18 +61,18 @@ fn pinned_versions_gc_and_version_errors() {
     let dir = tempfile::tempdir().unwrap();
     let store = Store::create(dir.path()).unwrap();
     store.run_stage(&stage(3, 1), &options(2)).unwrap();
-    let old_digest = store.snapshot(1).unwrap().digest(synthetic::NAME);
+    let old_digest = store.snapshot(1).unwrap().digest(exercise::NAME);
     store.run_stage(&stage(2, 2), &options(2)).unwrap();
     assert_eq!(store.current_version().unwrap(), 2);
     {
         let v1 = store.snapshot(1).unwrap();
         let v2 = store.snapshot(2).unwrap();
-        assert_eq!(v1.segments(synthetic::NAME).len(), 3);
-        assert_eq!(v2.segments(synthetic::NAME).len(), 2);
-        assert_eq!(v1.digest(synthetic::NAME), old_digest);
-        assert_ne!(v2.digest(synthetic::NAME), old_digest);
+        assert_eq!(v1.segments(exercise::NAME).len(), 3);
+        assert_eq!(v2.segments(exercise::NAME).len(), 2);
+        assert_eq!(v1.digest(exercise::NAME), old_digest);
+        assert_ne!(v2.digest(exercise::NAME), old_digest);
         // The old version is still fully readable.
-        for (name, _) in v1.segments(synthetic::NAME) {
+        for (name, _) in v1.segments(exercise::NAME) {
             v1.open_segment(name).unwrap().reader().unwrap().verify().unwrap();
         }
     }
@@ -153,18 +153,18 @@ fn disk_full_mid_unit_leaves_the_last_commit_intact_and_resume_completes() {
         // Still version 1, still valid.
         assert_eq!(store.current_version().unwrap(), 1);
         assert!(store.verify(&[]).unwrap().is_ok());
-        assert_eq!(store.latest().unwrap().digest(synthetic::NAME), {
+        assert_eq!(store.latest().unwrap().digest(exercise::NAME), {
             let other = Store::open_read_only(reference.path());
             drop(other);
-            store.snapshot(1).unwrap().digest(synthetic::NAME)
+            store.snapshot(1).unwrap().digest(exercise::NAME)
         });
     }
     // The committed content of version 1 is untouched (a run in progress is recorded, though).
     {
         let store = Store::open(dir.path()).unwrap();
         let snap = store.snapshot(1).unwrap();
-        assert_eq!(snap.segments(synthetic::NAME).len(), 2);
-        for (name, _) in snap.segments(synthetic::NAME) {
+        assert_eq!(snap.segments(exercise::NAME).len(), 2);
+        for (name, _) in snap.segments(exercise::NAME) {
             assert_eq!(
                 std::fs::read(dir.path().join("segments").join(name)).unwrap(),
                 before.segments[name]
@@ -177,8 +177,8 @@ fn disk_full_mid_unit_leaves_the_last_commit_intact_and_resume_completes() {
         let latest = store.latest().unwrap();
         let reference_store = Store::open_read_only(reference.path()).unwrap();
         assert_eq!(
-            latest.digest(synthetic::NAME),
-            reference_store.latest().unwrap().digest(synthetic::NAME)
+            latest.digest(exercise::NAME),
+            reference_store.latest().unwrap().digest(exercise::NAME)
         );
     }
 }
@@ -206,7 +206,7 @@ fn a_failed_fsync_poisons_the_store() {
 #[test]
 fn every_flipped_byte_and_truncation_of_a_segment_is_caught() {
     let dir = tempfile::tempdir().unwrap();
-    let s = SyntheticStage {
+    let s = ExerciseStage {
         units: 1,
         rows_per_unit: 40,
         seed: 4,
@@ -214,7 +214,7 @@ fn every_flipped_byte_and_truncation_of_a_segment_is_caught() {
     };
     let store = Store::create(dir.path()).unwrap();
     store.run_stage(&s, &options(1)).unwrap();
-    let name = store.latest().unwrap().segments(synthetic::NAME)[0].0.clone();
+    let name = store.latest().unwrap().segments(exercise::NAME)[0].0.clone();
     let path = dir.path().join("segments").join(&name);
     let good = std::fs::read(&path).unwrap();
     for i in 0..good.len() {
@@ -278,7 +278,7 @@ fn verify_cli_names_file_column_and_key_range() {
     let (name, first_key, last_key) = {
         let store = Store::open(&store_path).unwrap();
         let snap = store.latest().unwrap();
-        let (name, record) = snap.segments(synthetic::NAME)[1].clone();
+        let (name, record) = snap.segments(exercise::NAME)[1].clone();
         (
             name,
             CubeKey::from_raw(record.first_key),
@@ -325,7 +325,7 @@ fn read_only_snapshot_sees_typed_columns() {
     let store = Store::open_read_only(dir.path()).unwrap();
     assert!(store.is_read_only());
     let snap = store.latest().unwrap();
-    let (name, _) = &snap.segments(synthetic::NAME)[0];
+    let (name, _) = &snap.segments(exercise::NAME)[0];
     let file = snap.open_segment(name).unwrap();
     let reader = file.reader().unwrap();
     let (width, hist) = reader.read_f32("hist").unwrap();
@@ -349,7 +349,7 @@ fn readers_open_the_store_while_a_writer_commits_and_keep_their_pinned_version()
         .unwrap()
         .latest()
         .unwrap()
-        .digest(synthetic::NAME);
+        .digest(exercise::NAME);
 
     // A writer that takes a few seconds, committing unit by unit.
     let mut writer = std::process::Command::new(octstore_bin())
@@ -377,7 +377,7 @@ fn readers_open_the_store_while_a_writer_commits_and_keep_their_pinned_version()
     let snapshot = reader.latest().unwrap();
     let version = snapshot.version();
     assert_eq!(
-        snapshot.digest(synthetic::NAME),
+        snapshot.digest(exercise::NAME),
         pinned_digest,
         "the writer's run is not committed yet"
     );
@@ -395,12 +395,12 @@ fn readers_open_the_store_while_a_writer_commits_and_keep_their_pinned_version()
     let status = writer.wait().unwrap();
     assert!(status.success());
     // The pinned snapshot still reads its own version, every segment intact.
-    assert_eq!(snapshot.digest(synthetic::NAME), pinned_digest);
-    for (name, _) in snapshot.segments(synthetic::NAME) {
+    assert_eq!(snapshot.digest(exercise::NAME), pinned_digest);
+    for (name, _) in snapshot.segments(exercise::NAME) {
         snapshot.open_segment(name).unwrap().reader().unwrap().verify().unwrap();
     }
     // A new snapshot of the same reader sees the writer's version.
     let newer = reader.latest().unwrap();
     assert!(newer.version() > version, "{} vs {version}", newer.version());
-    assert_ne!(newer.digest(synthetic::NAME), pinned_digest);
+    assert_ne!(newer.digest(exercise::NAME), pinned_digest);
 }

@@ -6,9 +6,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
+use octstore::mesh::read_mesh;
 use octstore::quality::evaluate::{EvaluateOptions, evaluate};
-use octstore::quality::gt_render::bounds;
-use octstore::quality::meshio::read_mesh;
+use octstore::quality::ground_truth_views::bounds;
 
 #[derive(Parser)]
 #[command(version, about = "Measure a reconstructed mesh against a ground-truth mesh")]
@@ -31,7 +31,7 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    let run = || -> Result<String, String> {
+    let run = || -> Result<String, Box<dyn std::error::Error>> {
         let reconstruction = read_mesh(&args.reconstruction)?;
         let truth = read_mesh(&args.ground_truth)?;
         let (lo, hi) = bounds(&truth).ok_or_else(|| format!("{}: no triangles", args.ground_truth.display()))?;

@@ -6,8 +6,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
-use octstore::quality::gt_render::{GroundTruth, Layout, NoiseModel, Rig};
-use octstore::quality::meshio::read_mesh;
+use octstore::mesh::read_mesh;
+use octstore::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig};
 
 #[derive(Parser)]
 #[command(version, about = "Render depth maps of a ground-truth mesh, with noise")]
@@ -50,7 +50,7 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    let run = || -> Result<PathBuf, String> {
+    let run = || -> Result<PathBuf, Box<dyn std::error::Error>> {
         let mesh = read_mesh(&args.mesh)?;
         let truth = GroundTruth::new(mesh, (args.room > 0.0).then_some(args.room))
             .map_err(|e| format!("{}: {e}", args.mesh.display()))?;
@@ -58,7 +58,8 @@ fn main() -> ExitCode {
             return Err(format!(
                 "--room {} must exceed --distance {}: the cameras stand inside the room",
                 args.room, args.distance
-            ));
+            )
+            .into());
         }
         let rig = Rig {
             views: args.views,
@@ -75,9 +76,9 @@ fn main() -> ExitCode {
             missing_radius: args.missing_radius,
             seed: args.seed,
         };
-        truth
+        Ok(truth
             .write_dataset(&rig, &noise, &args.out)
-            .map_err(|e| format!("{}: {e}", args.out.display()))
+            .map_err(|e| format!("{}: {e}", args.out.display()))?)
     };
     match run() {
         Ok(manifest) => {

@@ -26,6 +26,9 @@ pub const KEY_BYTES: usize = size_of::<u128>();
     serde::Serialize,
     serde::Deserialize,
 )]
+/// A cube's key: the 96-bit Morton code of its minimum corner at full resolution, then its
+/// depth (format-spec.md, "Cube keys"). Keys order as (Morton code, depth), so an ancestor sorts
+/// immediately before its descendants and every subtree is one contiguous key range.
 #[repr(transparent)]
 pub struct CubeKey(u128);
 
@@ -91,14 +94,17 @@ impl CubeKey {
         CubeKey((morton << 8) | u128::from(depth))
     }
 
+    /// The key with these 128 bits (not checked; see [`CubeKey::is_well_formed`]).
     pub const fn from_raw(raw: u128) -> CubeKey {
         CubeKey(raw)
     }
 
+    /// The key's 128 bits.
     pub const fn raw(self) -> u128 {
         self.0
     }
 
+    /// The cube's depth (0 for the root).
     pub fn depth(self) -> u8 {
         (self.0 & 0xFF) as u8
     }
@@ -131,6 +137,7 @@ impl CubeKey {
         self.corner_full_resolution().iter().all(|c| c & low_mask == 0)
     }
 
+    /// The parent cube; `None` for the root.
     pub fn parent(self) -> Option<CubeKey> {
         let depth = self.depth();
         if depth == 0 {
@@ -151,14 +158,17 @@ impl CubeKey {
         CubeKey(((self.morton() | span) << 8) | u128::from(MAX_DEPTH))
     }
 
+    /// Whether `other` lies in this cube's subtree.
     pub fn is_ancestor_or_self_of(self, other: CubeKey) -> bool {
         other.depth() >= self.depth() && self <= other && other <= self.subtree_last()
     }
 
+    /// Big-endian bytes: byte order equals key order (catalog keys).
     pub fn to_be_bytes(self) -> [u8; KEY_BYTES] {
         self.0.to_be_bytes()
     }
 
+    /// The key of big-endian bytes.
     pub fn from_be_bytes(bytes: [u8; KEY_BYTES]) -> CubeKey {
         CubeKey(u128::from_be_bytes(bytes))
     }
@@ -177,7 +187,7 @@ impl fmt::Display for CubeKey {
     }
 }
 
-/// redb key type that compares cube keys by their numeric order explicitly (DESIGN.md section 3).
+/// redb key type that compares cube keys by their numeric order explicitly (format-spec.md, "Cube keys").
 #[derive(Debug)]
 pub struct CubeKeyColumn;
 

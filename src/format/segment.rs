@@ -14,7 +14,7 @@ use xxhash_rust::xxh3::{Xxh3, xxh3_64};
 
 use super::bytes::ByteReader;
 use super::key::CubeKey;
-use super::{DecodeError, EncodeError, Region};
+use super::{DecodeError, EncodeError, SegmentPart};
 
 /// First and last eight bytes of every segment file.
 pub const MAGIC: [u8; 8] = *b"OCTSEG\x00\x01";
@@ -45,17 +45,22 @@ pub const KEY_COLUMN: &str = "key";
 const MAX_COLUMNS: usize = 255;
 const MAX_NAME_LEN: usize = 255;
 
+/// Element type of a column (its code in the directory).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[repr(u8)]
 pub enum ElementType {
     /// `CubeKey` as a little-endian u128.
     Key = 1,
+    /// 32-bit float.
     F32 = 2,
+    /// 32-bit unsigned integer.
     U32 = 3,
+    /// 64-bit unsigned integer.
     U64 = 4,
 }
 
 impl ElementType {
+    /// Bytes per element.
     pub fn size(self) -> usize {
         match self {
             ElementType::Key => size_of::<u128>(),
@@ -75,15 +80,21 @@ impl ElementType {
     }
 }
 
+/// A column's decoded values.
 #[derive(Clone, Debug, PartialEq)]
 pub enum ColumnValues {
+    /// Cube keys (the key column).
     Key(Vec<CubeKey>),
+    /// 32-bit floats.
     F32(Vec<f32>),
+    /// 32-bit unsigned integers.
     U32(Vec<u32>),
+    /// 64-bit unsigned integers.
     U64(Vec<u64>),
 }
 
 impl ColumnValues {
+    /// The element type.
     pub fn element_type(&self) -> ElementType {
         match self {
             ColumnValues::Key(_) => ElementType::Key,
@@ -93,6 +104,7 @@ impl ColumnValues {
         }
     }
 
+    /// Number of elements.
     pub fn len(&self) -> usize {
         match self {
             ColumnValues::Key(v) => v.len(),
@@ -102,6 +114,7 @@ impl ColumnValues {
         }
     }
 
+    /// Whether there are no elements.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -119,12 +132,16 @@ impl ColumnValues {
 /// One named column: `width` elements per row, row-major.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Column {
+    /// The column's name (format-spec.md, "Columns used by stages").
     pub name: String,
+    /// Elements per row.
     pub width: u16,
+    /// `rows * width` values, row by row.
     pub values: ColumnValues,
 }
 
 impl Column {
+    /// A column of `width` values per row.
     pub fn new(name: &str, width: u16, values: ColumnValues) -> Column {
         Column {
             name: name.to_string(),
@@ -133,10 +150,12 @@ impl Column {
         }
     }
 
+    /// The key column.
     pub fn keys(keys: Vec<CubeKey>) -> Column {
         Column::new(KEY_COLUMN, 1, ColumnValues::Key(keys))
     }
 
+    /// Rows of the column.
     pub fn rows(&self) -> usize {
         self.values.len() / usize::from(self.width.max(1))
     }
@@ -145,14 +164,18 @@ impl Column {
 /// What the writer learned about the segment it wrote; recorded in the catalog.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct SegmentSummary {
+    /// Rows written.
     pub rows: u64,
+    /// Bytes written.
     pub bytes: u64,
     /// xxh3 of the whole file.
     pub file_checksum: u64,
     /// xxh3 of the decoded content (column names, types, widths and raw values); independent of
     /// compression and block size.
     pub content_digest: u64,
+    /// The first row's key.
     pub first_key: CubeKey,
+    /// The last row's key.
     pub last_key: CubeKey,
 }
 
@@ -245,6 +268,7 @@ impl<W: Write> HashingWriter<'_, W> {
     }
 }
 
+/// [`encode_segment`] with `block_rows` rows per block (tests use small blocks).
 pub fn encode_segment_with_block_rows<W: Write>(
     columns: &[Column],
     block_rows: u32,
@@ -355,10 +379,14 @@ struct ChunkInfo {
     checksum: u64,
 }
 
+/// A column as the directory describes it.
 #[derive(Clone, Debug)]
 pub struct ColumnInfo {
+    /// The column's name.
     pub name: String,
+    /// Its element type.
     pub element_type: ElementType,
+    /// Elements per row.
     pub width: u16,
     chunks: Vec<ChunkInfo>,
 }
@@ -373,14 +401,17 @@ pub struct SegmentReader<'a> {
     columns: Vec<ColumnInfo>,
 }
 
-fn corrupt(region: Region, reason: impl Into<String>) -> DecodeError {
+fn corrupt(part: SegmentPart, reason: impl Into<String>) -> DecodeError {
     DecodeError::Corrupt {
-        region,
+        part,
         reason: reason.into(),
     }
 }
 
 impl<'a> SegmentReader<'a> {
+    // long function parse: validates the format in file order (header, footer, directory, blocks), each check beside the bytes it reads, as format-spec.md lays them out.
+    /// Checks the header, footer and directory of a segment's bytes (blocks are checked as they
+    /// are read, or all at once by [`SegmentReader::verify`]).
     pub fn parse(bytes: &'a [u8]) -> Result<SegmentReader<'a>, DecodeError> {
         if bytes.len() < HEADER_LEN + FOOTER_LEN {
             return Err(DecodeError::Truncated {
@@ -391,7 +422,9 @@ impl<'a> SegmentReader<'a> {
         }
         let mut header = ByteReader::new(bytes);
         if header.array::<8>()? != MAGIC {
-            return Err(DecodeError::BadMagic { region: Region::Header });
+            return Err(DecodeError::BadMagic {
+                part: SegmentPart::Header,
+            });
         }
         let version = header.u32()?;
         if version != FORMAT_VERSION {
@@ -401,23 +434,25 @@ impl<'a> SegmentReader<'a> {
             });
         }
         if header.u32()? != 0 {
-            return Err(corrupt(Region::Header, "flags must be 0"));
+            return Err(corrupt(SegmentPart::Header, "flags must be 0"));
         }
 
         let footer_start = bytes.len() - FOOTER_LEN;
         let footer_bytes = bytes
             .get(footer_start..)
-            .ok_or_else(|| corrupt(Region::Footer, "missing"))?;
+            .ok_or_else(|| corrupt(SegmentPart::Footer, "missing"))?;
         let mut footer = ByteReader::new(footer_bytes);
         let fields = footer.take(FOOTER_FIELDS_LEN)?;
         let footer_checksum = footer.u64()?;
         if footer.array::<8>()? != MAGIC {
-            return Err(DecodeError::BadMagic { region: Region::Footer });
+            return Err(DecodeError::BadMagic {
+                part: SegmentPart::Footer,
+            });
         }
         let got = xxh3_64(fields);
         if got != footer_checksum {
             return Err(DecodeError::ChecksumMismatch {
-                region: Region::Footer,
+                part: SegmentPart::Footer,
                 got,
                 expected: footer_checksum,
             });
@@ -438,17 +473,17 @@ impl<'a> SegmentReader<'a> {
         let dir_end = dir_offset.checked_add(dir_len);
         if dir_offset < HEADER_LEN as u64 || dir_end != Some(footer_start as u64) {
             return Err(corrupt(
-                Region::Footer,
+                SegmentPart::Footer,
                 format!("directory at {dir_offset}+{dir_len} does not end where the footer starts ({footer_start})"),
             ));
         }
         let dir = bytes
             .get(dir_offset as usize..footer_start)
-            .ok_or_else(|| corrupt(Region::Footer, "directory out of bounds"))?;
+            .ok_or_else(|| corrupt(SegmentPart::Footer, "directory out of bounds"))?;
         let got = xxh3_64(dir);
         if got != dir_checksum {
             return Err(DecodeError::ChecksumMismatch {
-                region: Region::Directory,
+                part: SegmentPart::Directory,
                 got,
                 expected: dir_checksum,
             });
@@ -457,7 +492,7 @@ impl<'a> SegmentReader<'a> {
         let mut d = ByteReader::new(dir);
         let block_count = d.u32()? as usize;
         if block_count.saturating_mul(BLOCK_ENTRY_LEN) > d.remaining() {
-            return Err(corrupt(Region::Directory, "block table longer than the directory"));
+            return Err(corrupt(SegmentPart::Directory, "block table longer than the directory"));
         }
         let mut blocks = Vec::with_capacity(block_count);
         let mut row_sum = 0u64;
@@ -466,7 +501,7 @@ impl<'a> SegmentReader<'a> {
             let first_key = CubeKey::from_raw(d.u128()?);
             let last_key = CubeKey::from_raw(d.u128()?);
             if block_rows == 0 || first_key > last_key {
-                return Err(corrupt(Region::Directory, "empty block or inverted key range"));
+                return Err(corrupt(SegmentPart::Directory, "empty block or inverted key range"));
             }
             row_sum += u64::from(block_rows);
             blocks.push(BlockInfo {
@@ -477,7 +512,7 @@ impl<'a> SegmentReader<'a> {
         }
         if row_sum != rows || rows == 0 {
             return Err(corrupt(
-                Region::Directory,
+                SegmentPart::Directory,
                 format!("blocks hold {row_sum} rows, footer says {rows}"),
             ));
         }
@@ -488,17 +523,17 @@ impl<'a> SegmentReader<'a> {
         for _ in 0..column_count {
             let name_len = usize::from(d.u8()?);
             let name = std::str::from_utf8(d.take(name_len)?)
-                .map_err(|_| corrupt(Region::Directory, "column name is not UTF-8"))?
+                .map_err(|_| corrupt(SegmentPart::Directory, "column name is not UTF-8"))?
                 .to_string();
             let element_type = ElementType::from_code(d.u8()?).ok_or_else(|| {
                 corrupt(
-                    Region::Directory,
+                    SegmentPart::Directory,
                     format!("column '{name}' has an unknown element type"),
                 )
             })?;
             let width = d.u16()?;
             if width == 0 {
-                return Err(corrupt(Region::Directory, format!("column '{name}' has width 0")));
+                return Err(corrupt(SegmentPart::Directory, format!("column '{name}' has width 0")));
             }
             let mut chunks = Vec::with_capacity(block_count);
             for _ in 0..block_count {
@@ -509,7 +544,7 @@ impl<'a> SegmentReader<'a> {
                 };
                 if chunk.offset != expected_offset {
                     return Err(corrupt(
-                        Region::Directory,
+                        SegmentPart::Directory,
                         format!(
                             "column '{name}' block at {} where {expected_offset} was expected",
                             chunk.offset
@@ -520,7 +555,10 @@ impl<'a> SegmentReader<'a> {
                 chunks.push(chunk);
             }
             if columns.iter().any(|c| c.name == name) {
-                return Err(corrupt(Region::Directory, format!("column '{name}' appears twice")));
+                return Err(corrupt(
+                    SegmentPart::Directory,
+                    format!("column '{name}' appears twice"),
+                ));
             }
             columns.push(ColumnInfo {
                 name,
@@ -530,18 +568,18 @@ impl<'a> SegmentReader<'a> {
             });
         }
         if d.remaining() != 0 {
-            return Err(corrupt(Region::Directory, "trailing bytes"));
+            return Err(corrupt(SegmentPart::Directory, "trailing bytes"));
         }
         if expected_offset != dir_offset {
             return Err(corrupt(
-                Region::Directory,
+                SegmentPart::Directory,
                 format!("blocks end at {expected_offset}, directory starts at {dir_offset}"),
             ));
         }
         match columns.first() {
             Some(c) if c.name == KEY_COLUMN && c.element_type == ElementType::Key && c.width == 1 => {}
             _ => {
-                return Err(corrupt(Region::Directory, "first column is not the key column"));
+                return Err(corrupt(SegmentPart::Directory, "first column is not the key column"));
             }
         }
         Ok(SegmentReader {
@@ -552,22 +590,27 @@ impl<'a> SegmentReader<'a> {
         })
     }
 
+    /// Rows of the segment.
     pub fn rows(&self) -> u64 {
         self.rows
     }
 
+    /// The columns, the key column first.
     pub fn columns(&self) -> &[ColumnInfo] {
         &self.columns
     }
 
+    /// The first row's key.
     pub fn first_key(&self) -> CubeKey {
         self.blocks.first().map(|b| b.first_key).unwrap_or_default()
     }
 
+    /// The last row's key.
     pub fn last_key(&self) -> CubeKey {
         self.blocks.last().map(|b| b.last_key).unwrap_or_default()
     }
 
+    /// The column called `name`.
     pub fn column(&self, name: &str) -> Result<&ColumnInfo, DecodeError> {
         self.columns
             .iter()
@@ -575,9 +618,9 @@ impl<'a> SegmentReader<'a> {
             .ok_or_else(|| DecodeError::MissingColumn(name.to_string()))
     }
 
-    fn block_region(&self, column: &ColumnInfo, block: usize) -> Region {
+    fn block_region(&self, column: &ColumnInfo, block: usize) -> SegmentPart {
         let info = self.blocks.get(block);
-        Region::Block {
+        SegmentPart::Block {
             column: column.name.clone(),
             block: block as u32,
             first_key: info.map(|b| b.first_key).unwrap_or_default(),
@@ -620,12 +663,13 @@ impl<'a> SegmentReader<'a> {
         let len = usize::try_from(self.rows)
             .ok()
             .and_then(|r| r.checked_mul(usize::from(column.width)))
-            .ok_or_else(|| corrupt(Region::Directory, "row count overflows"))?;
+            .ok_or_else(|| corrupt(SegmentPart::Directory, "row count overflows"))?;
         let mut values = vec![T::zeroed(); len];
         self.decode_into(column, bytemuck::cast_slice_mut(&mut values))?;
         Ok((column.width, values))
     }
 
+    /// Blocks per column.
     pub fn block_count(&self) -> usize {
         self.blocks.len()
     }
@@ -683,7 +727,7 @@ impl<'a> SegmentReader<'a> {
         let got = xxh3_64(compressed);
         if got != chunk.checksum {
             return Err(DecodeError::ChecksumMismatch {
-                region: region(),
+                part: region(),
                 got,
                 expected: chunk.checksum,
             });
@@ -696,19 +740,23 @@ impl<'a> SegmentReader<'a> {
         Ok(())
     }
 
+    /// Decodes the key column.
     pub fn read_keys(&self) -> Result<Vec<CubeKey>, DecodeError> {
         let (_, keys) = self.typed::<CubeKey>(KEY_COLUMN, ElementType::Key)?;
         Ok(keys)
     }
 
+    /// Decodes a float column: its width and values.
     pub fn read_f32(&self, name: &str) -> Result<(u16, Vec<f32>), DecodeError> {
         self.typed(name, ElementType::F32)
     }
 
+    /// Decodes a u32 column: its width and values.
     pub fn read_u32(&self, name: &str) -> Result<(u16, Vec<u32>), DecodeError> {
         self.typed(name, ElementType::U32)
     }
 
+    /// Decodes a u64 column: its width and values.
     pub fn read_u64(&self, name: &str) -> Result<(u16, Vec<u64>), DecodeError> {
         self.typed(name, ElementType::U64)
     }
@@ -742,12 +790,12 @@ impl<'a> SegmentReader<'a> {
         }
         if let Some(pair) = keys.windows(2).find(|w| w.first() >= w.get(1)) {
             return Err(corrupt(
-                Region::Directory,
+                SegmentPart::Directory,
                 format!("keys are not strictly increasing: {pair:?}"),
             ));
         }
         if let Some(bad) = keys.iter().find(|k| !k.is_well_formed()) {
-            return Err(corrupt(Region::Directory, format!("malformed key {bad}")));
+            return Err(corrupt(SegmentPart::Directory, format!("malformed key {bad}")));
         }
         let mut content = Xxh3::new();
         for column in &self.columns {

@@ -10,9 +10,11 @@
 //! without a GPU; `cpu` opens nothing. `WGPU_BACKEND` (and the other `wgpu` environment
 //! variables) choose the backends.
 
-pub mod tgv;
+pub mod tgv_dispatch;
 pub mod twins;
-pub mod votes;
+pub mod votes_dispatch;
+
+pub use tgv_dispatch::solve_on;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -117,8 +119,8 @@ pub struct Gpu {
     device: wgpu::Device,
     queue: wgpu::Queue,
     limits: wgpu::Limits,
-    tgv: tgv::Pipelines,
-    votes: votes::Pipeline,
+    tgv: tgv_dispatch::Pipelines,
+    votes: votes_dispatch::Pipeline,
     /// Set by the device-lost callback; later units go straight to the CPU.
     lost: Arc<AtomicBool>,
     /// Units whose iterations ran here, and units that fell back to the CPU.
@@ -177,8 +179,8 @@ impl Gpu {
         // Errors outside an error scope would otherwise panic; every unit's work runs inside
         // scopes, so anything reaching this handler is logged, not fatal.
         device.on_uncaptured_error(Arc::new(|error| tracing::error!("uncaptured GPU error: {error}")));
-        let tgv = tgv::Pipelines::new(&device);
-        let votes = votes::Pipeline::new(&device);
+        let tgv = tgv_dispatch::Pipelines::new(&device);
+        let votes = votes_dispatch::Pipeline::new(&device);
         tracing::info!(
             "GPU: {} ({}, {}, {})",
             summary.name,

@@ -5,8 +5,8 @@
 
 use glam::Vec4;
 
-use super::tgv::{Chunk, HaloRun};
-use crate::stages::tgv::{DualConstants, Gather, Kernel, Packed, PrimalConstants, Slopes};
+use super::tgv_dispatch::{Chunk, HaloRun};
+use crate::kernels::tgv::{DualConstants, Gather, Kernel, Packed, PrimalConstants, Slopes};
 
 const SQRT_HALF: f32 = std::f32::consts::FRAC_1_SQRT_2;
 
@@ -292,7 +292,7 @@ pub fn iterate_chunks(chunks: &[Chunk], state: &mut Packed, iterations: usize) {
 )]
 pub fn votes(
     c: usize,
-    map: &crate::gpu::votes::VoteMap,
+    map: &crate::gpu::votes_dispatch::VoteMap,
     cubes: &[Vec4],
     levels: &[[u32; 4]],
     depths: &[f32],
@@ -300,7 +300,7 @@ pub fn votes(
     votes: &mut [u32],
 ) {
     use std::f32::consts::{PI, TAU};
-    const BINS: usize = crate::stages::histograms::BINS;
+    const BINS: usize = crate::kernels::votes::BINS;
     if c >= map.n as usize {
         return;
     }

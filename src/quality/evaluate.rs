@@ -23,10 +23,11 @@ use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::scenes::uniform;
-use crate::stages::extract::{Mesh, edge_defects};
+use crate::kernels::random::uniform;
+use crate::mesh::{Mesh, edge_defects};
 
-use super::gt_render::bounds;
+use super::QualityError;
+use super::ground_truth_views::bounds;
 
 #[derive(Clone, Debug)]
 pub struct EvaluateOptions {
@@ -167,18 +168,18 @@ fn summarize(values: &[f64], tau: f64) -> (f64, f64) {
     (mean, within)
 }
 
-pub fn evaluate(reconstruction: &Mesh, ground_truth: &Mesh, options: &EvaluateOptions) -> Result<Report, String> {
+pub fn evaluate(reconstruction: &Mesh, ground_truth: &Mesh, options: &EvaluateOptions) -> Result<Report, QualityError> {
     if !(options.tau > 0.0 && options.tau.is_finite()) {
-        return Err(format!("tau must be positive, is {}", options.tau));
+        return Err(QualityError::NonPositiveTau(options.tau));
     }
     let spacing = options.spacing.unwrap_or(options.tau / 5.0);
     let truth_samples = sample(ground_truth, spacing, options.seed);
     if truth_samples.points.is_empty() {
-        return Err("the ground-truth mesh has no area".into());
+        return Err(QualityError::NoArea);
     }
     let mut recon_samples = sample(reconstruction, spacing, options.seed ^ 0x5EED);
     if let Some(margin) = options.crop_margin {
-        let (lo, hi) = bounds(ground_truth).ok_or("the ground-truth mesh has no triangles")?;
+        let (lo, hi) = bounds(ground_truth).ok_or(QualityError::NoTriangles)?;
         let grow = DVec3::splat((hi - lo).length() * margin);
         let (lo, hi) = (lo - grow, hi + grow);
         let keep: Vec<bool> = recon_samples

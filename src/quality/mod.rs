@@ -1,7 +1,23 @@
-//! Quality tools: ground-truth meshes in ([`meshio`]), depth maps rendered from them with noise
-//! ([`gt_render`]), and reconstructions measured against them ([`evaluate`]). The binaries in
-//! `tools/` (`octstore-gt-render`, `octstore-evaluate`) are thin command lines over these.
+//! Quality tools: synthetic scenes rendered into depth maps ([`synthetic_scenes`], the demo's
+//! input), depth maps of ground-truth meshes with noise ([`ground_truth_views`]), and
+//! reconstructions measured against the truth ([`evaluate`]). The binaries in `tools/`
+//! (`octstore-gt-render`, `octstore-evaluate`) are thin command lines over these.
 
 pub mod evaluate;
-pub mod gt_render;
-pub mod meshio;
+pub mod ground_truth_views;
+pub mod synthetic_scenes;
+
+/// Errors of the quality tools' library calls.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[non_exhaustive]
+pub enum QualityError {
+    /// The distance threshold tau must be positive.
+    #[error("tau must be positive, is {0}")]
+    NonPositiveTau(f64),
+    /// A ground-truth mesh without area cannot be sampled.
+    #[error("the ground-truth mesh has no area")]
+    NoArea,
+    /// A ground-truth mesh without triangles has no bounds.
+    #[error("the mesh has no triangles")]
+    NoTriangles,
+}

@@ -14,9 +14,8 @@ use serde::{Deserialize, Serialize};
 use xxhash_rust::xxh3::Xxh3;
 
 use super::INGEST;
-use super::depthmap::{DepthImage, DepthMapSource, InputError};
-use super::scene::{META_SCENE, Scene};
-use crate::format::{Column, ColumnValues, CubeKey};
+use crate::format::{Column, ColumnValues, CubeKey, META_SCENE, Scene};
+use crate::inputs::{DepthImage, DepthMapSource, InputError};
 use crate::store::catalog::{self, META, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, Store, StoreError, UnitOutput, UnitSpec};
 
@@ -161,7 +160,7 @@ impl CameraGrid {
         CameraGrid {
             width,
             height,
-            wraps: matches!(source.projection, super::depthmap::Projection::Spherical),
+            wraps: matches!(source.projection, crate::inputs::Projection::Spherical),
             points,
             stats,
         }
@@ -406,7 +405,7 @@ impl IngestStage {
             entries.push((self.scene.key_at(*p, depth), self.scene.quantize_radius(*r)));
         }
         if consistent_outside * 100 > stats.samples.max(1) {
-            return Err(super::depthmap::bad(
+            return Err(crate::inputs::bad(
                 &source.path,
                 format!(
                     "{consistent_outside} of {} samples (not counting isolated spikes) lie outside the store's root cube (min {:?}, side {}); create a new store whose first ingest includes this depth map, or give --root / a larger --root-margin",
@@ -538,7 +537,7 @@ impl Stage for IngestStage {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::stages::depthmap::{ImageFormat, Kind, Projection};
+    use crate::inputs::{ImageFormat, Kind, Projection};
 
     fn camera(width: u32, height: u32) -> DepthMapSource {
         DepthMapSource {
@@ -568,8 +567,8 @@ mod tests {
         let mut state = 7u64;
         let depth: Vec<f32> = (0..w * h)
             .map(|_| {
-                if crate::scenes::uniform(&mut state) < 0.1 {
-                    (0.2 + 1.8 * crate::scenes::uniform(&mut state)) as f32
+                if crate::kernels::random::uniform(&mut state) < 0.1 {
+                    (0.2 + 1.8 * crate::kernels::random::uniform(&mut state)) as f32
                 } else {
                     1.0
                 }
@@ -620,7 +619,7 @@ mod tests {
 
         let mut state = 3u64;
         let noise: Vec<f32> = (0..w * h)
-            .map(|_| (0.2 + 1.8 * crate::scenes::uniform(&mut state)) as f32)
+            .map(|_| (0.2 + 1.8 * crate::kernels::random::uniform(&mut state)) as f32)
             .collect();
         let image = DepthImage {
             width: w,

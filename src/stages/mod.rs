@@ -1,19 +1,14 @@
-//! Pipeline stages. Each is a [`Stage`](crate::store::Stage) run by the store's stage runner.
+//! Pipeline stages, in pipeline order: `ingest`, `octree` (merge, balance, treetop, with its
+//! external sorter), `histograms`, `solve` (one stage per level), `extract`; and `exercise`, a
+//! stage over generated keys that tests the runner. Each is a [`Stage`](crate::store::Stage)
+//! run by the store's stage runner, or (extract) reads a pinned snapshot.
 
-pub mod colmap;
-pub mod depthmap;
+pub mod exercise;
 pub mod extract;
 pub mod histograms;
 pub mod ingest;
-pub mod inputs;
-pub mod lidar;
 pub mod octree;
-pub mod query;
-pub mod records;
-pub mod scene;
 pub mod solve;
-pub mod synthetic;
-pub mod tgv;
 pub mod treetop;
 
 /// Stage names, in pipeline order. They name segments and catalog entries: changing one is a

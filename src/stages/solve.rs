@@ -15,11 +15,11 @@ use redb::WriteTransaction;
 use serde::{Deserialize, Serialize};
 
 use super::HISTOGRAMS;
-use super::histograms::BINS;
-use super::scene::Scene;
-use super::tgv::{Problem, State};
 use super::treetop::{Treetop, UnitKeys, children_on_min_face, plus_neighbour};
+use crate::format::Scene;
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
+use crate::kernels::tgv::{Problem, State};
+use crate::kernels::votes::BINS;
 use crate::store::catalog::{self, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
@@ -358,6 +358,7 @@ impl LevelStage {
         }
     }
 
+    // long function build_problem: one pass that gathers a unit's cubes, their frozen neighbours and the difference terms, in the order the kernel's gather lists need.
     /// Builds the unit's problem and initial state; `None` when the unit has no cut cubes.
     pub fn build_problem(
         &self,
@@ -577,7 +578,7 @@ impl Stage for LevelStage {
         if problem.start.len() != 3 * problem.n + 1 {
             return Err(self.stage_error(unit, "internal: malformed neighbour lists".into()));
         }
-        let (energy_before, energy_after) = super::tgv::solve_on(
+        let (energy_before, energy_after) = crate::gpu::solve_on(
             self.gpu.as_deref(),
             &problem,
             &mut state,

@@ -8,8 +8,11 @@
 //! write `NAME.seg.tmp`, fsync it, rename it to `NAME.seg`, fsync the directory, then one catalog
 //! write transaction that records the unit and its segments.
 
+#[doc(hidden)]
 pub mod catalog;
+#[doc(hidden)]
 pub mod cluster;
+#[doc(hidden)]
 pub mod failpoint;
 pub mod runner;
 pub mod snapshot;
@@ -32,7 +35,9 @@ pub use failpoint::IoFaults;
 pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSpec};
 pub use snapshot::{SegmentFile, Snapshot};
 
+/// The catalog's file name inside a store folder.
 pub const CATALOG_FILE: &str = "catalog.redb";
+/// The folder of segment files inside a store folder.
 pub const SEGMENTS_DIR: &str = "segments";
 /// Scratch space of stages (sorted runs, level sets); never part of a version, emptied on every
 /// writable open.
@@ -42,53 +47,122 @@ pub const CHUNKS_DIR: &str = "chunks";
 const SEGMENT_SUFFIX: &str = ".seg";
 const TEMP_SUFFIX: &str = ".tmp";
 
-/// Errors of the store layer.
+/// Errors of the store layer. Each names the file, table, version or unit it concerns.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum StoreError {
+    /// A file operation failed.
     #[error("{action} {path}: {source}")]
     Io {
+        /// What was being done.
         action: &'static str,
+        /// The file or folder.
         path: PathBuf,
+        /// The system's error.
         source: std::io::Error,
     },
+    /// Another process holds the catalog for writing.
     #[error(
         "{path} is in use by another octstore process (only one writer at a time; readers must wait for it to finish)"
     )]
-    InUse { path: PathBuf },
+    InUse {
+        /// The store.
+        path: PathBuf,
+    },
+    /// The folder is not a store.
     #[error("{path} is not an octstore store: {reason}")]
-    NotAStore { path: PathBuf, reason: String },
+    NotAStore {
+        /// The folder.
+        path: PathBuf,
+        /// What is missing or wrong.
+        reason: String,
+    },
+    /// `create` found a store already there.
     #[error("{path} already holds a store")]
-    AlreadyExists { path: PathBuf },
+    AlreadyExists {
+        /// The folder.
+        path: PathBuf,
+    },
+    /// A read-only open found a catalog that a crashed writer left; a writable open repairs it.
     #[error(
         "{path}: the catalog was not closed cleanly; open it for writing once (for example `octstore verify`) to recover it"
     )]
-    NeedsRecovery { path: PathBuf },
+    NeedsRecovery {
+        /// The store.
+        path: PathBuf,
+    },
+    /// The catalog is of a newer format than this build reads.
     #[error("catalog format version {found} is not supported by this build (it reads versions up to {supported})")]
-    UnsupportedFormat { found: u32, supported: u32 },
+    UnsupportedFormat {
+        /// The catalog's version.
+        found: u32,
+        /// The newest version this build reads.
+        supported: u32,
+    },
+    /// redb failed.
     #[error("catalog error: {0}")]
     Catalog(#[from] redb::Error),
+    /// A catalog record does not decode.
     #[error("corrupt catalog table '{table}': {reason}")]
-    CatalogCorruption { table: &'static str, reason: String },
+    CatalogCorruption {
+        /// The table.
+        table: &'static str,
+        /// What does not decode.
+        reason: String,
+    },
+    /// A segment's bytes do not decode.
     #[error("corrupt segment {file}: {detail}")]
-    Corruption { file: PathBuf, detail: DecodeError },
+    Corruption {
+        /// The segment file.
+        file: PathBuf,
+        /// Where and what the decoder found.
+        detail: DecodeError,
+    },
+    /// A segment file's whole-file checksum differs from the catalog's.
     #[error("segment {file}: checksum mismatch: got {got:016x}, expected {expected:016x}")]
-    ChecksumMismatch { file: PathBuf, got: u64, expected: u64 },
+    ChecksumMismatch {
+        /// The segment file.
+        file: PathBuf,
+        /// The checksum of the bytes on disk.
+        got: u64,
+        /// The catalog's checksum.
+        expected: u64,
+    },
+    /// An fsync failed earlier: nothing more is written until the store is reopened.
     #[error(
         "the store refuses writes after a failed fsync: data may not be durable; reopen it to continue from the last commit"
     )]
     Poisoned,
+    /// A write was asked of a read-only handle.
     #[error("the store is open read-only")]
     ReadOnly,
+    /// A version after the latest was asked for.
     #[error("version {version} does not exist (the latest is {latest})")]
-    NoSuchVersion { version: u64, latest: u64 },
+    NoSuchVersion {
+        /// The version asked for.
+        version: u64,
+        /// The latest version.
+        latest: u64,
+    },
+    /// A version whose segments `gc` removed was asked for.
     #[error("version {version} was garbage-collected (the oldest kept version is {horizon})")]
-    VersionGone { version: u64, horizon: u64 },
+    VersionGone {
+        /// The version asked for.
+        version: u64,
+        /// The oldest version still readable.
+        horizon: u64,
+    },
+    /// A stage failed on a unit (bad input, a missing earlier stage, an internal check).
     #[error("stage '{stage}', {unit}: {message}")]
     Stage {
+        /// The stage.
         stage: String,
+        /// The unit (a depth map, a treetop leaf) or `-`.
         unit: String,
+        /// What went wrong and what to do.
         message: String,
     },
+    /// A stage produced columns that break the segment format.
     #[error("invalid segment content: {0}")]
     Encode(#[from] crate::format::EncodeError),
 }
@@ -109,19 +183,25 @@ redb_error!(
     redb::CommitError
 );
 
+/// The result of store calls.
 pub type Result<T, E = StoreError> = std::result::Result<T, E>;
 
+/// `map_err` adapter: an I/O error of `action` on `path`.
 pub fn io_error(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> StoreError {
     let path = path.to_path_buf();
     move |source| StoreError::Io { action, path, source }
 }
 
+/// The redb catalog, opened for writing or read-only.
 pub enum Catalog {
+    /// Opened by the one writer.
     Writable(redb::Database),
+    /// Opened by a reader while a writer may run.
     ReadOnly(redb::ReadOnlyDatabase),
 }
 
 impl Catalog {
+    /// A read transaction on either kind of handle.
     pub fn begin_read(&self) -> Result<redb::ReadTransaction> {
         Ok(match self {
             Catalog::Writable(db) => db.begin_read()?,
@@ -188,6 +268,7 @@ impl Store {
         Store::create_with_faults(path, IoFaults::from_env())
     }
 
+    /// [`Store::create`] with injected storage faults (tests of failure handling).
     pub fn create_with_faults(path: impl AsRef<Path>, faults: IoFaults) -> Result<Store> {
         let root = path.as_ref().to_path_buf();
         let catalog_path = root.join(CATALOG_FILE);
@@ -249,6 +330,7 @@ impl Store {
         Store::open_with_faults(path, IoFaults::from_env())
     }
 
+    /// [`Store::open`] with injected storage faults (tests of failure handling).
     pub fn open_with_faults(path: impl AsRef<Path>, faults: IoFaults) -> Result<Store> {
         let root = path.as_ref().to_path_buf();
         let catalog_path = Store::catalog_path_checked(&root)?;
@@ -355,14 +437,17 @@ impl Store {
         Ok(found)
     }
 
+    /// The store's folder.
     pub fn root(&self) -> &Path {
         &self.root
     }
 
+    /// The folder of segment files.
     pub fn segments_dir(&self) -> PathBuf {
         self.root.join(SEGMENTS_DIR)
     }
 
+    /// The path of segment `name`.
     pub fn segment_path(&self, name: &str) -> PathBuf {
         self.segments_dir().join(name)
     }
@@ -377,14 +462,17 @@ impl Store {
         Ok(dir)
     }
 
+    /// Whether this handle was opened read-only.
     pub fn is_read_only(&self) -> bool {
         matches!(self.catalog, Catalog::ReadOnly(_))
     }
 
+    /// The catalog, for reads.
     pub fn catalog(&self) -> &Catalog {
         &self.catalog
     }
 
+    /// The catalog for writing; an error on a read-only or poisoned store.
     pub fn writable(&self) -> Result<&redb::Database> {
         if self.poisoned.load(Ordering::SeqCst) {
             return Err(StoreError::Poisoned);
@@ -395,6 +483,7 @@ impl Store {
         }
     }
 
+    /// Whether a failed fsync has poisoned this handle.
     pub fn is_poisoned(&self) -> bool {
         self.poisoned.load(Ordering::SeqCst)
     }

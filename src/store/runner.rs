@@ -45,8 +45,11 @@ pub enum Replace {
     Nothing,
 }
 
+/// What a stage run will do: its units and what its segments replace.
 pub struct Plan {
+    /// The units, in commit order.
     pub units: Vec<UnitSpec>,
+    /// Which earlier segments of the stage the new ones replace.
     pub replace: Replace,
 }
 
@@ -54,13 +57,19 @@ pub struct Plan {
 /// handed to [`Stage::finish`].
 #[derive(Default)]
 pub struct UnitOutput {
+    /// One segment per entry, each as its columns (the key column first).
     pub segments: Vec<Vec<Column>>,
+    /// Stage-specific bytes recorded with the unit (its catalog state).
     pub extra: Vec<u8>,
     /// Rows per compressed block of the unit's segments (0: the format's default).
     pub block_rows: u32,
 }
 
+/// A pipeline stage as the runner sees it: it plans units over a pinned version and turns each
+/// unit into segments; the runner commits them one unit at a time (format-spec.md, "Commit
+/// protocol").
 pub trait Stage: Sync {
+    /// The stage's name: it names its segments and catalog entries.
     fn name(&self) -> &'static str;
 
     /// The run's parameters; recorded with the run, and a resume with others is refused.
@@ -87,6 +96,7 @@ pub trait Stage: Sync {
     }
 }
 
+/// How a stage run runs.
 #[derive(Clone, Debug)]
 pub struct RunOptions {
     /// Continue a run in progress; without it, a run in progress is discarded and restarted.
@@ -107,16 +117,22 @@ impl Default for RunOptions {
     }
 }
 
+/// What a finished stage run did.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RunReport {
+    /// The stage's name.
     pub stage: String,
     /// The version created, or `None` when there was nothing to do.
     pub version: Option<u64>,
+    /// Units the run covered.
     pub units: usize,
     /// Units found committed by an earlier, interrupted run.
     pub resumed_units: usize,
+    /// Rows written.
     pub rows: u64,
+    /// Wall time.
     pub seconds: f64,
+    /// The stage's one-line summary (also recorded with the version).
     pub summary: String,
 }
 
@@ -136,6 +152,7 @@ pub(crate) type ProducedUnit = (u64, Vec<(String, SegmentRecord)>, Vec<u8>);
 /// adopting files that workers wrote. Arguments: the base snapshot, the target version, the unit.
 pub(crate) type Producer<'p> = dyn Fn(&Snapshot<'_>, u64, &UnitSpec) -> Result<ProducedUnit> + Sync + 'p;
 
+/// The name of part `part` of unit `unit`'s segment of `stage` at `version`.
 pub fn segment_name(stage: &str, version: u64, unit: u64, part: usize) -> String {
     format!("{stage}-v{version:08}-u{unit:010}-p{part:03}.seg")
 }
@@ -506,6 +523,7 @@ impl Store {
         Ok(units)
     }
 
+    /// Whether a run of `stage` was begun and not finished (what `--resume` continues).
     pub fn run_in_progress(&self, stage: &str) -> Result<bool> {
         let txn = self.catalog().begin_read()?;
         let runs = txn.open_table(STAGE_RUNS)?;

@@ -63,14 +63,17 @@ impl<'s> Snapshot<'s> {
         })
     }
 
+    /// The store the snapshot reads.
     pub fn store(&self) -> &'s Store {
         self.store
     }
 
+    /// The pinned version.
     pub fn version(&self) -> u64 {
         self.version
     }
 
+    /// The version's catalog record (kind, parent, summary).
     pub fn record(&self) -> &VersionRecord {
         &self.record
     }
@@ -85,6 +88,7 @@ impl<'s> Snapshot<'s> {
         self.stages.get(stage).map(Vec::as_slice).unwrap_or(&[])
     }
 
+    /// Every segment the version sees, of every stage.
     pub fn all_segments(&self) -> impl Iterator<Item = &(String, SegmentRecord)> {
         self.stages.values().flatten()
     }
@@ -156,10 +160,12 @@ impl SegmentFile {
         Ok(SegmentFile { path, map })
     }
 
+    /// The segment file's path.
     pub fn path(&self) -> &std::path::Path {
         &self.path
     }
 
+    /// The file's bytes (memory-mapped).
     pub fn bytes(&self) -> &[u8] {
         &self.map
     }
@@ -169,6 +175,7 @@ impl SegmentFile {
         SegmentReader::parse(&self.map).map_err(|detail| self.corruption(detail))
     }
 
+    /// A corruption error naming this file.
     pub fn corruption(&self, detail: crate::format::DecodeError) -> StoreError {
         StoreError::Corruption {
             file: self.path.clone(),

@@ -7,18 +7,23 @@ use xxhash_rust::xxh3::xxh3_64;
 use super::catalog::{self, SEGMENTS, SegmentRecord};
 use super::snapshot::SegmentFile;
 use super::{Result, Snapshot, Store, StoreError};
-use crate::format::{CubeKey, DecodeError, Region, SegmentReader};
+use crate::format::{CubeKey, DecodeError, SegmentPart, SegmentReader};
 
+/// What `verify` checked and found.
 #[derive(Debug, Default, Clone)]
 pub struct VerifyReport {
+    /// Segments checked.
     pub segments: usize,
+    /// Bytes checked.
     pub bytes: u64,
+    /// Rows checked.
     pub rows: u64,
     /// One line per problem, naming the file and where in it.
     pub problems: Vec<String>,
 }
 
 impl VerifyReport {
+    /// Whether no problem was found.
     pub fn is_ok(&self) -> bool {
         self.problems.is_empty()
     }
@@ -38,10 +43,10 @@ fn damage(shown: &std::path::Display<'_>, record: &SegmentRecord, detail: &Decod
     let block_level = matches!(
         detail,
         DecodeError::Corrupt {
-            region: Region::Block { .. },
+            part: SegmentPart::Block { .. },
             ..
         } | DecodeError::ChecksumMismatch {
-            region: Region::Block { .. },
+            part: SegmentPart::Block { .. },
             ..
         }
     );
@@ -52,43 +57,58 @@ fn damage(shown: &std::path::Display<'_>, record: &SegmentRecord, detail: &Decod
     }
 }
 
-fn check_segment(store: &Store, name: &str, record: &SegmentRecord) -> std::result::Result<(), String> {
+/// What is wrong with one segment, as `verify` reports it (file, column, key range).
+struct SegmentProblem(String);
+
+/// The first problem of segment `name`, if it has one.
+fn segment_problem(store: &Store, name: &str, record: &SegmentRecord) -> Option<String> {
+    check_segment(store, name, record)
+        .err()
+        .map(|SegmentProblem(problem)| problem)
+}
+
+fn check_segment(store: &Store, name: &str, record: &SegmentRecord) -> std::result::Result<(), SegmentProblem> {
     let path = store.segment_path(name);
     let shown = path.display();
-    let file =
-        SegmentFile::open(path.clone(), record).map_err(|e| format!("{e} (segment {})", describe_range(record)))?;
+    let file = SegmentFile::open(path.clone(), record)
+        .map_err(|e| SegmentProblem(format!("{e} (segment {})", describe_range(record))))?;
     // Locate the damage first, so the message names the column and key range.
-    let located = (|| -> std::result::Result<(), String> {
-        let reader = SegmentReader::parse(file.bytes()).map_err(|detail| damage(&shown, record, &detail))?;
-        let digest = reader.verify().map_err(|detail| damage(&shown, record, &detail))?;
+    let located = (|| -> std::result::Result<(), SegmentProblem> {
+        let reader =
+            SegmentReader::parse(file.bytes()).map_err(|detail| SegmentProblem(damage(&shown, record, &detail)))?;
+        let digest = reader
+            .verify()
+            .map_err(|detail| SegmentProblem(damage(&shown, record, &detail)))?;
         if digest != record.content_digest {
-            return Err(format!(
+            return Err(SegmentProblem(format!(
                 "segment {shown}: content digest {digest:016x} differs from the catalog's {:016x} (segment {})",
                 record.content_digest,
                 describe_range(record)
-            ));
+            )));
         }
         if reader.rows() != record.rows
             || reader.first_key().raw() != record.first_key
             || reader.last_key().raw() != record.last_key
         {
-            return Err(format!(
+            return Err(SegmentProblem(format!(
                 "segment {shown}: rows or key range differ from the catalog ({} rows, {})",
                 record.rows,
                 describe_range(record)
-            ));
+            )));
         }
         Ok(())
     })();
     located?;
     let got = xxh3_64(file.bytes());
     if got != record.file_checksum {
-        return Err(StoreError::ChecksumMismatch {
-            file: path,
-            got,
-            expected: record.file_checksum,
-        }
-        .to_string());
+        return Err(SegmentProblem(
+            StoreError::ChecksumMismatch {
+                file: path,
+                got,
+                expected: record.file_checksum,
+            }
+            .to_string(),
+        ));
     }
     Ok(())
 }
@@ -110,7 +130,7 @@ impl Store {
         };
         let mut problems: Vec<String> = records
             .par_iter()
-            .filter_map(|(name, record)| check_segment(self, name, record).err())
+            .filter_map(|(name, record)| segment_problem(self, name, record))
             .collect();
         problems.sort();
         let snapshot = self.latest()?;

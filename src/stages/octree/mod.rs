@@ -12,6 +12,8 @@
 //! plus all children of internal nodes. Nodes keep the radius sums of the samples that
 //! requested them (eq. 5); nodes added by balance or completion have none.
 
+pub mod external_sort;
+
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet, BinaryHeap};
 use std::path::{Path, PathBuf};
@@ -21,11 +23,10 @@ use rayon::prelude::*;
 use redb::{ReadableTable, WriteTransaction};
 use serde::{Deserialize, Serialize};
 
-use super::records::{CubeRecord, KeySorter, RecordReader, RecordWriter};
-use super::scene::Scene;
+use self::external_sort::{CubeRecord, KeySorter, RecordReader, RecordWriter};
 use super::{INGEST, OCTREE};
 use crate::format::segment::content_digest;
-use crate::format::{Column, ColumnValues, CubeKey};
+use crate::format::{Column, ColumnValues, CubeKey, Scene};
 use crate::store::catalog::{self, UNIT_STATE, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
@@ -767,7 +768,7 @@ impl Stage for OctreeStage {
             table.remove((OCTREE, key))?;
         }
         txn.open_table(crate::store::catalog::META)?
-            .insert(super::META_OCTREE_MAX_DEPTH, [prepared.finest].as_slice())?;
+            .insert(crate::stages::META_OCTREE_MAX_DEPTH, [prepared.finest].as_slice())?;
         for unit in prepared.units.iter().filter(|u| !u.top) {
             let entry = (unit.ranges.first().map(|r| r.0).unwrap_or(0), unit.cubes());
             table.insert((OCTREE, unit.key), catalog::encode(&entry).as_slice())?;

@@ -1,188 +1,28 @@
-//! The pipeline as a library: what `octstore ingest` and `octstore solve` do, for code that
-//! drives a store itself. Each call runs its stages through the store's stage runner, so it is
-//! resumable and a no-op when its inputs have not changed.
-//!
-//! ```
-//! use octstore::pipeline::{SolveOptions, ingest, solve};
-//! use octstore::scenes::SceneSpec;
-//! use octstore::stages::extract::Region;
-//! use octstore::stages::ingest::IngestOptions;
-//! use octstore::stages::inputs::DiscoverOptions;
-//! use octstore::stages::solve::SolveParams;
-//! use octstore::{IndicatorField, Store};
-//!
-//! let dir = tempfile::tempdir()?;
-//! // The built-in demo scene: a sphere on a box, seen by 16 cameras of 160x120 pixels.
-//! let scene = SceneSpec::demo();
-//! let manifest = scene.write(&dir.path().join("input"))?;
-//!
-//! let store = Store::create(dir.path().join("store"))?;
-//! let ingest_options = IngestOptions { max_depth: 8, root_margin: 0.05, ..IngestOptions::default() };
-//! ingest(&store, &[manifest], &DiscoverOptions::default(), &ingest_options, &Default::default())?;
-//! let params = SolveParams { iterations: 60, ..SolveParams::default() };
-//! solve(&store, &SolveOptions { params, ..SolveOptions::default() }, |_report| {})?;
-//! drop(store);
-//!
-//! // Read the indicator field from a read-only handle: negative inside, positive outside.
-//! let store = Store::open_read_only(dir.path().join("store"))?;
-//! let snapshot = store.latest()?;
-//! let inside = snapshot.indicator_at(glam::DVec3::new(0.0, 0.0, 0.62))?.expect("inside the root");
-//! let outside = snapshot.indicator_at(glam::DVec3::new(1.0, 0.0, 0.4))?.expect("inside the root");
-//! assert!(inside < 0.0 && outside > 0.0, "u inside {inside}, outside {outside}");
-//! // The cubes of the finest level around the sphere's top, with centre, size, u, histogram.
-//! let level = snapshot.finest_level().expect("solved");
-//! let top = Region { min: glam::DVec3::new(-0.1, -0.1, 0.6), max: glam::DVec3::new(0.1, 0.1, 0.8) };
-//! let cubes = snapshot.cubes_in(&top, level)?;
-//! assert!(cubes.iter().any(|c| c.u < 0.0) && cubes.iter().any(|c| c.u > 0.0));
-//! # Ok::<(), Box<dyn std::error::Error>>(())
-//! ```
+//! Cluster runs: the stages a cluster works on, the Slurm job chain that runs them, and the
+//! chunked extraction (plan, work, commit) that ends it. Workers never write the catalog; the
+//! commit step is the only writer (format-spec.md, "Cluster chunk files").
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
+use super::{PipelineError, Result, io_error, required_scene};
+use crate::gpu::{DeviceChoice, Gpu};
+use crate::mesh::UnitMesh;
 use crate::stages::extract::{
-    ExtractOptions, MeshSummary, UnitMesh, assemble, extract_units, stream_to_file, unit_mesh, write_assembled,
+    ExtractOptions, MeshSummary, assemble, extract_units, stream_to_file, unit_mesh, write_assembled,
 };
 use crate::stages::histograms::HistogramsStage;
-use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps};
-use crate::stages::inputs::{DiscoverOptions, discover};
-use crate::stages::octree::{OctreeStage, effective_leaf_cubes};
+use crate::stages::ingest::registered_depth_maps;
 use crate::stages::solve::{LEVEL_STAGES, LevelStage, SolveParams};
 use crate::stages::treetop::Treetop;
-use crate::stages::{HISTOGRAMS, INGEST, OCTREE, octree_max_depth};
+use crate::stages::{HISTOGRAMS, OCTREE, octree_max_depth};
 use crate::store::cluster::{ClusterPlan, WorkReport, decode_chunk_file, encode_chunk_file};
-use crate::store::{Result, RunOptions, RunReport, Stage, Store, StoreError};
-
-/// How far `solve` goes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
-pub enum SolveUntil {
-    Octree,
-    Histograms,
-    Solution,
-}
-
-#[derive(Clone, Debug)]
-pub struct SolveOptions {
-    pub until: SolveUntil,
-    /// Treetop leaves hold fewer cubes than this (capped by the memory budget).
-    pub leaf_cubes: u64,
-    /// Bytes the whole process may use; the octree build's sorter gets a quarter.
-    pub memory_budget: u64,
-    pub params: SolveParams,
-    pub run: RunOptions,
-    /// Where the histogram votes and the solver's iterations run.
-    pub device: crate::gpu::DeviceChoice,
-}
-
-impl Default for SolveOptions {
-    fn default() -> Self {
-        SolveOptions {
-            until: SolveUntil::Solution,
-            leaf_cubes: 1 << 24,
-            memory_budget: 1 << 30,
-            params: SolveParams::default(),
-            run: RunOptions::default(),
-            device: crate::gpu::DeviceChoice::Auto,
-        }
-    }
-}
-
-/// The store's scene, or an error for `stage` that says to ingest first.
-fn required_scene(store: &Store, stage: &str) -> Result<crate::stages::scene::Scene> {
-    read_scene(store)?.ok_or_else(|| StoreError::Stage {
-        stage: stage.into(),
-        unit: "-".into(),
-        message: "the store has no depth maps yet: run `octstore ingest` first".into(),
-    })
-}
-
-/// Registers the depth maps named by `inputs` and writes their cubes, as one new version.
-pub fn ingest(
-    store: &Store,
-    inputs: &[PathBuf],
-    discover_options: &DiscoverOptions,
-    options: &IngestOptions,
-    run: &RunOptions,
-) -> Result<RunReport> {
-    let sources = discover(inputs, discover_options).map_err(|e| StoreError::Stage {
-        stage: INGEST.into(),
-        unit: "inputs".into(),
-        message: e.to_string(),
-    })?;
-    let stage = IngestStage::prepare(store, sources, options)?;
-    store.run_stage(&stage, run)
-}
-
-/// Runs the pending stages up to `options.until`: the octree, the histograms, then every level
-/// of the solution coarse to fine. `on_report` sees each stage's report as it finishes.
-pub fn solve(store: &Store, options: &SolveOptions, on_report: impl FnMut(&RunReport)) -> Result<()> {
-    let gpu = if options.until >= SolveUntil::Histograms {
-        open_gpu(options.device)?
-    } else {
-        None
-    };
-    solve_with_gpu(store, options, gpu, on_report)
-}
-
-/// [`solve`] with the votes and the solver's iterations on an already open `gpu`
-/// (`options.device` unused).
-pub fn solve_with_gpu(
-    store: &Store,
-    options: &SolveOptions,
-    gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
-    mut on_report: impl FnMut(&RunReport),
-) -> Result<()> {
-    let scene = required_scene(store, OCTREE)?;
-    if options.until >= SolveUntil::Octree {
-        let scratch = store.scratch_dir(OCTREE)?;
-        let leaf_cubes = effective_leaf_cubes(options.leaf_cubes, options.memory_budget, options.run.threads);
-        let stage = OctreeStage::new(scene, leaf_cubes, options.memory_budget / 4, scratch.clone());
-        on_report(&store.run_stage(&stage, &options.run)?);
-        // Scratch files are rebuilt by any later run; a failure to remove them costs only disk.
-        let _ = std::fs::remove_dir_all(scratch);
-    }
-    if options.until >= SolveUntil::Histograms {
-        // Stages run one at a time: an eighth of the budget for decoded depth maps, beside the
-        // workers' groups of leaves, keeps the histogram stage within the budget.
-        let stage = HistogramsStage::new(scene, registered_depth_maps(store)?)
-            .with_cache_bytes(options.memory_budget / 8)
-            .with_gpu(gpu.clone());
-        on_report(&store.run_stage(&stage, &options.run)?);
-    }
-    if options.until >= SolveUntil::Solution {
-        for level in 0..=octree_max_depth(store)? {
-            let stage = LevelStage::new(level, scene, options.params).with_gpu(gpu.clone());
-            on_report(&store.run_stage(&stage, &options.run)?);
-        }
-    }
-    Ok(())
-}
-
-/// The device `choice` names: an error only when `gpu` was asked for and none opens; `auto`
-/// falls back to the CPU with a warning.
-pub fn open_gpu(choice: crate::gpu::DeviceChoice) -> Result<Option<std::sync::Arc<crate::gpu::Gpu>>> {
-    match crate::gpu::Gpu::open(choice) {
-        Ok(gpu) => Ok(gpu.map(std::sync::Arc::new)),
-        Err(error) if choice == crate::gpu::DeviceChoice::Auto => {
-            tracing::warn!("{error}; solving on the CPU");
-            Ok(None)
-        }
-        Err(error) => Err(StoreError::Stage {
-            stage: "solve".into(),
-            unit: "--device gpu".into(),
-            message: error.to_string(),
-        }),
-    }
-}
+use crate::store::{Stage, Store};
 
 /// The stage a cluster run works on, by its catalog name: `histograms` or `solution-LL`. The
 /// octree is one global merge and is built by a single process (`solve --until octree`).
 /// `gpu`, when given, runs the votes or the iterations (with the CPU fallback per unit).
-pub fn cluster_stage(
-    store: &Store,
-    name: &str,
-    params: SolveParams,
-    gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
-) -> Result<Box<dyn Stage>> {
+pub fn cluster_stage(store: &Store, name: &str, params: SolveParams, gpu: Option<Arc<Gpu>>) -> Result<Box<dyn Stage>> {
     let scene = required_scene(store, name)?;
     if name == HISTOGRAMS {
         return Ok(Box::new(
@@ -197,28 +37,40 @@ pub fn cluster_stage(
     } else {
         "cluster stages are `histograms` and `solution-00` to `solution-32`"
     };
-    Err(StoreError::Stage {
+    Err(PipelineError::NotAClusterStage {
         stage: name.into(),
-        unit: "-".into(),
-        message: hint.into(),
+        hint,
     })
+}
+
+/// The stage of a recorded cluster plan, rebuilt with the plan's solver parameters.
+pub fn stage_of_plan(store: &Store, stage: &str, gpu: Option<Arc<Gpu>>) -> Result<Box<dyn Stage>> {
+    let plan = store
+        .cluster_plan(stage)?
+        .ok_or_else(|| PipelineError::NoPlan { stage: stage.into() })?;
+    let params: SolveParams = crate::store::catalog::decode("cluster plan args", &plan.args)?;
+    cluster_stage(store, stage, params, gpu)
 }
 
 /// Options of the generated Slurm job chain.
 #[derive(Clone, Debug)]
 pub struct SlurmOptions {
+    /// Tasks of each job array.
     pub chunks: u32,
+    /// The Slurm partition, if not the default.
     pub partition: Option<String>,
     /// Extra `#SBATCH` options, verbatim (for example `--time=01:00:00`).
     pub sbatch_args: Vec<String>,
     /// The `octstore` binary the jobs run (the same on every node).
     pub binary: PathBuf,
+    /// The solver's parameters.
     pub params: SolveParams,
+    /// Bytes each job may use.
     pub memory_budget: u64,
     /// Treetop leaf size of the octree job.
     pub leaf_cubes: u64,
     /// `--device` of the work jobs of the histograms and the levels.
-    pub device: crate::gpu::DeviceChoice,
+    pub device: DeviceChoice,
     /// Extract the mesh into this file at the end of the chain.
     pub output: Option<PathBuf>,
 }
@@ -226,8 +78,11 @@ pub struct SlurmOptions {
 /// One job of the chain: its name, whether it is an array of `chunks` tasks, and its script.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SlurmJob {
+    /// The job's name (`octree`, `histograms-plan`, `solution-05-work`, ...).
     pub name: String,
+    /// Tasks of a job array; `None` for a single task.
     pub array: Option<u32>,
+    /// The batch script.
     pub script: String,
 }
 
@@ -247,7 +102,7 @@ fn shell_quote(text: &str) -> String {
 /// succeeds: the octree (one task), then per stage (histograms, each solution level) a plan
 /// job, an array of `chunks` work tasks and a commit job. `levels` is the deepest level the
 /// chain solves (the scene's maximum depth: levels past the octree's finest have no units).
-pub fn slurm_jobs(store: &std::path::Path, levels: u8, options: &SlurmOptions) -> Vec<SlurmJob> {
+pub fn slurm_jobs(store: &Path, levels: u8, options: &SlurmOptions) -> Vec<SlurmJob> {
     let store = shell_quote(&store.display().to_string());
     let bin = shell_quote(&options.binary.display().to_string());
     let p = options.params;
@@ -367,11 +222,7 @@ fn checked_extract_plan(store: &Store) -> Result<(ClusterPlan, ExtractPlanArgs, 
     let snapshot = store.latest()?;
     let finest = octree_max_depth(store)?;
     if snapshot.version() != plan.base_version || extract_fingerprint(&snapshot, finest, &args) != plan.fingerprint {
-        return Err(StoreError::Stage {
-            stage: EXTRACT.into(),
-            unit: "plan".into(),
-            message: "the store changed since the plan was made: run `octstore plan` again".into(),
-        });
+        return Err(PipelineError::StalePlan);
     }
     Ok((plan, args, finest))
 }
@@ -389,7 +240,7 @@ pub fn work_extract(store: &Store, chunk: u32) -> Result<WorkReport> {
     let snapshot = store.latest()?;
     let treetop = Treetop::of(&snapshot)?;
     let dir = store.chunk_dir(&plan);
-    std::fs::create_dir_all(&dir).map_err(crate::store::io_error("create directory", &dir))?;
+    std::fs::create_dir_all(&dir).map_err(io_error("create directory", &dir))?;
     let units = plan.chunk_units(chunk);
     let mut skipped = 0;
     for &unit in units {
@@ -428,7 +279,7 @@ pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
         .map(|&unit| plan.chunk_of(unit))
         .collect();
     if !missing.is_empty() {
-        return Err(plan.missing_chunks_error(&missing));
+        return Err(plan.missing_chunks_error(&missing).into());
     }
     let summary = if args.options.region.is_none() && args.options.decimate.is_none() {
         // Streamed one piece at a time, like `octstore extract`.
@@ -451,7 +302,7 @@ pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
         let damaged = damaged.into_inner();
         if !damaged.is_empty() {
             let _ = std::fs::remove_file(&args.output);
-            return Err(plan.missing_chunks_error(&damaged));
+            return Err(plan.missing_chunks_error(&damaged).into());
         }
         streamed?
     } else {
@@ -466,10 +317,44 @@ pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
             }
         }
         if !damaged.is_empty() {
-            return Err(plan.missing_chunks_error(&damaged));
+            return Err(plan.missing_chunks_error(&damaged).into());
         }
         write_assembled(&args.output, &assemble(meshes, &args.options))?
     };
     store.remove_cluster_plan(&plan)?;
     Ok((summary, args.output))
+}
+
+/// Submits the chain with `sbatch --parsable`, each job after the previous one succeeded;
+/// returns each job's name and id, in order. The scripts are kept in `STORE/slurm/`.
+pub fn submit_slurm_jobs(store: &Path, jobs: &[SlurmJob]) -> Result<Vec<(String, String)>> {
+    let scripts = store.join("slurm");
+    std::fs::create_dir_all(&scripts).map_err(io_error("create directory", &scripts))?;
+    let mut submitted: Vec<(String, String)> = Vec::with_capacity(jobs.len());
+    for job in jobs {
+        let path = scripts.join(format!("{}.sh", job.name));
+        std::fs::write(&path, &job.script).map_err(io_error("write job script", &path))?;
+        let mut command = std::process::Command::new("sbatch");
+        command
+            .arg("--parsable")
+            .arg(format!("--output={}/%x-%A_%a.out", scripts.display()));
+        if let Some((_, id)) = submitted.last() {
+            command.arg(format!("--dependency=afterok:{id}"));
+        }
+        let output = command.arg(&path).output().map_err(io_error("run sbatch", &path))?;
+        if !output.status.success() {
+            return Err(PipelineError::Sbatch {
+                job: job.name.clone(),
+                message: String::from_utf8_lossy(&output.stderr).trim().to_string(),
+            });
+        }
+        let id = String::from_utf8_lossy(&output.stdout)
+            .trim()
+            .split(';')
+            .next()
+            .unwrap_or_default()
+            .to_string();
+        submitted.push((job.name.clone(), id));
+    }
+    Ok(submitted)
 }

@@ -11,9 +11,10 @@ use std::path::{Path, PathBuf};
 
 use glam::{DMat4, DVec3};
 
-use crate::scenes::{Noise, Shape, add_noise, look_at, uniform, write_pinhole_views};
-use crate::stages::depthmap::DepthImage;
-use crate::stages::extract::Mesh;
+use super::synthetic_scenes::{Noise, Shape, add_noise, look_at, write_pinhole_views};
+use crate::inputs::DepthImage;
+use crate::kernels::random::uniform;
+use crate::mesh::Mesh;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum Layout {
@@ -57,8 +58,8 @@ pub struct GroundTruth {
 }
 
 impl GroundTruth {
-    pub fn new(mesh: Mesh, room: Option<f64>) -> Result<GroundTruth, String> {
-        let (lo, hi) = bounds(&mesh).ok_or("the mesh has no triangles")?;
+    pub fn new(mesh: Mesh, room: Option<f64>) -> Result<GroundTruth, super::QualityError> {
+        let (lo, hi) = bounds(&mesh).ok_or(super::QualityError::NoTriangles)?;
         Ok(GroundTruth {
             center: (lo + hi) * 0.5,
             diagonal: (hi - lo).length(),

@@ -1,9 +1,11 @@
-//! The scene: the fixed root cube that maps world space to cube keys.
+//! World space: the scene's fixed root cube, which maps world coordinates to cube keys (its
+//! bincode encoding is stored in the catalog's meta table under [`META_SCENE`]), and
+//! axis-aligned boxes in world coordinates (extraction regions, cube queries).
 
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
-use crate::format::{CubeKey, MAX_DEPTH};
+use super::{CubeKey, MAX_DEPTH};
 
 /// Meta key holding the bincode-encoded [`Scene`].
 pub const META_SCENE: &str = "scene";
@@ -16,7 +18,9 @@ pub const RADIUS_FRACTION_BITS: i32 = 32;
 /// The root cube, fixed at the first ingest. `r_root` (eq. 4) is half its side.
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
 pub struct Scene {
+    /// The root cube's minimum corner in world coordinates.
     pub root_min: [f64; 3],
+    /// The root cube's side.
     pub root_side: f64,
     /// Deepest level a sample may spawn a cube at.
     pub max_depth: u8,
@@ -36,14 +40,17 @@ impl Scene {
         }
     }
 
+    /// r_root of eq. 4: half the root's side.
     pub fn root_radius(&self) -> f64 {
         self.root_side * 0.5
     }
 
+    /// The root cube's minimum corner.
     pub fn min(&self) -> DVec3 {
         DVec3::from_array(self.root_min)
     }
 
+    /// Whether `p` lies in the root cube.
     pub fn contains(&self, p: DVec3) -> bool {
         let q = (p - self.min()) / self.root_side;
         q.cmpge(DVec3::ZERO).all() && q.cmplt(DVec3::ONE).all()
@@ -124,4 +131,13 @@ mod tests {
             assert!(((p - c).abs().max_element()) <= half * (1.0 + 1e-9), "depth {depth}");
         }
     }
+}
+
+/// An axis-aligned box in world coordinates (an extraction region, a query box).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BoundingBox {
+    /// The corner with the smallest coordinates.
+    pub min: DVec3,
+    /// The corner with the largest coordinates.
+    pub max: DVec3,
 }

@@ -16,7 +16,7 @@ use glam::Vec4;
 use wgpu::util::DeviceExt;
 
 use super::{Gpu, GpuError, grid};
-use crate::stages::tgv::{Gather, Kernel, Packed};
+use crate::kernels::tgv::{Gather, Kernel, Packed, Problem, State};
 
 /// The uniform both shaders read (`Params` in the WGSL).
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
@@ -311,6 +311,7 @@ fn chunks_for(gpu: &Gpu, kernel: &Kernel) -> Result<Option<Vec<Chunk>>, GpuError
     Err(error)
 }
 
+// long function iterate: buffer creation, bind groups and the dispatch loop share every buffer handle; split, each part would take a dozen of them as arguments.
 /// Runs `iterations` steps of `kernel` on `state` on the GPU, in chunks when the unit's buffers
 /// exceed a binding. On error `state` is untouched, so the caller can run the same iterations
 /// on the CPU.
@@ -554,4 +555,22 @@ fn read_back(gpu: &Gpu, buffers: &[&wgpu::Buffer], bytes: u64) -> Result<Vec<Vec
         .iter()
         .map(|part| bytemuck::pod_collect_to_vec(part))
         .collect())
+}
+
+/// [`crate::kernels::tgv::solve`] with the iterations on `gpu` when given. A GPU failure (out of memory, device lost, a
+/// buffer over the adapter's limits) is logged and the same iterations run on the CPU, from the
+/// same starting state; energies before and after.
+pub fn solve_on(gpu: Option<&Gpu>, problem: &Problem, state: &mut State, iterations: usize) -> (f64, f64) {
+    crate::kernels::tgv::solve_accelerated(problem, state, iterations, |kernel, packed| {
+        let Some(gpu) = gpu else { return false };
+        let result = iterate(gpu, kernel, packed, iterations);
+        gpu.count(result.is_ok());
+        match result {
+            Ok(()) => true,
+            Err(error) => {
+                tracing::warn!("{error}; this unit's {} cubes run on the CPU", kernel.n);
+                false
+            }
+        }
+    })
 }

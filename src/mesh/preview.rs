@@ -2,7 +2,7 @@
 
 use glam::{Vec3, Vec3Swizzles};
 
-use crate::stages::extract::Mesh;
+use super::Mesh;
 
 /// Where the picture is taken from.
 #[derive(Clone, Copy, Debug)]
@@ -13,7 +13,12 @@ pub enum View {
     /// A pinhole camera with OpenCV axes (x right, y down, z forward), its principal point at
     /// the image centre: the same picture for every mesh given the same pose, so that meshes
     /// from different methods can be compared side by side.
-    Pinhole { camera_to_world: glam::DMat4, focal: f64 },
+    Pinhole {
+        /// Camera-to-world pose.
+        camera_to_world: glam::DMat4,
+        /// Focal length in pixels.
+        focal: f64,
+    },
 }
 
 /// Renders the mesh shaded (Lambert, two-sided) from a fixed 3/4 view, fitted to its bounds.

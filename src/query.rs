@@ -7,39 +7,47 @@
 use glam::DVec3;
 use serde::Serialize;
 
-use super::HISTOGRAMS;
-use super::extract::Region;
-use super::histograms::BINS;
-use super::ingest::read_scene;
-use super::scene::Scene;
-use super::solve::{LEVEL_STAGES, LevelCut};
-use super::treetop::Treetop;
-use crate::format::{CubeKey, MAX_DEPTH};
+use crate::format::{BoundingBox, CubeKey, MAX_DEPTH, Scene};
+use crate::kernels::votes::BINS;
+use crate::stages::HISTOGRAMS;
+use crate::stages::ingest::read_scene;
+use crate::stages::solve::{LEVEL_STAGES, LevelCut};
+use crate::stages::treetop::Treetop;
 use crate::store::{Result, Snapshot, StoreError};
 
 /// One cube of a level cut, as `cubes_in` returns it.
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct CubeInfo {
+    /// The cube's key, in its display form.
     pub key: String,
+    /// The cube's depth.
     pub depth: u8,
+    /// Centre in world units.
     pub center: [f64; 3],
+    /// Side in world units.
     pub size: f64,
+    /// The indicator: negative inside, positive outside.
     pub u: f32,
+    /// The cube's vote histogram (8 bins over the signed distance [-1, 1]).
     pub histogram: [f32; BINS],
 }
 
 /// One treetop leaf, as `leaves` lists it.
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct LeafInfo {
+    /// The leaf's key, in its display form.
     pub key: String,
+    /// The leaf's depth.
     pub depth: u8,
     /// Minimum corner and side of the leaf's cube, in world units.
     pub min: [f64; 3],
+    /// Side of the leaf's cube.
     pub size: f64,
     /// Octree cubes in the leaf.
     pub cubes: u64,
 }
 
+/// Reading the solved indicator field u from a pinned [`Snapshot`].
 pub trait IndicatorField {
     /// The deepest solved level visible in this snapshot.
     fn finest_level(&self) -> Option<u8>;
@@ -55,7 +63,7 @@ pub trait IndicatorField {
     fn indicator_at(&self, point: DVec3) -> Result<Option<f32>>;
 
     /// Cubes of the level-`level` cut that meet `bbox`, with centre, size, u and histogram.
-    fn cubes_in(&self, bbox: &Region, level: u8) -> Result<Vec<CubeInfo>>;
+    fn cubes_in(&self, bbox: &BoundingBox, level: u8) -> Result<Vec<CubeInfo>>;
 }
 
 fn scene_of(snapshot: &Snapshot<'_>) -> Result<Scene> {
@@ -157,7 +165,7 @@ impl IndicatorField for Snapshot<'_> {
         Ok(Some(if weights > 0.0 { (sum / weights) as f32 } else { u }))
     }
 
-    fn cubes_in(&self, bbox: &Region, level: u8) -> Result<Vec<CubeInfo>> {
+    fn cubes_in(&self, bbox: &BoundingBox, level: u8) -> Result<Vec<CubeInfo>> {
         let scene = scene_of(self)?;
         let treetop = Treetop::of(self)?;
         let mut level_cut = LevelCut::new(self, &treetop, level);

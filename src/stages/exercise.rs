@@ -12,7 +12,7 @@ const UNIT_DEPTH: u8 = 4;
 const ROW_DEPTH: u8 = 14;
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Eq)]
-pub struct SyntheticStage {
+pub struct ExerciseStage {
     pub units: u32,
     pub rows_per_unit: u32,
     pub seed: u64,
@@ -29,7 +29,7 @@ fn splitmix64(state: &mut u64) -> u64 {
     z ^ (z >> 31)
 }
 
-impl SyntheticStage {
+impl ExerciseStage {
     /// The columns of one unit: keys inside the unit's cube, and every column kind a real stage
     /// writes (radius sum and count, histogram, u, v, p, q).
     pub fn unit_columns(&self, unit: u64) -> Vec<Column> {
@@ -81,7 +81,7 @@ impl SyntheticStage {
     }
 }
 
-impl Stage for SyntheticStage {
+impl Stage for ExerciseStage {
     fn name(&self) -> &'static str {
         NAME
     }

@@ -21,7 +21,7 @@ use std::path::Path;
 
 use glam::{DMat4, DQuat, DVec3};
 
-use super::depthmap::{DepthImage, DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
+use super::depth_map::{DepthImage, DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
 
 /// Valid returns measured per scan to estimate its angular step.
 pub const STEP_SAMPLE_POINTS: usize = 200_000;

@@ -6,14 +6,27 @@
 use std::io::Read;
 use std::path::Path;
 
-use crate::stages::extract::Mesh;
+use super::Mesh;
 
-fn err(path: &Path, problem: impl std::fmt::Display) -> String {
-    format!("{}: {problem}", path.display())
+/// A mesh file that cannot be read: the file and the problem.
+#[derive(Debug, thiserror::Error)]
+#[error("{}: {problem}", path.display())]
+pub struct MeshReadError {
+    /// The file.
+    pub path: std::path::PathBuf,
+    /// What is wrong with it.
+    pub problem: String,
+}
+
+fn err(path: &Path, problem: impl std::fmt::Display) -> MeshReadError {
+    MeshReadError {
+        path: path.to_path_buf(),
+        problem: problem.to_string(),
+    }
 }
 
 /// Reads a mesh by its extension (`.off`, `.ply`, `.obj`, each optionally followed by `.gz`).
-pub fn read_mesh(path: &Path) -> Result<Mesh, String> {
+pub fn read_mesh(path: &Path) -> Result<Mesh, MeshReadError> {
     let raw = std::fs::read(path).map_err(|e| err(path, e))?;
     let name = path.to_string_lossy().to_lowercase();
     let (bytes, name) = match name.strip_suffix(".gz") {
@@ -56,7 +69,7 @@ fn fan(polygon: &[u32], triangles: &mut Vec<[u32; 3]>) {
     }
 }
 
-fn read_off(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
+fn read_off(path: &Path, bytes: &[u8]) -> Result<Mesh, MeshReadError> {
     let text = std::str::from_utf8(bytes).map_err(|_| err(path, "OFF file is not text"))?;
     let mut tokens = text
         .lines()
@@ -65,7 +78,7 @@ fn read_off(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
     if tokens.next() != Some("OFF") {
         return Err(err(path, "not an OFF file (no OFF magic)"));
     }
-    let mut number = |what: &str| -> Result<f64, String> {
+    let mut number = |what: &str| -> Result<f64, MeshReadError> {
         let t = tokens
             .next()
             .ok_or_else(|| err(path, format!("truncated OFF: missing {what}")))?;
@@ -98,7 +111,7 @@ fn read_off(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
     Ok(mesh)
 }
 
-fn read_obj(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
+fn read_obj(path: &Path, bytes: &[u8]) -> Result<Mesh, MeshReadError> {
     let text = std::str::from_utf8(bytes).map_err(|_| err(path, "OBJ file is not text"))?;
     let mut mesh = Mesh::default();
     let mut polygon = Vec::new();
@@ -200,7 +213,7 @@ struct PlyValues<'a> {
 }
 
 impl PlyValues<'_> {
-    fn next(&mut self, scalar: Scalar) -> Result<f64, String> {
+    fn next(&mut self, scalar: Scalar) -> Result<f64, MeshReadError> {
         if self.encoding == Encoding::Ascii {
             while self.bytes.get(self.pos).is_some_and(u8::is_ascii_whitespace) {
                 self.pos += 1;
@@ -241,7 +254,7 @@ impl PlyValues<'_> {
     }
 }
 
-fn read_ply_bytes(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
+fn read_ply_bytes(path: &Path, bytes: &[u8]) -> Result<Mesh, MeshReadError> {
     let marker = b"end_header";
     let at = bytes
         .windows(marker.len())
@@ -311,8 +324,18 @@ fn read_ply_bytes(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
                 format!("element {} claims {} rows", element.name, element.count),
             ));
         }
+        let is_vertex = element.name == "vertex";
+        let has = |name: &str| {
+            element
+                .properties
+                .iter()
+                .any(|p| matches!(p, Property::Scalar(n, _) if n == name))
+        };
+        // Normals are kept when the vertices carry all three components (octstore's own PLY).
+        let with_normals = is_vertex && has("nx") && has("ny") && has("nz");
         for _ in 0..element.count {
             let mut position = [0f32; 3];
+            let mut normal = [0f32; 3];
             for property in &element.properties {
                 match property {
                     Property::Scalar(name, scalar) => {
@@ -322,6 +345,9 @@ fn read_ply_bytes(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
                                 "x" => position[0] = v as f32,
                                 "y" => position[1] = v as f32,
                                 "z" => position[2] = v as f32,
+                                "nx" => normal[0] = v as f32,
+                                "ny" => normal[1] = v as f32,
+                                "nz" => normal[2] = v as f32,
                                 _ => {}
                             }
                         }
@@ -345,8 +371,11 @@ fn read_ply_bytes(path: &Path, bytes: &[u8]) -> Result<Mesh, String> {
                     }
                 }
             }
-            if element.name == "vertex" {
+            if is_vertex {
                 mesh.positions.push(position);
+                if with_normals {
+                    mesh.normals.push(normal);
+                }
             }
         }
     }
@@ -397,6 +426,6 @@ mod tests {
         std::fs::write(&path, "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n").unwrap();
         assert_eq!(read_mesh(&path).unwrap().triangles, vec![[0, 1, 2]]);
         std::fs::write(&path, "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n").unwrap();
-        assert!(read_mesh(&path).unwrap_err().contains("vertex 7 of 3"));
+        assert!(read_mesh(&path).unwrap_err().to_string().contains("vertex 7 of 3"));
     }
 }

@@ -6,8 +6,12 @@ use std::path::{Path, PathBuf};
 use glam::{DMat4, DVec4};
 use serde::Deserialize;
 
-use super::depthmap::{DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose, image_size};
+use super::colmap;
+use super::depth_map::{DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
+use super::image_files::{read_npy, read_pfm};
+use super::lidar;
 
+/// How to interpret an input path.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum InputFormat {
     /// Decide from the path; an unrecognised path is an error, never a guess.
@@ -23,8 +27,10 @@ pub enum InputFormat {
     Lidar,
 }
 
+/// How inputs are discovered.
 #[derive(Clone, Debug)]
 pub struct DiscoverOptions {
+    /// The input format, or `auto` to decide by path.
     pub format: InputFormat,
     /// Take every n-th frame of a folder.
     pub stride: usize,
@@ -89,7 +95,7 @@ pub fn discover(paths: &[PathBuf], options: &DiscoverOptions) -> Result<Vec<Dept
             InputFormat::SevenScenes if path.is_dir() => sources.extend(seven_scenes_folder(path, options)?),
             InputFormat::SevenScenes => sources.push(seven_scenes_frame(path)?),
             InputFormat::Manifest => sources.extend(manifest(path)?),
-            InputFormat::Colmap => sources.extend(super::colmap::workspace(path)?),
+            InputFormat::Colmap => sources.extend(colmap::workspace(path)?),
             InputFormat::Lidar => sources.extend(lidar_file(path)?),
             InputFormat::Auto => unreachable!("detect never returns Auto"),
         }
@@ -109,8 +115,8 @@ fn lidar_file(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
         .map(|e| e.to_string_lossy().to_lowercase())
         .unwrap_or_default();
     match extension.as_str() {
-        "ptx" => super::lidar::ptx_scans(path),
-        "e57" => super::lidar::e57_scans(path),
+        "ptx" => lidar::ptx_scans(path),
+        "e57" => lidar::e57_scans(path),
         _ => Err(bad(path, "a LIDAR input is a .ptx or .e57 file")),
     }
 }
@@ -306,9 +312,9 @@ fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
                 }
             };
             let matrix = match (&entry.pose.camera_to_world, &entry.pose.world_to_camera) {
-                (Some(m), None) => row_major_4x4(&check16(m).map_err(&at)?),
+                (Some(m), None) => row_major_4x4(&check16(m, at)?),
                 (None, Some(m)) => {
-                    let w2c = row_major_4x4(&check16(m).map_err(&at)?);
+                    let w2c = row_major_4x4(&check16(m, at)?);
                     check_pose(path, &w2c).map_err(|e| at(e.to_string()))?;
                     w2c.inverse()
                 }
@@ -350,12 +356,34 @@ fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
         .collect()
 }
 
-fn check16(m: &[f64]) -> Result<Vec<f64>, String> {
+/// The 16 numbers of a pose matrix; `at` names the manifest entry in the error.
+fn check16(m: &[f64], at: impl Fn(String) -> InputError) -> Result<Vec<f64>, InputError> {
     if m.len() != 16 {
-        return Err(format!(
+        return Err(at(format!(
             "a pose matrix has 16 numbers (row-major 4x4), found {}",
             m.len()
-        ));
+        )));
     }
     Ok(m.to_vec())
+}
+
+/// Size of a depth image from its header alone (cheap validation before any work).
+fn image_size(path: &Path, format: &ImageFormat) -> Result<(u32, u32), InputError> {
+    match format {
+        ImageFormat::Png16 { .. } => {
+            image::image_dimensions(path).map_err(|e| bad(path, format!("unreadable PNG: {e}")))
+        }
+        ImageFormat::Pfm | ImageFormat::NpyF32 => {
+            let image = match format {
+                ImageFormat::Pfm => read_pfm(path)?,
+                _ => read_npy(path)?,
+            };
+            Ok((image.width, image.height))
+        }
+        ImageFormat::ColmapBin => colmap::colmap_depth_size(path),
+        ImageFormat::Ptx { .. } | ImageFormat::E57 { .. } => Err(bad(
+            path,
+            "the size of a LIDAR scan's grid is decided when it is discovered, not read from a header",
+        )),
+    }
 }

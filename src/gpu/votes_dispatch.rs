@@ -5,8 +5,8 @@ use glam::{DMat4, DVec3, Mat4, Vec4};
 use wgpu::util::DeviceExt;
 
 use super::{Gpu, GpuError, grid};
-use crate::stages::depthmap::{DepthMapSource, Projection};
-use crate::stages::histograms::{BINS, Pyramid};
+use crate::inputs::{DepthMapSource, Projection};
+use crate::kernels::votes::{BINS, Pyramid};
 
 /// The uniform `votes.wgsl` reads (`VoteMap` in the WGSL).
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]

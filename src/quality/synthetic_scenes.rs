@@ -7,7 +7,8 @@ use std::path::Path;
 use glam::{DMat4, DVec3, DVec4};
 use serde_json::json;
 
-use crate::stages::depthmap::{DepthImage, write_pfm};
+use crate::inputs::{DepthImage, write_pfm};
+use crate::kernels::random::{gaussian, uniform};
 
 #[derive(Clone, Copy, Debug)]
 pub enum Shape {
@@ -263,22 +264,4 @@ pub fn add_noise(z: f64, noise: &Noise, state: &mut u64) -> f64 {
     } else {
         z * (1.0 + noise.relative_sigma * gaussian(state))
     }
-}
-
-pub(crate) fn splitmix(state: &mut u64) -> u64 {
-    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    let mut z = *state;
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
-pub(crate) fn uniform(state: &mut u64) -> f64 {
-    (splitmix(state) >> 11) as f64 / (1u64 << 53) as f64
-}
-
-pub(crate) fn gaussian(state: &mut u64) -> f64 {
-    let u1 = uniform(state).max(1e-300);
-    let u2 = uniform(state);
-    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }

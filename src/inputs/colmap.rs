@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DMat4, DQuat, DVec3};
 
-use super::depthmap::{DepthImage, DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
+use super::depth_map::{DepthImage, DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
 
 /// One camera of `cameras.bin` / `cameras.txt`; only undistorted pinhole models are usable.
 #[derive(Clone, Debug, PartialEq)]
@@ -363,7 +363,7 @@ pub fn read_colmap_depth(path: &Path) -> Result<DepthImage, InputError> {
     Ok(DepthImage {
         width,
         height,
-        depth: super::depthmap::depths_from_f32_le(data),
+        depth: super::image_files::depths_from_f32_le(data),
     })
 }
 
@@ -487,6 +487,7 @@ pub fn workspace(dir: &Path) -> Result<Vec<DepthMapSource>, InputError> {
 
 /// Paths of a dense workspace, for tests and tools that write one.
 pub struct WorkspaceWriter {
+    /// The workspace folder (with `sparse/` and `stereo/`).
     pub root: PathBuf,
 }
 
@@ -542,6 +543,7 @@ impl WorkspaceWriter {
         Ok(())
     }
 
+    /// The depth map file of image `name` (`kind`: geometric or photometric).
     pub fn depth_path(&self, name: &str, kind: &str) -> PathBuf {
         self.root
             .join("stereo")

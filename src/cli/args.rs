@@ -1,0 +1,357 @@
+//! The command line's arguments: global options, one struct per verb.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+use super::parse::{parse_point, parse_ratio, parse_region, parse_root, parse_size};
+use crate::format::BoundingBox;
+use crate::inputs::InputFormat;
+use crate::stages::octree;
+use crate::stages::solve::SolveParams;
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "octstore",
+    version,
+    about = "Out-of-core surface reconstruction on a versioned octree store"
+)]
+/// The whole command line: global options and one verb.
+pub struct Cli {
+    /// Options that apply to every verb.
+    #[command(flatten)]
+    pub global: GlobalOptions,
+    /// The verb and its arguments.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Options that apply to every verb (before or after it).
+#[derive(Args, Debug, Clone)]
+pub struct GlobalOptions {
+    /// Memory the whole process may use, e.g. 512MiB, 1GiB.
+    #[arg(long, global = true, default_value = "1GiB", value_parser = parse_size)]
+    pub memory_budget: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    pub threads: Option<usize>,
+    /// No progress bars.
+    #[arg(long, global = true)]
+    pub quiet: bool,
+}
+
+use crate::pipeline::SolveUntil;
+
+/// Solver parameters of a cluster plan (the same as `solve`'s).
+#[derive(clap::Args, Debug, Clone, Copy)]
+pub struct SolverArgs {
+    /// TGV weight of |grad u - v| (times the cube side).
+    #[arg(long, default_value_t = SolveParams::default().alpha1)]
+    alpha1: f32,
+    /// TGV weight of |E(v)| (times the cube side squared).
+    #[arg(long, default_value_t = SolveParams::default().alpha0)]
+    alpha0: f32,
+    /// Weight of the histogram data term.
+    #[arg(long, default_value_t = SolveParams::default().lambda)]
+    lambda: f32,
+    /// Primal-dual iterations per level.
+    #[arg(long, default_value_t = SolveParams::default().iterations)]
+    iterations: u32,
+}
+
+impl SolverArgs {
+    pub(super) fn params(self) -> SolveParams {
+        SolveParams {
+            alpha1: self.alpha1,
+            alpha0: self.alpha0,
+            lambda: self.lambda,
+            iterations: self.iterations,
+        }
+    }
+}
+
+/// The verbs.
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Register depth maps and write their cubes (one sorted run per depth map). Run it again
+    /// with more depth maps later: the store grows incrementally.
+    Ingest(IngestArgs),
+    /// Bring everything derived up to date: the octree and its treetop, the histograms, then
+    /// the TGV solution level by level.
+    Solve(SolveArgs),
+    /// Cluster run, step 1: split a stage's pending units into chunks and record the plan.
+    Plan(PlanArgs),
+    /// Cluster run, step 2: compute one chunk of the recorded plan (read-only on the catalog;
+    /// writes only segment files; safe to retry or to run twice).
+    Work(WorkArgs),
+    /// Cluster run, step 3: verify every chunk's output and commit the stage as one version.
+    Commit(CommitArgs),
+    /// Submit the pipeline after ingest to Slurm as job arrays chained with afterok.
+    Slurm(SlurmArgs),
+    /// Render the built-in synthetic scene, then ingest, solve and extract it (no files needed).
+    Demo(DemoArgs),
+    /// Write the surface u = 0 as a mesh (binary PLY, or OBJ by extension).
+    Extract(ExtractArgs),
+    /// The indicator u at a point (interpolated), from the latest or a given version.
+    Query(QueryArgs),
+    /// Render a mesh (PLY, OFF or OBJ, optionally .gz) as a shaded PNG.
+    Render(RenderArgs),
+    /// Summary of a store: version, inputs, cubes, leaves, segments, bytes, content digests.
+    Info(InfoArgs),
+    /// Check every segment byte and every catalog invariant; exits non-zero on any problem.
+    Verify(VerifyArgs),
+    /// The store's versions, oldest first.
+    Log(LogArgs),
+    /// Remove segments that no kept version can see.
+    Gc(GcArgs),
+    /// Run the synthetic test stage (exercises the stage runner without input files).
+    #[command(hide = true)]
+    DebugSynthetic(DebugSyntheticArgs),
+}
+
+/// Arguments of `octstore ingest`.
+#[derive(Args, Debug)]
+pub struct IngestArgs {
+    pub store: PathBuf,
+    #[arg(required = true)]
+    pub inputs: Vec<PathBuf>,
+    #[arg(long, value_enum, default_value = "auto")]
+    pub format: InputFormat,
+    /// Take every n-th frame of a folder.
+    #[arg(long, default_value_t = 1)]
+    pub stride: usize,
+    /// Take at most this many frames of a folder.
+    #[arg(long)]
+    pub limit: Option<usize>,
+    /// Root cube as minx,miny,minz,side (first ingest only; default: the samples' bounding
+    /// box grown by --root-margin).
+    #[arg(long, value_parser = parse_root)]
+    pub root: Option<([f64; 3], f64)>,
+    #[arg(long, default_value_t = 0.1)]
+    pub root_margin: f64,
+    /// Deepest octree level a sample may create (first ingest only).
+    #[arg(long, default_value_t = 24)]
+    pub max_depth: u8,
+    #[arg(long)]
+    pub resume: bool,
+}
+
+/// Arguments of `octstore solve`.
+#[derive(Args, Debug)]
+pub struct SolveArgs {
+    pub store: PathBuf,
+    /// Continue an interrupted run from its last committed unit.
+    #[arg(long)]
+    pub resume: bool,
+    /// Run the pending stages up to and including this one.
+    #[arg(long, value_enum, default_value = "solution")]
+    pub until: SolveUntil,
+    #[command(flatten)]
+    pub solver: SolverArgs,
+    /// Treetop leaves hold fewer cubes than this.
+    #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
+    pub leaf_cubes: u64,
+    /// Where the histogram votes and the TGV iterations run: auto takes a hardware GPU
+    /// when there is one (never a software rasteriser), gpu any adapter (llvmpipe
+    /// included), cpu the CPU code.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub device: crate::gpu::DeviceChoice,
+}
+
+/// Arguments of `octstore plan`.
+#[derive(Args, Debug)]
+pub struct PlanArgs {
+    pub store: PathBuf,
+    /// `histograms`, `solution-LL` or `extract`.
+    #[arg(long)]
+    pub stage: String,
+    #[arg(long, default_value_t = 16)]
+    pub chunks: u32,
+    #[command(flatten)]
+    pub solver: SolverArgs,
+    /// extract: the mesh file the commit writes.
+    #[arg(short, long, required_if_eq("stage", "extract"))]
+    pub output: Option<PathBuf>,
+    /// extract: only what lies in this box.
+    #[arg(long, value_parser = parse_region)]
+    pub region: Option<BoundingBox>,
+    /// extract: keep about this fraction of each leaf's triangles.
+    #[arg(long, value_parser = parse_ratio)]
+    pub decimate: Option<f32>,
+}
+
+/// Arguments of `octstore work`.
+#[derive(Args, Debug)]
+pub struct WorkArgs {
+    pub store: PathBuf,
+    #[arg(long)]
+    pub stage: String,
+    #[arg(long)]
+    pub chunk: u32,
+    /// Where this chunk's votes and iterations run, as for `solve`. Every chunk of a stage
+    /// should use the same kind of device: GPU votes may differ from the CPU's in rare
+    /// boundary cubes.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub device: crate::gpu::DeviceChoice,
+}
+
+/// Arguments of `octstore commit`.
+#[derive(Args, Debug)]
+pub struct CommitArgs {
+    pub store: PathBuf,
+    #[arg(long)]
+    pub stage: String,
+}
+
+/// Arguments of `octstore slurm`.
+#[derive(Args, Debug)]
+pub struct SlurmArgs {
+    pub store: PathBuf,
+    #[arg(long, default_value_t = 16)]
+    pub chunks: u32,
+    #[arg(long)]
+    pub partition: Option<String>,
+    /// Extra sbatch option for every job, e.g. --sbatch-arg=--time=02:00:00 (repeatable).
+    #[arg(long = "sbatch-arg", allow_hyphen_values = true)]
+    pub sbatch_args: Vec<String>,
+    /// Print the job scripts instead of submitting them.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// Treetop leaves of the octree job hold fewer cubes than this.
+    #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
+    pub leaf_cubes: u64,
+    /// Also extract the mesh into this file, chunked like the other stages.
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+    #[command(flatten)]
+    pub solver: SolverArgs,
+    /// `--device` of the work jobs (ask Slurm for GPUs with --sbatch-arg=--gres=gpu:1).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub device: crate::gpu::DeviceChoice,
+}
+
+/// Arguments of `octstore demo`.
+#[derive(Args, Debug)]
+pub struct DemoArgs {
+    /// Output folder: depth maps, the store, demo.ply.
+    #[arg(long, default_value = "octstore-demo")]
+    pub out: PathBuf,
+    /// Primal-dual iterations per level.
+    #[arg(long, default_value_t = 100)]
+    pub iterations: u32,
+    /// Where the histogram votes and the TGV iterations run (as for `solve`).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub device: crate::gpu::DeviceChoice,
+}
+
+/// Arguments of `octstore extract`.
+#[derive(Args, Debug)]
+pub struct ExtractArgs {
+    pub store: PathBuf,
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Only what lies in this box: minx,miny,minz,maxx,maxy,maxz.
+    #[arg(long, value_parser = parse_region)]
+    pub region: Option<BoundingBox>,
+    /// Extract from this version instead of the latest.
+    #[arg(long)]
+    pub version: Option<u64>,
+    /// Keep about this fraction (0..1] of the triangles: quadric-error simplification per
+    /// treetop leaf that never moves a vertex shared with another leaf.
+    #[arg(long, value_parser = parse_ratio)]
+    pub decimate: Option<f32>,
+}
+
+/// Arguments of `octstore query`.
+#[derive(Args, Debug)]
+pub struct QueryArgs {
+    pub store: PathBuf,
+    /// x,y,z in world coordinates.
+    #[arg(long, value_parser = parse_point, required_unless_present_any = ["levels", "leaves"])]
+    pub point: Option<[f64; 3]>,
+    #[arg(long)]
+    pub version: Option<u64>,
+    #[arg(long)]
+    pub json: bool,
+    /// List the solved levels (JSON).
+    #[arg(long)]
+    pub levels: bool,
+    /// List the treetop leaves: key, depth, min corner, size, cubes (JSON).
+    #[arg(long)]
+    pub leaves: bool,
+}
+
+/// Arguments of `octstore render`.
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    pub mesh: PathBuf,
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[arg(long, default_value_t = 800)]
+    pub width: u32,
+    #[arg(long, default_value_t = 600)]
+    pub height: u32,
+    /// Take the picture from this camera instead of the fitted 3/4 view: a text file of 16
+    /// numbers, the camera-to-world 4x4 matrix row by row, OpenCV axes (a 7-Scenes
+    /// `frame-*.pose.txt` as is).
+    #[arg(long)]
+    pub pose: Option<PathBuf>,
+    /// Focal length in pixels for `--pose` (principal point at the image centre).
+    #[arg(long, default_value_t = 525.0, requires = "pose")]
+    pub focal: f64,
+}
+
+/// Arguments of `octstore info`.
+#[derive(Args, Debug)]
+pub struct InfoArgs {
+    /// The store; not needed with --devices.
+    #[arg(required_unless_present = "devices")]
+    pub store: Option<PathBuf>,
+    /// List the GPU adapters wgpu finds (and which one `--device auto` would take).
+    #[arg(long)]
+    pub devices: bool,
+    #[arg(long)]
+    pub json: bool,
+    /// Show this version instead of the latest.
+    #[arg(long)]
+    pub version: Option<u64>,
+}
+
+/// Arguments of `octstore verify`.
+#[derive(Args, Debug)]
+pub struct VerifyArgs {
+    pub store: PathBuf,
+}
+
+/// Arguments of `octstore log`.
+#[derive(Args, Debug)]
+pub struct LogArgs {
+    pub store: PathBuf,
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Arguments of `octstore gc`.
+#[derive(Args, Debug)]
+pub struct GcArgs {
+    pub store: PathBuf,
+    /// Versions to keep readable, counting the latest.
+    #[arg(long, default_value_t = 1)]
+    pub keep: u64,
+}
+
+/// Arguments of `octstore debug-synthetic`.
+#[derive(Args, Debug)]
+pub struct DebugSyntheticArgs {
+    pub store: PathBuf,
+    #[arg(long, default_value_t = 8)]
+    pub units: u32,
+    #[arg(long, default_value_t = 2000)]
+    pub rows: u32,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    #[arg(long, default_value_t = 0)]
+    pub delay_ms: u64,
+    #[arg(long)]
+    pub resume: bool,
+}

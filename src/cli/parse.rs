@@ -1,0 +1,87 @@
+//! Value parsers of the command line's arguments (clap calls them; their errors are shown as
+//! clap's usage errors).
+
+use crate::format::BoundingBox;
+
+/// A command-line value that does not parse: what is wrong with it, and what is expected.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct ArgumentError(String);
+
+/// Comma-separated numbers.
+fn numbers(text: &str) -> Result<Vec<f64>, ArgumentError> {
+    text.split(',')
+        .map(|t| {
+            t.trim()
+                .parse::<f64>()
+                .map_err(|_| ArgumentError(format!("'{t}' is not a number")))
+        })
+        .collect()
+}
+
+/// `x,y,z`.
+pub(crate) fn parse_point(text: &str) -> Result<[f64; 3], ArgumentError> {
+    let v = numbers(text)?;
+    match v[..] {
+        [x, y, z] => Ok([x, y, z]),
+        _ => Err(ArgumentError("expected x,y,z".into())),
+    }
+}
+
+/// `minx,miny,minz,maxx,maxy,maxz` with min < max.
+pub(crate) fn parse_region(text: &str) -> Result<BoundingBox, ArgumentError> {
+    let v = numbers(text)?;
+    match v[..] {
+        [a, b, c, d, e, f] if a < d && b < e && c < f => Ok(BoundingBox {
+            min: glam::DVec3::new(a, b, c),
+            max: glam::DVec3::new(d, e, f),
+        }),
+        _ => Err(ArgumentError(
+            "expected minx,miny,minz,maxx,maxy,maxz with min < max".into(),
+        )),
+    }
+}
+
+/// A fraction in (0, 1].
+pub(crate) fn parse_ratio(text: &str) -> Result<f32, ArgumentError> {
+    match text.trim().parse::<f32>() {
+        Ok(r) if r > 0.0 && r <= 1.0 => Ok(r),
+        _ => Err(ArgumentError(format!("'{text}' is not a ratio in (0, 1]"))),
+    }
+}
+
+/// `minx,miny,minz,side` with side > 0.
+pub(crate) fn parse_root(text: &str) -> Result<([f64; 3], f64), ArgumentError> {
+    let v = numbers(text)?;
+    match v[..] {
+        [x, y, z, side] if side > 0.0 && side.is_finite() => Ok(([x, y, z], side)),
+        _ => Err(ArgumentError("expected minx,miny,minz,side with side > 0".into())),
+    }
+}
+
+/// Parses sizes like `512MiB`, `1GiB`, `1.5G`, `4096`.
+pub(crate) fn parse_size(text: &str) -> Result<u64, ArgumentError> {
+    let text = text.trim();
+    let split = text
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(text.len());
+    let (number, unit) = text.split_at(split);
+    let value: f64 = number
+        .parse()
+        .map_err(|_| ArgumentError(format!("'{text}' is not a size (examples: 512MiB, 1GiB, 1000000)")))?;
+    let scale: f64 = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1.0,
+        "k" | "kb" => 1e3,
+        "kib" => 1024.0,
+        "m" | "mb" => 1e6,
+        "mib" => 1024.0 * 1024.0,
+        "g" | "gb" => 1e9,
+        "gib" => 1024.0 * 1024.0 * 1024.0,
+        other => {
+            return Err(ArgumentError(format!(
+                "unknown size unit '{other}' (use B, KiB, MiB, GiB, KB, MB, GB)"
+            )));
+        }
+    };
+    Ok((value * scale) as u64)
+}

@@ -1,0 +1,114 @@
+//! What the command line prints: one summary line per stage, the extraction's line, `info`.
+
+use std::path::Path;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::mesh::MeshSummary;
+use crate::stages;
+use crate::store::{RunReport, Store, StoreError};
+
+/// What `octstore info` reports (`--json` prints it as is).
+#[derive(Serialize, Debug)]
+pub struct InfoJson {
+    /// The store's folder.
+    pub store: String,
+    /// The version described.
+    pub version: u64,
+    /// Depth maps registered up to that version.
+    pub depth_maps: u64,
+    /// Cubes of the octree.
+    pub cubes: u64,
+    /// Treetop leaves.
+    pub treetop_leaves: u64,
+    /// Segment files the version sees.
+    pub segments: u64,
+    /// Their bytes.
+    pub bytes: u64,
+    /// Content digest per stage (hex), equal for equal content however it was produced.
+    pub digest: std::collections::BTreeMap<String, String>,
+    /// Side of the root cube in world units (absent before the first ingest).
+    pub root_side: Option<f64>,
+    /// The deepest solved level and the side of its cubes in world units (absent before a solve).
+    pub finest_level: Option<u8>,
+    /// The side of the finest level's cubes, in world units.
+    pub finest_cube_side: Option<f64>,
+}
+
+/// The `info` report of the latest version, or of `version`.
+pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError> {
+    use crate::IndicatorField;
+    let snapshot = match version {
+        Some(v) => store.snapshot(v)?,
+        None => store.latest()?,
+    };
+    let digest = snapshot
+        .stages()
+        .map(|stage| (stage.to_string(), format!("{:016x}", snapshot.digest(stage))))
+        .collect();
+    let scene = stages::ingest::read_scene(store)?;
+    let finest_level = snapshot.finest_level();
+    Ok(InfoJson {
+        root_side: scene.map(|s| s.root_side),
+        finest_level,
+        finest_cube_side: scene.zip(finest_level).map(|(s, level)| s.cube_side(level)),
+        store: store.root().display().to_string(),
+        version: snapshot.version(),
+        depth_maps: stages::ingest::registered_depth_maps(store)?
+            .iter()
+            .filter(|(_, r)| r.added_in <= snapshot.version())
+            .count() as u64,
+        cubes: snapshot.rows(stages::OCTREE),
+        treetop_leaves: {
+            // One segment per treetop leaf, plus one for the treetop's internal nodes when the
+            // root is not itself the only leaf.
+            let n = snapshot.segments(stages::OCTREE).len() as u64;
+            if n > 1 { n - 1 } else { n }
+        },
+        segments: snapshot.all_segments().count() as u64,
+        bytes: snapshot.all_segments().map(|(_, r)| r.bytes).sum(),
+        digest,
+    })
+}
+
+/// Peak resident memory of this process so far, in bytes (Linux; 0 elsewhere).
+pub fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<u64>().ok()))
+        })
+        .map_or(0, |kb| kb * 1024)
+}
+
+pub(crate) fn summary(report: &RunReport) {
+    println!(
+        "{:<10} {} | units {} ({} resumed) | rows {} | {:.2}s | peak memory {:.0} MB",
+        report.stage,
+        match report.version {
+            Some(v) => format!("version {v}: {}", report.summary),
+            None => report.summary.clone(),
+        },
+        report.units,
+        report.resumed_units,
+        report.rows,
+        report.seconds,
+        peak_rss_bytes() as f64 / 1e6
+    );
+}
+
+pub(crate) fn print_extract_summary(summary: &MeshSummary, output: &Path, started: Instant) {
+    println!(
+        "extract    {} vertices, {} triangles, {} boundary edges, {} non-manifold edges -> {} | {:.2}s | peak memory {:.0} MB",
+        summary.vertices,
+        summary.triangles,
+        summary.boundary_edges,
+        summary.non_manifold_edges,
+        output.display(),
+        started.elapsed().as_secs_f64(),
+        peak_rss_bytes() as f64 / 1e6
+    );
+}

@@ -1,0 +1,260 @@
+//! Depth maps: camera models, poses, and the image formats they are read from.
+//!
+//! Conventions (README, "Inputs"): poses are camera-to-world with OpenCV camera axes (x right,
+//! y down, z forward); pinhole depth is the z coordinate in the camera frame, pixel (i, j) has
+//! its centre at image coordinates (i, j); spherical (LIDAR) depth is the range along the ray.
+
+use std::path::{Path, PathBuf};
+
+use glam::{DMat3, DMat4, DVec3};
+use serde::{Deserialize, Serialize};
+
+/// Errors of reading inputs: each names the file and the problem.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum InputError {
+    /// The file is not a usable input.
+    #[error("{file}: {problem}")]
+    Bad {
+        /// The file.
+        file: PathBuf,
+        /// What is wrong with it.
+        problem: String,
+    },
+    /// The file cannot be read.
+    #[error("{file}: {source}")]
+    Io {
+        /// The file.
+        file: PathBuf,
+        /// The system's error.
+        source: std::io::Error,
+    },
+}
+
+/// An [`InputError::Bad`] for `file`.
+pub fn bad(file: &Path, problem: impl Into<String>) -> InputError {
+    InputError::Bad {
+        file: file.to_path_buf(),
+        problem: problem.into(),
+    }
+}
+
+/// How pixels map to rays.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
+pub enum Projection {
+    /// A pinhole camera; depth is the z coordinate in the camera frame.
+    Pinhole {
+        /// Focal length along x, in pixels.
+        fx: f64,
+        /// Focal length along y, in pixels.
+        fy: f64,
+        /// Principal point, x (pixel centres at integer coordinates).
+        cx: f64,
+        /// Principal point, y.
+        cy: f64,
+    },
+    /// Equirectangular 360-degree scan: column i is azimuth 2 pi i / width (counter-clockwise
+    /// about +z from +x), row j is elevation pi/2 - pi (j + 0.5) / height. Axes of the sensor
+    /// frame: z up.
+    Spherical,
+}
+
+/// What kind of sensor a depth map comes from (it sets the default vote weight).
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    /// A photogrammetry depth map (COLMAP).
+    Photo,
+    /// An RGB-D sensor frame.
+    Rgbd,
+    /// A terrestrial LIDAR scan.
+    Lidar,
+}
+
+impl Kind {
+    /// Default vote weight (Algorithm 1: 5 for noise-free LIDAR).
+    pub fn default_weight(self) -> f32 {
+        match self {
+            Kind::Lidar => 5.0,
+            Kind::Photo | Kind::Rgbd => 1.0,
+        }
+    }
+}
+
+/// The file format of a depth map.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub enum ImageFormat {
+    /// 16-bit grey PNG; depth = value * scale; 0 and 65535 are invalid.
+    Png16 {
+        /// Metres (or scene units) per PNG unit.
+        scale: f64,
+    },
+    /// Portable float map (grey "Pf"), rows bottom to top as the format says.
+    Pfm,
+    /// NumPy .npy, 2-D little-endian float32 (`<f4`), C order.
+    NpyF32,
+    /// COLMAP depth map (`stereo/depth_maps/*.bin`): `width&height&1&` then float32 rows.
+    ColmapBin,
+    /// Scan number `scan` (from 0) of a PTX file, resampled into the spherical grid.
+    Ptx {
+        /// The scan's index in the file.
+        scan: u32,
+    },
+    /// Point cloud number `scan` (from 0) of an E57 file, resampled into the spherical grid.
+    E57 {
+        /// The point cloud's index in the file.
+        scan: u32,
+    },
+}
+
+/// Everything needed to read a depth map again later (the store keeps references, not pixels).
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct DepthMapSource {
+    /// The file.
+    pub path: PathBuf,
+    /// How to read it.
+    pub format: ImageFormat,
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// The camera model.
+    pub projection: Projection,
+    /// Camera-to-world, column-major 4x4.
+    pub camera_to_world: [f64; 16],
+    /// The sensor kind.
+    pub kind: Kind,
+    /// Weight of each of its votes.
+    pub weight: f32,
+}
+
+/// Depth values, row-major; NaN marks an invalid pixel.
+pub struct DepthImage {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// `width * height` depths, row by row.
+    pub depth: Vec<f32>,
+}
+
+impl DepthImage {
+    /// The depth at column `i`, row `j` (NaN when invalid or outside the image).
+    pub fn get(&self, i: u32, j: u32) -> f32 {
+        if i >= self.width || j >= self.height {
+            return f32::NAN;
+        }
+        self.depth
+            .get(j as usize * self.width as usize + i as usize)
+            .copied()
+            .unwrap_or(f32::NAN)
+    }
+}
+
+/// Checks a camera-to-world matrix: finite, affine, with an invertible, near-orthonormal
+/// rotation part (scale is not allowed: depth is metric).
+pub fn check_pose(file: &Path, m: &DMat4) -> Result<(), InputError> {
+    if !m.to_cols_array().iter().all(|v| v.is_finite()) {
+        return Err(bad(file, "pose has non-finite entries"));
+    }
+    let row3 = m.row(3);
+    if (row3 - glam::DVec4::new(0.0, 0.0, 0.0, 1.0)).abs().max_element() > 1e-6 {
+        return Err(bad(file, format!("pose's last row is {row3:?}, expected 0 0 0 1")));
+    }
+    let r = DMat3::from_mat4(*m);
+    let det = r.determinant();
+    if det.abs() < 1e-6 {
+        return Err(bad(
+            file,
+            format!("pose is not invertible (rotation determinant {det:.3e})"),
+        ));
+    }
+    let err = (r.transpose() * r - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0f64, |a, b| a.max(b.abs()));
+    if err > 1e-3 {
+        return Err(bad(
+            file,
+            format!("pose's rotation is not orthonormal (error {err:.3e})"),
+        ));
+    }
+    Ok(())
+}
+
+impl DepthMapSource {
+    /// The camera-to-world pose.
+    pub fn pose(&self) -> DMat4 {
+        DMat4::from_cols_array(&self.camera_to_world)
+    }
+
+    /// Angle one pixel spans (radians) at the image's coarsest direction: a surface at distance
+    /// `t` facing the camera has samples `t * pixel_angle()` apart.
+    pub fn pixel_angle(&self) -> f64 {
+        match self.projection {
+            Projection::Pinhole { fx, fy, .. } => 1.0 / fx.min(fy),
+            Projection::Spherical => std::f64::consts::TAU / f64::from(self.width.max(1)),
+        }
+    }
+
+    /// Direction in the camera frame for pixel (i, j), scaled so that `origin + dir * depth`
+    /// is the sample: z = 1 for pinhole (depth is z), unit length for spherical (depth is range).
+    pub fn ray(&self, i: f64, j: f64) -> DVec3 {
+        match self.projection {
+            Projection::Pinhole { fx, fy, cx, cy } => DVec3::new((i - cx) / fx, (j - cy) / fy, 1.0),
+            Projection::Spherical => {
+                let azimuth = std::f64::consts::TAU * i / f64::from(self.width);
+                let elevation = std::f64::consts::FRAC_PI_2 - std::f64::consts::PI * (j + 0.5) / f64::from(self.height);
+                DVec3::new(
+                    elevation.cos() * azimuth.cos(),
+                    elevation.cos() * azimuth.sin(),
+                    elevation.sin(),
+                )
+            }
+        }
+    }
+
+    /// Projects a camera-frame point: (continuous pixel coordinates, depth in this map's sense).
+    pub fn project(&self, p: DVec3) -> Option<(f64, f64, f64)> {
+        match self.projection {
+            Projection::Pinhole { fx, fy, cx, cy } => {
+                if p.z <= 0.0 {
+                    return None;
+                }
+                Some((fx * p.x / p.z + cx, fy * p.y / p.z + cy, p.z))
+            }
+            Projection::Spherical => {
+                let range = p.length();
+                if range <= 0.0 {
+                    return None;
+                }
+                let azimuth = p.y.atan2(p.x).rem_euclid(std::f64::consts::TAU);
+                let elevation = (p.z / range).clamp(-1.0, 1.0).asin();
+                let i = azimuth / std::f64::consts::TAU * f64::from(self.width);
+                let j = (std::f64::consts::FRAC_PI_2 - elevation) / std::f64::consts::PI * f64::from(self.height) - 0.5;
+                Some((i, j, range))
+            }
+        }
+    }
+
+    /// Checks that the image size fits the intrinsics.
+    pub fn check_intrinsics(&self) -> Result<(), InputError> {
+        if let Projection::Pinhole { fx, fy, cx, cy } = self.projection {
+            let (w, h) = (f64::from(self.width), f64::from(self.height));
+            if !(fx > 0.0 && fy > 0.0 && fx.is_finite() && fy.is_finite()) {
+                return Err(bad(
+                    &self.path,
+                    format!("focal lengths must be positive (fx {fx}, fy {fy})"),
+                ));
+            }
+            if !(0.0..=w).contains(&cx) || !(0.0..=h).contains(&cy) {
+                return Err(bad(
+                    &self.path,
+                    format!(
+                        "image is {w}x{h} but the principal point ({cx}, {cy}) lies outside it: size and intrinsics do not match"
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,184 @@
+//! The pipeline as a library: what `octstore ingest`, `solve`, `extract` and `demo` do, for
+//! code that drives a store itself. Each call runs its stages through the store's stage
+//! runner, so it is resumable and a no-op when its inputs have not changed. Cluster runs
+//! (Slurm, chunked extraction) are in [`cluster`].
+//!
+//! ```
+//! use octstore::pipeline::{SolveOptions, ingest, solve};
+//! use octstore::{BoundingBox, DiscoverOptions, IndicatorField, IngestOptions, SceneSpec, SolveParams, Store};
+//!
+//! let dir = tempfile::tempdir()?;
+//! // The built-in demo scene: a sphere on a box, seen by 16 cameras of 160x120 pixels.
+//! let scene = SceneSpec::demo();
+//! let manifest = scene.write(&dir.path().join("input"))?;
+//!
+//! let store = Store::create(dir.path().join("store"))?;
+//! let ingest_options = IngestOptions { max_depth: 8, root_margin: 0.05, ..IngestOptions::default() };
+//! ingest(&store, &[manifest], &DiscoverOptions::default(), &ingest_options, &Default::default())?;
+//! let params = SolveParams { iterations: 60, ..SolveParams::default() };
+//! solve(&store, &SolveOptions { params, ..SolveOptions::default() }, |_report| {})?;
+//! drop(store);
+//!
+//! // Read the indicator field from a read-only handle: negative inside, positive outside.
+//! let store = Store::open_read_only(dir.path().join("store"))?;
+//! let snapshot = store.latest()?;
+//! let inside = snapshot.indicator_at(glam::DVec3::new(0.0, 0.0, 0.62))?.expect("inside the root");
+//! let outside = snapshot.indicator_at(glam::DVec3::new(1.0, 0.0, 0.4))?.expect("inside the root");
+//! assert!(inside < 0.0 && outside > 0.0, "u inside {inside}, outside {outside}");
+//! // The cubes of the finest level around the sphere's top, with centre, size, u, histogram.
+//! let level = snapshot.finest_level().expect("solved");
+//! let top = BoundingBox { min: glam::DVec3::new(-0.1, -0.1, 0.6), max: glam::DVec3::new(0.1, 0.1, 0.8) };
+//! let cubes = snapshot.cubes_in(&top, level)?;
+//! assert!(cubes.iter().any(|c| c.u < 0.0) && cubes.iter().any(|c| c.u > 0.0));
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+pub mod cluster;
+mod demo;
+mod error;
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+pub use self::demo::{DemoOptions, DemoOutput, demo};
+pub(crate) use self::error::io_error;
+pub use self::error::{PipelineError, Result};
+use crate::format::Scene;
+use crate::gpu::{DeviceChoice, Gpu};
+use crate::inputs::{DiscoverOptions, discover};
+use crate::stages::extract::{ExtractOptions, MeshSummary, extract_to_file};
+use crate::stages::histograms::HistogramsStage;
+use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps};
+use crate::stages::octree::{OctreeStage, effective_leaf_cubes};
+use crate::stages::solve::{LevelStage, SolveParams};
+use crate::stages::{OCTREE, octree_max_depth};
+use crate::store::{RunOptions, RunReport, Store};
+
+/// How far `solve` goes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
+pub enum SolveUntil {
+    /// The octree and its treetop.
+    Octree,
+    /// The octree, then the histograms.
+    Histograms,
+    /// Everything: the octree, the histograms, every level of the solution.
+    Solution,
+}
+
+/// How `solve` runs.
+#[derive(Clone, Debug)]
+pub struct SolveOptions {
+    /// The last stage to bring up to date.
+    pub until: SolveUntil,
+    /// Treetop leaves hold fewer cubes than this (capped by the memory budget).
+    pub leaf_cubes: u64,
+    /// Bytes the whole process may use; the octree build's sorter gets a quarter.
+    pub memory_budget: u64,
+    /// The TGV weights and iterations.
+    pub params: SolveParams,
+    /// Threads, resumption, progress bars.
+    pub run: RunOptions,
+    /// Where the histogram votes and the solver's iterations run.
+    pub device: DeviceChoice,
+}
+
+impl Default for SolveOptions {
+    fn default() -> Self {
+        SolveOptions {
+            until: SolveUntil::Solution,
+            leaf_cubes: 1 << 24,
+            memory_budget: 1 << 30,
+            params: SolveParams::default(),
+            run: RunOptions::default(),
+            device: DeviceChoice::Auto,
+        }
+    }
+}
+
+/// The store's scene, or an error for `step` that says to ingest first.
+pub(crate) fn required_scene(store: &Store, step: &str) -> Result<Scene> {
+    read_scene(store)?.ok_or_else(|| PipelineError::NotIngested { step: step.into() })
+}
+
+/// Registers the depth maps named by `inputs` and writes their cubes, as one new version.
+pub fn ingest(
+    store: &Store,
+    inputs: &[PathBuf],
+    discover_options: &DiscoverOptions,
+    options: &IngestOptions,
+    run: &RunOptions,
+) -> Result<RunReport> {
+    let sources = discover(inputs, discover_options)?;
+    let stage = IngestStage::prepare(store, sources, options)?;
+    Ok(store.run_stage(&stage, run)?)
+}
+
+/// Runs the pending stages up to `options.until`: the octree, the histograms, then every level
+/// of the solution coarse to fine. `on_report` sees each stage's report as it finishes.
+pub fn solve(store: &Store, options: &SolveOptions, on_report: impl FnMut(&RunReport)) -> Result<()> {
+    let gpu = if options.until >= SolveUntil::Histograms {
+        open_gpu(options.device)?
+    } else {
+        None
+    };
+    solve_with_gpu(store, options, gpu, on_report)
+}
+
+/// [`solve`] with the votes and the solver's iterations on an already open `gpu`
+/// (`options.device` unused).
+pub fn solve_with_gpu(
+    store: &Store,
+    options: &SolveOptions,
+    gpu: Option<Arc<Gpu>>,
+    mut on_report: impl FnMut(&RunReport),
+) -> Result<()> {
+    let scene = required_scene(store, OCTREE)?;
+    if options.until >= SolveUntil::Octree {
+        let scratch = store.scratch_dir(OCTREE)?;
+        let leaf_cubes = effective_leaf_cubes(options.leaf_cubes, options.memory_budget, options.run.threads);
+        let stage = OctreeStage::new(scene, leaf_cubes, options.memory_budget / 4, scratch.clone());
+        on_report(&store.run_stage(&stage, &options.run)?);
+        // Scratch files are rebuilt by any later run; a failure to remove them costs only disk.
+        let _ = std::fs::remove_dir_all(scratch);
+    }
+    if options.until >= SolveUntil::Histograms {
+        // Stages run one at a time: an eighth of the budget for decoded depth maps, beside the
+        // workers' groups of leaves, keeps the histogram stage within the budget.
+        let stage = HistogramsStage::new(scene, registered_depth_maps(store)?)
+            .with_cache_bytes(options.memory_budget / 8)
+            .with_gpu(gpu.clone());
+        on_report(&store.run_stage(&stage, &options.run)?);
+    }
+    if options.until >= SolveUntil::Solution {
+        for level in 0..=octree_max_depth(store)? {
+            let stage = LevelStage::new(level, scene, options.params).with_gpu(gpu.clone());
+            on_report(&store.run_stage(&stage, &options.run)?);
+        }
+    }
+    Ok(())
+}
+
+/// The device `choice` names: an error only when `gpu` was asked for and none opens; `auto`
+/// falls back to the CPU with a warning.
+pub fn open_gpu(choice: DeviceChoice) -> Result<Option<Arc<Gpu>>> {
+    match Gpu::open(choice) {
+        Ok(gpu) => Ok(gpu.map(std::sync::Arc::new)),
+        Err(error) if choice == DeviceChoice::Auto => {
+            tracing::warn!("{error}; solving on the CPU");
+            Ok(None)
+        }
+        Err(error) => Err(PipelineError::NoGpu(error)),
+    }
+}
+
+/// Extracts the surface of the latest solved version (or of `version`) into `output`: PLY, or
+/// OBJ by extension; streamed leaf by leaf unless a region or decimation asks for the whole.
+pub fn extract(store: &Store, output: &Path, options: &ExtractOptions, version: Option<u64>) -> Result<MeshSummary> {
+    let scene = required_scene(store, "extract")?;
+    let snapshot = match version {
+        Some(v) => store.snapshot(v)?,
+        None => store.latest()?,
+    };
+    let finest = octree_max_depth(store)?;
+    Ok(extract_to_file(&snapshot, &scene, finest, options, output)?)
+}

@@ -1,0 +1,356 @@
+//! Dual cells of a unit: for every octree corner the unit generates, the cell joining the
+//! centres of its incident leaves, split into Kuhn tetrahedra and cut at u = 0 (module docs of
+//! `stages::extract` give the construction).
+
+use glam::DVec3;
+
+use super::weld::NameIndex;
+use crate::format::{CubeKey, MAX_DEPTH, Scene};
+use crate::mesh::{CornerId, UnitMesh};
+use crate::stages::solve::{LevelCut, cut_cube_ending_at};
+use crate::store::Result;
+
+/// Corner ids with this bit set are virtual exterior cells (see [`CornerId`]).
+const VIRTUAL: u128 = 1 << 127;
+
+#[derive(Clone, Copy)]
+struct Corner {
+    id: CornerId,
+    center: DVec3,
+    u: f32,
+    depth: u8,
+}
+
+/// The Kuhn subdivision of a cube with corners indexed by octant bits (x = 1, y = 2, z = 4):
+/// the 6 monotone paths from corner 0 to corner 7.
+const KUHN: [[usize; 4]; 6] = [
+    [0, 1, 3, 7],
+    [0, 1, 5, 7],
+    [0, 2, 3, 7],
+    [0, 2, 6, 7],
+    [0, 4, 5, 7],
+    [0, 4, 6, 7],
+];
+
+pub(super) fn full_side(depth: u8) -> u64 {
+    1u64 << (u32::from(MAX_DEPTH) - u32::from(depth))
+}
+
+/// The cut cube containing the finest cell `cell`, and its u. The unit's own sorted cut
+/// (`keys`, `values`) is searched first, outwards from `near` (the cube whose corners are being
+/// probed, so the answer is usually a few keys away): the cut tiles the root, so a cube of the
+/// unit that contains the cell is the answer. Cells outside the unit go to the level's lookup.
+fn cut_cube_near(
+    level: &mut LevelCut<'_, '_>,
+    keys: &[CubeKey],
+    values: &[f32],
+    near: usize,
+    cell: [u32; 3],
+) -> Result<Option<(CubeKey, f32)>> {
+    let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
+    match cut_cube_ending_at(keys, values, partition_point_near(keys, near, probe), probe) {
+        Some(found) => Ok(Some(found)),
+        None => level.cube_containing(probe),
+    }
+}
+
+/// `keys.partition_point(|k| *k <= probe)` for sorted `keys`, found by galloping outwards from
+/// `near`: O(log d) comparisons, near the start, for an answer d keys away.
+fn partition_point_near(keys: &[CubeKey], near: usize, probe: CubeKey) -> usize {
+    let at_or_below = |i: usize| keys.get(i).is_some_and(|k| *k <= probe);
+    let near = near.min(keys.len());
+    // The answer lies in (low, high]: keys[low] <= probe (or low is the start) and
+    // keys[high] > probe (or high is the end).
+    let (low, high) = if at_or_below(near) {
+        let mut step = 1;
+        let mut low = near;
+        loop {
+            let next = near.saturating_add(step);
+            if next >= keys.len() {
+                break (low + 1, keys.len());
+            }
+            if !at_or_below(next) {
+                break (low + 1, next);
+            }
+            low = next;
+            step *= 2;
+        }
+    } else {
+        let mut step = 1;
+        let mut high = near;
+        loop {
+            let Some(next) = near.checked_sub(step) else {
+                break (0, high);
+            };
+            if at_or_below(next) {
+                break (next + 1, high);
+            }
+            high = next;
+            step *= 2;
+        }
+    };
+    low + keys
+        .get(low..high)
+        .map_or(0, |range| range.partition_point(|k| *k <= probe))
+}
+
+pub(super) fn dual_cells_of_unit(
+    scene: &Scene,
+    level: &mut LevelCut<'_, '_>,
+    keys: &[CubeKey],
+    values: &[f32],
+) -> Result<UnitMesh> {
+    let mut mesh = UnitMesh::default();
+    // The unit's vertices by name, as indices into `mesh.vertices`.
+    let mut vertex_index = NameIndex::default();
+    let limit = 1u64 << 32;
+    for (index, (key, own_u)) in keys.iter().zip(values).enumerate() {
+        let d = key.depth();
+        let side = full_side(d);
+        let [x, y, z] = key.corner_full_resolution().map(u64::from);
+        for corner in 0..8u64 {
+            let v = [
+                x + (corner & 1) * side,
+                y + ((corner >> 1) & 1) * side,
+                z + ((corner >> 2) & 1) * side,
+            ];
+            // The 8 octants around V, with the leaf (or virtual exterior cell) in each. This cube
+            // fills the octant opposite the corner; it generates V's cell only if no real leaf
+            // is deeper and none as deep comes first in octant order, so the probes stop at the
+            // first leaf that rules it out (most corners of a uniform region end at octant 0).
+            let own_octant = (7 - corner) as usize;
+            let mut corners: [Option<Corner>; 8] = [None; 8];
+            let mut generator_ok = true;
+            for (octant, slot) in corners.iter_mut().enumerate() {
+                if octant == own_octant {
+                    *slot = Some(Corner {
+                        id: key.raw(),
+                        center: scene.cube_center(*key),
+                        u: *own_u,
+                        depth: d,
+                    });
+                    continue;
+                }
+                let o = octant as u64;
+                let cell = [
+                    v[0] as i64 - 1 + (o & 1) as i64,
+                    v[1] as i64 - 1 + ((o >> 1) & 1) as i64,
+                    v[2] as i64 - 1 + ((o >> 2) & 1) as i64,
+                ];
+                // Outside the root, the octree continues as its mirror image across the root's
+                // faces, with u = +1: neighbouring dual cells then agree on every virtual cell.
+                let mut mirrored = 0u128;
+                let inside = cell.map(|c| c);
+                let mut probe = [0u32; 3];
+                for axis in 0..3 {
+                    let c = inside[axis];
+                    let m = if c < 0 {
+                        mirrored |= 1 << axis;
+                        -1 - c
+                    } else if c >= limit as i64 {
+                        mirrored |= 1 << axis;
+                        2 * limit as i64 - 1 - c
+                    } else {
+                        c
+                    };
+                    probe[axis] = m.clamp(0, limit as i64 - 1) as u32;
+                }
+                let Some((leaf, u)) = cut_cube_near(level, keys, values, index, probe)? else {
+                    generator_ok = false;
+                    break;
+                };
+                if mirrored == 0 && (leaf.depth() > d || (leaf.depth() == d && octant < own_octant)) {
+                    generator_ok = false;
+                    break;
+                }
+                let mut center = scene.cube_center(leaf);
+                if mirrored != 0 {
+                    let (lo, hi) = (scene.min(), scene.min() + DVec3::splat(scene.root_side));
+                    for axis in 0..3 {
+                        if mirrored & (1 << axis) != 0 {
+                            center[axis] = if inside[axis] < 0 {
+                                2.0 * lo[axis] - center[axis]
+                            } else {
+                                2.0 * hi[axis] - center[axis]
+                            };
+                        }
+                    }
+                }
+                let c = Corner {
+                    id: if mirrored != 0 {
+                        VIRTUAL | (mirrored << 124) | leaf.raw()
+                    } else {
+                        leaf.raw()
+                    },
+                    center,
+                    u: if mirrored != 0 { 1.0 } else { u },
+                    depth: leaf.depth(),
+                };
+                *slot = Some(c);
+            }
+            let corners: [Corner; 8] = corners.map(|c| {
+                c.unwrap_or(Corner {
+                    id: VIRTUAL,
+                    center: DVec3::ZERO,
+                    u: 1.0,
+                    depth: 0,
+                })
+            });
+            // Generated by the deepest real leaf, first in octant order.
+            let deepest = corners.iter().filter(|c| c.id & VIRTUAL == 0).map(|c| c.depth).max();
+            let first = corners
+                .iter()
+                .position(|c| c.id & VIRTUAL == 0 && Some(c.depth) == deepest);
+            match first.and_then(|i| corners.get(i)) {
+                Some(c) if c.id == key.raw() => {}
+                _ => generator_ok = false,
+            }
+            if !generator_ok {
+                continue;
+            }
+            let positive = corners.iter().filter(|c| c.u > 0.0).count();
+            if positive == 0 || positive == 8 {
+                continue;
+            }
+            let gradient = cell_gradient(&corners);
+            mesh_cell(&corners, gradient, &mut mesh, &mut vertex_index);
+        }
+    }
+    Ok(mesh)
+}
+
+/// Gradient of u over a dual cell (mean difference between opposite faces of the 8 corners,
+/// per axis), for vertex normals.
+fn cell_gradient(corners: &[Corner; 8]) -> DVec3 {
+    let mut gradient = DVec3::ZERO;
+    for axis in 0..3 {
+        let (mut plus, mut minus, mut np, mut nm) = (0f64, 0f64, 0, 0);
+        let (mut cp, mut cm) = (0f64, 0f64);
+        for (i, c) in corners.iter().enumerate() {
+            if (i >> axis) & 1 == 1 {
+                plus += f64::from(c.u);
+                cp += c.center[axis];
+                np += 1;
+            } else {
+                minus += f64::from(c.u);
+                cm += c.center[axis];
+                nm += 1;
+            }
+        }
+        let dist = cp / f64::from(np) - cm / f64::from(nm);
+        if dist.abs() > 0.0 {
+            gradient[axis] = (plus / f64::from(np) - minus / f64::from(nm)) / dist;
+        }
+    }
+    gradient
+}
+
+/// Cuts the dual cell's 6 Kuhn tetrahedra at u = 0 and adds the triangles, oriented towards
+/// positive u, to `mesh`; vertices are found or added by name through `vertex_index`, and each
+/// triangle's vertices accumulate the cell's `gradient` as their normal.
+fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, mesh: &mut UnitMesh, vertex_index: &mut NameIndex) {
+    for tet in KUHN {
+        let t = tet.map(|i| corners[i]);
+        let inside: Vec<usize> = (0..4).filter(|&i| t[i].u <= 0.0).collect();
+        let outside: Vec<usize> = (0..4).filter(|&i| t[i].u > 0.0).collect();
+        if inside.is_empty() || outside.is_empty() {
+            continue;
+        }
+        let mut vertex = |a: usize, b: usize, mesh: &mut UnitMesh| -> u32 {
+            let (ca, cb) = (t[a], t[b]);
+            let edge = if ca.id <= cb.id { (ca.id, cb.id) } else { (cb.id, ca.id) };
+            let vertices = &mesh.vertices;
+            match vertex_index.entry(edge, |i| vertices.get(i as usize).map(|v| v.0)) {
+                hashbrown::hash_table::Entry::Occupied(found) => *found.get(),
+                hashbrown::hash_table::Entry::Vacant(slot) => {
+                    let (lo, hi) = if ca.id <= cb.id { (ca, cb) } else { (cb, ca) };
+                    let s = f64::from(lo.u) / (f64::from(lo.u) - f64::from(hi.u));
+                    let position = lo.center + (hi.center - lo.center) * s;
+                    let index = mesh.vertices.len() as u32;
+                    mesh.vertices.push((edge, position, DVec3::ZERO));
+                    *slot.insert(index).get()
+                }
+            }
+        };
+        let mut polygon: Vec<u32> = Vec::new();
+        if inside.len() == 1 || outside.len() == 1 {
+            let (apex, others) = if inside.len() == 1 {
+                (inside[0], &outside)
+            } else {
+                (outside[0], &inside)
+            };
+            for &o in others.iter() {
+                polygon.push(vertex(apex, o, &mut *mesh));
+            }
+        } else {
+            let (i0, i1, o0, o1) = (inside[0], inside[1], outside[0], outside[1]);
+            polygon.push(vertex(i0, o0, &mut *mesh));
+            polygon.push(vertex(i0, o1, &mut *mesh));
+            polygon.push(vertex(i1, o1, &mut *mesh));
+            polygon.push(vertex(i1, o0, &mut *mesh));
+        }
+        for &vi in &polygon {
+            if let Some(v) = mesh.vertices.get_mut(vi as usize) {
+                v.2 += gradient;
+            }
+        }
+        // Orient towards positive u (outside).
+        let to_outside = outside.iter().map(|&i| t[i].center).sum::<DVec3>() / outside.len() as f64
+            - inside.iter().map(|&i| t[i].center).sum::<DVec3>() / inside.len() as f64;
+        for k in 1..polygon.len() - 1 {
+            let mut tri = [polygon[0], polygon[k], polygon[k + 1]];
+            if tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2] {
+                continue;
+            }
+            let p = tri.map(|i| mesh.vertices[i as usize].1);
+            let normal = (p[1] - p[0]).cross(p[2] - p[0]);
+            if normal.dot(to_outside) < 0.0 {
+                tri.swap(1, 2);
+            }
+            mesh.triangles.push(tri);
+        }
+    }
+}
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn random(seed: &mut u64) -> u64 {
+        *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        *seed >> 33
+    }
+
+    #[test]
+    fn galloping_search_agrees_with_binary_search_from_every_start() {
+        let mut seed = 7;
+        for len in [0usize, 1, 2, 3, 17, 300] {
+            // Sorted keys at mixed depths; probes on, between, below and above them.
+            let mut keys: Vec<CubeKey> = (0..len)
+                .map(|_| {
+                    let depth = 1 + (random(&mut seed) % 12) as u8;
+                    let mask = (1u64 << depth) as u32 - 1;
+                    let mut c = || random(&mut seed) as u32 & mask;
+                    CubeKey::new(depth, c(), c(), c())
+                })
+                .collect();
+            keys.sort();
+            keys.dedup();
+            let cells: Vec<CubeKey> = (0..64)
+                .map(|_| {
+                    let mut c = || (random(&mut seed) as u32) << 1;
+                    CubeKey::new(MAX_DEPTH, c(), c(), c())
+                })
+                .collect();
+            for probe in keys.iter().copied().chain(cells) {
+                let expected = keys.partition_point(|k| *k <= probe);
+                for near in 0..keys.len() + 2 {
+                    assert_eq!(
+                        partition_point_near(&keys, near, probe),
+                        expected,
+                        "{len} keys, from {near}, probe {probe:?}"
+                    );
+                }
+            }
+        }
+    }
+}

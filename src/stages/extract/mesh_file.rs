@@ -1,0 +1,139 @@
+//! The temporary vertex and face files a streaming extraction writes beside its output, and
+//! their assembly into the final PLY.
+
+use std::io::Write;
+use std::path::Path;
+
+use glam::DVec3;
+
+use super::MeshSummary;
+use super::weld::MeshWriter;
+use crate::mesh::ply_header;
+
+/// Writes a mesh file in two passes over temporary files beside it: fixed-size vertex records
+/// (so that normals can be fixed in place) and face records, joined under the header at the end.
+pub(super) struct MeshFile {
+    path: std::path::PathBuf,
+    vertices_path: std::path::PathBuf,
+    faces_path: std::path::PathBuf,
+    vertices: std::io::BufWriter<std::fs::File>,
+    faces: std::io::BufWriter<std::fs::File>,
+}
+
+/// Bytes of one vertex record: position and normal as little-endian f32.
+const VERTEX_RECORD: u64 = 6 * std::mem::size_of::<f32>() as u64;
+/// Bytes of one face record in binary PLY: the count byte 3, then three u32 indices.
+const FACE_RECORD: usize = 1 + 3 * std::mem::size_of::<u32>();
+
+impl MeshFile {
+    pub(super) fn create(path: &Path) -> std::io::Result<MeshFile> {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let beside = |suffix: &str| path.with_file_name(format!(".{name}.{suffix}.tmp"));
+        let (vertices_path, faces_path) = (beside("vertices"), beside("faces"));
+        let open = |p: &Path| -> std::io::Result<std::io::BufWriter<std::fs::File>> {
+            Ok(std::io::BufWriter::new(
+                std::fs::OpenOptions::new()
+                    .read(true)
+                    .write(true)
+                    .create(true)
+                    .truncate(true)
+                    .open(p)?,
+            ))
+        };
+        Ok(MeshFile {
+            path: path.to_path_buf(),
+            vertices: open(&vertices_path)?,
+            faces: open(&faces_path)?,
+            vertices_path,
+            faces_path,
+        })
+    }
+
+    /// Joins the parts into the mesh file (PLY, or OBJ by extension) and removes them.
+    pub(super) fn finish(self, summary: &MeshSummary) -> std::io::Result<()> {
+        use std::io::{Read, Seek, SeekFrom};
+        let mut vertices = self.vertices.into_inner().map_err(|e| e.into_error())?;
+        let mut faces = self.faces.into_inner().map_err(|e| e.into_error())?;
+        vertices.seek(SeekFrom::Start(0))?;
+        faces.seek(SeekFrom::Start(0))?;
+        let mut out = std::io::BufWriter::new(std::fs::File::create(&self.path)?);
+        let is_obj = self.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("obj"));
+        if is_obj {
+            let mut reader = std::io::BufReader::new(vertices);
+            let mut record = [0u8; VERTEX_RECORD as usize];
+            for _ in 0..summary.vertices {
+                reader.read_exact(&mut record)?;
+                let f: Vec<f32> = record
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .collect();
+                writeln!(out, "v {} {} {}", f[0], f[1], f[2])?;
+                writeln!(out, "vn {} {} {}", f[3], f[4], f[5])?;
+            }
+            let mut reader = std::io::BufReader::new(faces);
+            let mut record = [0u8; FACE_RECORD];
+            for _ in 0..summary.triangles {
+                reader.read_exact(&mut record)?;
+                let v: Vec<u32> = record[1..]
+                    .chunks_exact(4)
+                    .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) + 1)
+                    .collect();
+                writeln!(out, "f {0}//{0} {1}//{1} {2}//{2}", v[0], v[1], v[2])?;
+            }
+        } else {
+            write!(out, "{}", ply_header(summary.vertices, summary.triangles))?;
+            std::io::copy(&mut vertices, &mut out)?;
+            std::io::copy(&mut faces, &mut out)?;
+        }
+        out.flush()?;
+        std::fs::remove_file(&self.vertices_path)?;
+        std::fs::remove_file(&self.faces_path)?;
+        Ok(())
+    }
+
+    pub(super) fn abandon(self) {
+        drop(self.vertices);
+        drop(self.faces);
+        let _ = std::fs::remove_file(&self.vertices_path);
+        let _ = std::fs::remove_file(&self.faces_path);
+    }
+}
+
+impl MeshWriter for MeshFile {
+    fn vertex(&mut self, position: DVec3, normal: DVec3) -> std::io::Result<()> {
+        for v in position.as_vec3().to_array().iter().chain(&normal.as_vec3().to_array()) {
+            self.vertices.write_all(&v.to_le_bytes())?;
+        }
+        Ok(())
+    }
+
+    fn triangle(&mut self, triangle: [u32; 3]) -> std::io::Result<()> {
+        self.faces.write_all(&[3u8])?;
+        for v in triangle {
+            self.faces.write_all(&v.to_le_bytes())?;
+        }
+        Ok(())
+    }
+
+    fn fix_normals(&mut self, fixes: &[(u32, DVec3)]) -> std::io::Result<()> {
+        use std::io::{Seek, SeekFrom};
+        if fixes.is_empty() {
+            return Ok(());
+        }
+        self.vertices.flush()?;
+        let file = self.vertices.get_mut();
+        for (index, normal) in fixes {
+            file.seek(SeekFrom::Start(u64::from(*index) * VERTEX_RECORD + VERTEX_RECORD / 2))?;
+            let mut bytes = [0u8; VERTEX_RECORD as usize / 2];
+            for (slot, v) in bytes.chunks_exact_mut(4).zip(normal.as_vec3().to_array()) {
+                slot.copy_from_slice(&v.to_le_bytes());
+            }
+            file.write_all(&bytes)?;
+        }
+        file.seek(SeekFrom::End(0))?;
+        Ok(())
+    }
+}

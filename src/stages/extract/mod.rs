@@ -1,0 +1,242 @@
+//! `extract`: the surface u = 0 over the finest level cut (paper 4.6).
+//!
+//! Dual marching tetrahedra. u lives at leaf centres. For every corner point V of the octree,
+//! the dual cell joins the centres of the (up to 8) leaves incident to V, one per octant, with
+//! repeats where a coarse leaf covers several octants; corners outside the root are virtual
+//! exterior cells with u = +1, which closes every surface. Each dual cell is generated exactly
+//! once, by the deepest incident leaf that comes first in octant order, and split into the 6
+//! Kuhn tetrahedra around its 0-7 diagonal, so neighbouring cells cut their shared faces along
+//! the same diagonal and the tetrahedra conform. A surface vertex lies on a tetrahedron edge and
+//! is named by the unordered pair of cells at its ends, so the same vertex is produced, and
+//! welded, wherever the edge appears: on both sides of a level change and of a treetop border.
+//!
+//! Files: `dual_cells` (a unit's piece), `weld` (streaming weld in unit order), `mesh_file`
+//! (the temporary vertex and face files and the final PLY), `in_order` (workers compute
+//! pieces ahead while the weld consumes them in order).
+
+mod dual_cells;
+mod in_order;
+mod mesh_file;
+mod weld;
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use self::dual_cells::dual_cells_of_unit;
+use self::in_order::in_order_while_computing;
+use self::mesh_file::MeshFile;
+use self::weld::StreamingWeld;
+use super::solve::{LEVEL_STAGES, LevelCut};
+use super::treetop::Treetop;
+use crate::format::{BoundingBox, CubeKey, Scene};
+pub use crate::mesh::MeshSummary;
+use crate::mesh::{Mesh, UnitMesh, VertexId, clip, decimate_units, edge_defects, write_mesh};
+use crate::store::{Result, Snapshot, StoreError};
+
+/// Hash tables keyed by surface-vertex and edge names: nothing depends on their iteration
+/// order, so a fast fixed-seed hasher replaces SipHash.
+type FastMap<K, V> = HashMap<K, V, foldhash::fast::FixedState>;
+
+/// What to extract and how.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ExtractOptions {
+    /// Only what lies in this box, cut at its faces.
+    pub region: Option<BoundingBox>,
+    /// Keep about this fraction of each treetop leaf's triangles (quadric error simplification;
+    /// vertices shared with another leaf never move, so the whole stays seamless).
+    pub decimate: Option<f32>,
+}
+
+/// Extracts the surface u = 0 of the latest solution, optionally only what lies in a region.
+pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &ExtractOptions) -> Result<Mesh> {
+    let units = extract_units(snapshot, scene, finest, options.region)?;
+    let treetop = Treetop::of(snapshot)?;
+    let meshes: Vec<UnitMesh> = units
+        .par_iter()
+        .map(|&unit| unit_mesh(snapshot, &treetop, scene, finest, unit))
+        .collect::<Result<_>>()?;
+    Ok(assemble(meshes, options))
+}
+
+/// The treetop units whose dual cells can reach the region (all leaves without one), in order.
+pub fn extract_units(
+    snapshot: &Snapshot<'_>,
+    scene: &Scene,
+    finest: u8,
+    region: Option<BoundingBox>,
+) -> Result<Vec<usize>> {
+    let treetop = Treetop::of(snapshot)?;
+    let stage = LEVEL_STAGES[usize::from(finest)];
+    if snapshot.segments(stage).is_empty() {
+        return Err(StoreError::Stage {
+            stage: "extract".into(),
+            unit: "-".into(),
+            message: format!("no solution at level {finest}: run `octstore solve` first"),
+        });
+    }
+    Ok((0..treetop.units.len())
+        .filter(|&i| {
+            let Some(unit) = treetop.units.get(i) else { return false };
+            if unit.top {
+                return false;
+            }
+            match region {
+                None => true,
+                Some(r) => {
+                    // A dual cell spans the centres of leaves adjacent to its generating leaf,
+                    // which are at most twice its size (2:1 balance): grow the unit's cube by
+                    // twice its side to catch every cell that can reach into the box.
+                    let side = scene.cube_side(unit.key.depth());
+                    let lo = scene.cube_center(unit.key) - DVec3::splat(side * 2.5);
+                    let hi = lo + DVec3::splat(side * 5.0);
+                    lo.cmple(r.max).all() && hi.cmpge(r.min).all()
+                }
+            }
+        })
+        .collect())
+}
+
+/// The surface pieces that treetop unit `unit` generates.
+pub fn unit_mesh(
+    snapshot: &Snapshot<'_>,
+    treetop: &Treetop,
+    scene: &Scene,
+    finest: u8,
+    unit: usize,
+) -> Result<UnitMesh> {
+    let Some(key) = treetop.units.get(unit).map(|u| u.key) else {
+        return Ok(UnitMesh::default());
+    };
+    // Every probe of the unit's dual cells lies within one finest cell of its cube.
+    let mut level = LevelCut::around(snapshot, treetop, finest, key);
+    match level.unit(unit)? {
+        Some(values) => dual_cells_of_unit(scene, &mut level, &values.0, &values.1),
+        None => Ok(UnitMesh::default()),
+    }
+}
+
+/// Decimates (if asked), welds the units' pieces in unit order, and cuts at the region.
+pub fn assemble(mut meshes: Vec<UnitMesh>, options: &ExtractOptions) -> Mesh {
+    if let Some(ratio) = options.decimate {
+        decimate_units(&mut meshes, ratio);
+    }
+    // Weld across units by edge identity, in unit order (deterministic).
+    let mut index: HashMap<VertexId, u32> = HashMap::new();
+    let mut positions: Vec<DVec3> = Vec::new();
+    let mut normals: Vec<DVec3> = Vec::new();
+    let mut triangles = Vec::new();
+    for mesh in meshes {
+        let map: Vec<u32> = mesh
+            .vertices
+            .iter()
+            .map(|(edge, p, n)| match index.get(edge) {
+                Some(&i) => {
+                    normals[i as usize] += *n;
+                    i
+                }
+                None => {
+                    let i = positions.len() as u32;
+                    index.insert(*edge, i);
+                    positions.push(*p);
+                    normals.push(*n);
+                    i
+                }
+            })
+            .collect();
+        triangles.extend(mesh.triangles.iter().map(|t| t.map(|v| map[v as usize])));
+    }
+    let mut mesh = Mesh {
+        positions: positions.iter().map(|p| p.as_vec3().to_array()).collect(),
+        normals: normals
+            .iter()
+            .map(|n| n.normalize_or_zero().as_vec3().to_array())
+            .collect(),
+        triangles,
+    };
+    if let Some(r) = options.region {
+        mesh = clip(&mesh, r);
+    }
+    mesh
+}
+
+/// The low 124 bits of a corner id: the leaf key, or for a virtual cell the key it mirrors.
+/// Streams pieces (unit index, treetop cube, mesh), in increasing unit order, into a mesh file
+/// without region or decimation; memory holds one piece at a time plus the open seams.
+pub fn stream_to_file(
+    pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
+    treetop: &Treetop,
+    path: &Path,
+) -> Result<MeshSummary> {
+    let io = |source: std::io::Error| StoreError::Io {
+        action: "write mesh",
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = MeshFile::create(path).map_err(io)?;
+    let mut weld = StreamingWeld::new(file, treetop);
+    let written = || -> Result<()> {
+        for piece in pieces {
+            let (unit, key, mesh) = piece?;
+            weld.add(unit, key, &mesh).map_err(io)?;
+        }
+        Ok(())
+    };
+    if let Err(e) = written() {
+        weld.writer.abandon();
+        return Err(e);
+    }
+    let (most_open, most_open_edges) = (weld.most_open, weld.most_open_edges);
+    let (file, summary) = weld.finish().map_err(io)?;
+    file.finish(&summary).map_err(io)?;
+    tracing::info!("extract: at most {most_open} seam vertices and {most_open_edges} seam edges open at once");
+    Ok(summary)
+}
+
+/// Writes a mesh assembled in memory and counts it like the streaming path does.
+pub fn write_assembled(path: &Path, mesh: &Mesh) -> Result<MeshSummary> {
+    write_mesh(path, mesh).map_err(crate::store::io_error("write mesh", path))?;
+    let (boundary, non_manifold) = edge_defects(mesh);
+    Ok(MeshSummary {
+        vertices: mesh.positions.len() as u64,
+        triangles: mesh.triangles.len() as u64,
+        boundary_edges: boundary as u64,
+        non_manifold_edges: non_manifold as u64,
+    })
+}
+
+/// Extracts the surface into a mesh file. Without a region or decimation the pieces are
+/// streamed: one worker per thread computes units' pieces, at most twice the thread count of
+/// them at once, while the calling thread welds them in unit order, so memory does not grow
+/// with the surface; with either, the mesh is assembled in memory first.
+pub fn extract_to_file(
+    snapshot: &Snapshot<'_>,
+    scene: &Scene,
+    finest: u8,
+    options: &ExtractOptions,
+    path: &Path,
+) -> Result<MeshSummary> {
+    if options.region.is_some() || options.decimate.is_some() {
+        return write_assembled(path, &extract(snapshot, scene, finest, options)?);
+    }
+    let units = extract_units(snapshot, scene, finest, None)?;
+    let treetop = Treetop::of(snapshot)?;
+    let piece = |unit: usize| -> Result<(usize, CubeKey, UnitMesh)> {
+        let key = treetop
+            .units
+            .get(unit)
+            .map(|u| u.key)
+            .ok_or_else(|| StoreError::Stage {
+                stage: "extract".into(),
+                unit: unit.to_string(),
+                message: "no such treetop unit".into(),
+            })?;
+        Ok((unit, key, unit_mesh(snapshot, &treetop, scene, finest, unit)?))
+    };
+    let threads = rayon::current_num_threads().max(1);
+    in_order_while_computing(&units, threads, 2 * threads, piece, |pieces| {
+        stream_to_file(pieces, &treetop, path)
+    })
+}
