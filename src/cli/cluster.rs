@@ -123,8 +123,6 @@ pub(super) fn slurm(global: &GlobalOptions, args: SlurmArgs) -> Result<()> {
         }
         return Ok(());
     }
-    for (name, id) in cluster::submit_slurm_jobs(&store_path, &jobs)? {
-        println!("{name} {id}");
-    }
+    cluster::submit_slurm_jobs(&store_path, &jobs, |name, id| println!("{name} {id}"))?;
     Ok(())
 }

@@ -14,7 +14,7 @@ use super::{open_or_create, run_options};
 use crate::IndicatorField;
 use crate::inputs::DiscoverOptions;
 use crate::mesh::{View, read_mesh, render_view};
-use crate::pipeline::{self, DemoOptions, io_error};
+use crate::pipeline::{self, DemoOptions, save_png};
 use crate::stages::exercise::ExerciseStage;
 use crate::stages::extract::ExtractOptions;
 use crate::stages::ingest::IngestOptions;
@@ -163,10 +163,10 @@ pub(super) fn render(args: RenderArgs) -> Result<()> {
         Some(path) => pose_view(path, args.focal)?,
     };
     let mesh = read_mesh(&args.mesh)?;
-    render_view(&mesh, args.width, args.height, view)
-        .save(&args.output)
-        .map_err(|e| io_error("write image", &args.output)(std::io::Error::other(e.to_string())))
-        .map_err(CliError::from)
+    Ok(save_png(
+        &render_view(&mesh, args.width, args.height, view),
+        &args.output,
+    )?)
 }
 
 fn devices(json: bool) {

@@ -325,12 +325,14 @@ pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
     Ok((summary, args.output))
 }
 
-/// Submits the chain with `sbatch --parsable`, each job after the previous one succeeded;
-/// returns each job's name and id, in order. The scripts are kept in `STORE/slurm/`.
-pub fn submit_slurm_jobs(store: &Path, jobs: &[SlurmJob]) -> Result<Vec<(String, String)>> {
+/// Submits the chain with `sbatch --parsable`, each job after the previous one succeeded, and
+/// hands `on_submitted` each job's name and id as soon as it is submitted (so the ids of the jobs
+/// already queued are known even when a later submission fails). The scripts are kept in
+/// `STORE/slurm/`.
+pub fn submit_slurm_jobs(store: &Path, jobs: &[SlurmJob], mut on_submitted: impl FnMut(&str, &str)) -> Result<()> {
     let scripts = store.join("slurm");
     std::fs::create_dir_all(&scripts).map_err(io_error("create directory", &scripts))?;
-    let mut submitted: Vec<(String, String)> = Vec::with_capacity(jobs.len());
+    let mut previous: Option<String> = None;
     for job in jobs {
         let path = scripts.join(format!("{}.sh", job.name));
         std::fs::write(&path, &job.script).map_err(io_error("write job script", &path))?;
@@ -338,7 +340,7 @@ pub fn submit_slurm_jobs(store: &Path, jobs: &[SlurmJob]) -> Result<Vec<(String,
         command
             .arg("--parsable")
             .arg(format!("--output={}/%x-%A_%a.out", scripts.display()));
-        if let Some((_, id)) = submitted.last() {
+        if let Some(id) = &previous {
             command.arg(format!("--dependency=afterok:{id}"));
         }
         let output = command.arg(&path).output().map_err(io_error("run sbatch", &path))?;
@@ -354,7 +356,8 @@ pub fn submit_slurm_jobs(store: &Path, jobs: &[SlurmJob]) -> Result<Vec<(String,
             .next()
             .unwrap_or_default()
             .to_string();
-        submitted.push((job.name.clone(), id));
+        on_submitted(&job.name, &id);
+        previous = Some(id);
     }
-    Ok(submitted)
+    Ok(())
 }

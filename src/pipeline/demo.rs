@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{Result, SolveOptions, SolveUntil, extract, ingest, io_error, solve};
+use super::{Result, SolveOptions, SolveUntil, extract, ingest, io_error, save_png, solve};
 use crate::format::BoundingBox;
 use crate::gpu::DeviceChoice;
 use crate::inputs::DiscoverOptions;
@@ -72,8 +72,7 @@ const PREVIEW_BOX: BoundingBox = BoundingBox {
 
 /// Runs the demo into `options.out` (its store is rebuilt from scratch); `on_report` sees each
 /// stage's report as it finishes.
-pub fn demo(options: &DemoOptions, on_report: impl FnMut(&RunReport)) -> Result<DemoOutput> {
-    let mut on_report = on_report;
+pub fn demo(options: &DemoOptions, mut on_report: impl FnMut(&RunReport)) -> Result<DemoOutput> {
     let out = &options.out;
     let scene = SceneSpec::demo();
     let input = out.join("input");
@@ -126,11 +125,5 @@ pub fn demo(options: &DemoOptions, on_report: impl FnMut(&RunReport)) -> Result<
 /// Renders the objects of the demo's mesh file into a PNG.
 fn save_preview(mesh: &Path, png: &Path) -> Result<()> {
     let objects = clip(&read_mesh(mesh)?, PREVIEW_BOX);
-    render(&objects, 800, 600)
-        .save(png)
-        .map_err(|e| super::PipelineError::Io {
-            action: "write image",
-            path: png.to_path_buf(),
-            source: std::io::Error::other(e.to_string()),
-        })
+    save_png(&render(&objects, 800, 600), png)
 }

@@ -77,6 +77,13 @@ impl From<StoreError> for PipelineError {
 /// The result of pipeline calls.
 pub type Result<T, E = PipelineError> = std::result::Result<T, E>;
 
+/// Writes `image` as a PNG at `path`; the image crate's error becomes an I/O error on the file.
+pub(crate) fn save_png(image: &image::RgbImage, path: &std::path::Path) -> Result<()> {
+    image
+        .save(path)
+        .map_err(|e| io_error("write image", path)(std::io::Error::other(e.to_string())))
+}
+
 /// `map_err` adapter: an I/O error of `action` on `path`.
 pub(crate) fn io_error(action: &'static str, path: &std::path::Path) -> impl FnOnce(std::io::Error) -> PipelineError {
     let path = path.to_path_buf();

@@ -41,8 +41,8 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 pub use self::demo::{DemoOptions, DemoOutput, demo};
-pub(crate) use self::error::io_error;
 pub use self::error::{PipelineError, Result};
+pub(crate) use self::error::{io_error, save_png};
 use crate::format::Scene;
 use crate::gpu::{DeviceChoice, Gpu};
 use crate::inputs::{DiscoverOptions, discover};
