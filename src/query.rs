@@ -28,6 +28,9 @@ pub struct CubeInfo {
     pub size: f64,
     /// The indicator: negative inside, positive outside.
     pub u: f32,
+    /// Whether a depth map saw the cube (votes near a surface or in free space; format-spec.md,
+    /// "Columns used by stages"). Extraction meshes only between seen cubes unless `--closed`.
+    pub seen: bool,
     /// The cube's vote histogram (8 bins over the signed distance [-1, 1]).
     pub histogram: [f32; BINS],
 }
@@ -61,6 +64,10 @@ pub trait IndicatorField {
     /// u at a point, interpolated by inverse distance over the leaves around the octree corner
     /// nearest to the point (exact at leaf centres); `None` outside the root or before a solve.
     fn indicator_at(&self, point: DVec3) -> Result<Option<f32>>;
+
+    /// Whether a depth map saw the finest-cut leaf that contains the point; `None` outside the
+    /// root or before a solve.
+    fn seen_at(&self, point: DVec3) -> Result<Option<bool>>;
 
     /// Cubes of the level-`level` cut that meet `bbox`, with centre, size, u and histogram.
     fn cubes_in(&self, bbox: &BoundingBox, level: u8) -> Result<Vec<CubeInfo>>;
@@ -125,7 +132,7 @@ impl IndicatorField for Snapshot<'_> {
         };
         let treetop = Treetop::of(self)?;
         let mut lookup = LevelCut::new(self, &treetop, level);
-        let Some((leaf, u)) = lookup.cube_at(cell.map(|c| c as u32))? else {
+        let Some((leaf, own)) = lookup.cube_at(cell.map(|c| c as u32))? else {
             return Ok(None);
         };
         // The nearest corner of the containing leaf, and the leaves in its 8 octants.
@@ -156,13 +163,26 @@ impl IndicatorField for Snapshot<'_> {
             seen.push(key);
             let distance = (scene.cube_center(key) - point).length();
             if distance < 1e-12 * scene.root_side {
-                return Ok(Some(value));
+                return Ok(Some(value.u));
             }
             let w = 1.0 / (distance * distance);
             weights += w;
-            sum += w * f64::from(value);
+            sum += w * f64::from(value.u);
         }
-        Ok(Some(if weights > 0.0 { (sum / weights) as f32 } else { u }))
+        Ok(Some(if weights > 0.0 { (sum / weights) as f32 } else { own.u }))
+    }
+
+    fn seen_at(&self, point: DVec3) -> Result<Option<bool>> {
+        let Some(level) = self.finest_level() else {
+            return Ok(None);
+        };
+        let scene = scene_of(self)?;
+        let Some(cell) = full_resolution(&scene, point) else {
+            return Ok(None);
+        };
+        let treetop = Treetop::of(self)?;
+        let mut lookup = LevelCut::new(self, &treetop, level);
+        Ok(lookup.cube_at(cell.map(|c| c as u32))?.map(|(_, value)| value.seen))
     }
 
     fn cubes_in(&self, bbox: &BoundingBox, level: u8) -> Result<Vec<CubeInfo>> {
@@ -196,7 +216,7 @@ impl IndicatorField for Snapshot<'_> {
                 }
                 None => (Vec::new(), Vec::new()),
             };
-            for (key, u) in values.0.iter().zip(&values.1) {
+            for (key, value) in values.0.iter().zip(&values.1) {
                 let center = scene.cube_center(*key);
                 let half = scene.cube_side(key.depth()) * 0.5;
                 if (center + DVec3::splat(half)).cmplt(bbox.min).any()
@@ -214,7 +234,8 @@ impl IndicatorField for Snapshot<'_> {
                     depth: key.depth(),
                     center: center.to_array(),
                     size: 2.0 * half,
-                    u: *u,
+                    u: value.u,
+                    seen: value.seen,
                     histogram,
                 });
             }

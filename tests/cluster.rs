@@ -180,11 +180,10 @@ fn plan_work_commit_equals_a_single_process_solve() {
             String::from_utf8_lossy(&out.stderr)
         );
     }
+    // The observed surface (the default) is open where the cameras stopped; the chunks weld
+    // into exactly the single-process mesh, with no edge used three times.
     let committed = run(&["commit", c, "--stage", "extract"]);
-    assert!(
-        committed.contains(" 0 boundary edges, 0 non-manifold edges"),
-        "{committed}"
-    );
+    assert!(committed.contains(" 0 non-manifold edges"), "{committed}");
     assert!(std::fs::read(mesh_single).unwrap() == std::fs::read(mesh_cluster).unwrap());
     let out = octstore(&["commit", c, "--stage", "extract"], &[]);
     assert!(

@@ -449,6 +449,7 @@ fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
         tau: 0.5 * side,
         spacing: Some(0.5 * side),
         crop_margin: None,
+        seen_faces: None,
         seed: 1,
     };
     let report = octstore::quality::evaluate::evaluate(gpu_mesh, cpu_mesh, &options).unwrap();

@@ -1,6 +1,8 @@
 //! `octstore-evaluate RECONSTRUCTION GROUND_TRUTH`: accuracy, completeness, Chamfer distance,
-//! precision, recall and F-score at tau (Tanks and Temples), plus the reconstruction's boundary
-//! and non-manifold edge counts. See `octstore::quality::evaluate` for the definitions.
+//! precision, recall and F-score at tau (Tanks and Temples), normal consistency, plus the
+//! reconstruction's boundary and non-manifold edge counts. See `octstore::quality::evaluate`
+//! for the definitions. `--gt-faces` (written by `octstore-gt-render`) restricts completeness
+//! and recall to the ground-truth faces some camera saw.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -25,8 +27,40 @@ struct Args {
     /// Measure the whole reconstruction, uncropped.
     #[arg(long)]
     no_crop: bool,
+    /// The ground-truth faces some camera saw: a text file of triangle indices, one per line
+    /// (`seen-faces.txt` from `octstore-gt-render`).
+    #[arg(long)]
+    gt_faces: Option<PathBuf>,
     #[arg(long)]
     json: bool,
+}
+
+/// Reads a list of triangle indices into one flag per ground-truth triangle.
+fn read_seen_faces(path: &std::path::Path, triangles: usize) -> Result<Vec<bool>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut seen = vec![false; triangles];
+    for (number, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let index: usize = line.parse().map_err(|e| {
+            format!(
+                "{} line {}: {line:?} is not a triangle index ({e})",
+                path.display(),
+                number + 1
+            )
+        })?;
+        let flag = seen.get_mut(index).ok_or_else(|| {
+            format!(
+                "{} line {}: triangle {index} is beyond the ground truth's {triangles}",
+                path.display(),
+                number + 1
+            )
+        })?;
+        *flag = true;
+    }
+    Ok(seen)
 }
 
 fn main() -> ExitCode {
@@ -39,6 +73,10 @@ fn main() -> ExitCode {
             tau: args.tau * (hi - lo).length(),
             spacing: None,
             crop_margin: (!args.no_crop).then_some(args.crop_margin),
+            seen_faces: match &args.gt_faces {
+                Some(path) => Some(read_seen_faces(path, truth.triangles.len())?),
+                None => None,
+            },
             seed: 1,
         };
         let r = evaluate(&reconstruction, &truth, &options)?;
@@ -46,7 +84,7 @@ fn main() -> ExitCode {
             serde_json::to_string_pretty(&r).unwrap_or_default()
         } else {
             format!(
-                "tau {:.6} | accuracy {:.6} | completeness {:.6} | chamfer {:.6} | precision {:.4} | recall {:.4} | F-score {:.4} | boundary edges {} | non-manifold edges {}",
+                "tau {:.6} | accuracy {:.6} | completeness {:.6} | chamfer {:.6} | precision {:.4} | recall {:.4} | F-score {:.4} | normal consistency {:.4} | boundary edges {} | non-manifold edges {}",
                 r.tau,
                 r.accuracy,
                 r.completeness,
@@ -54,6 +92,7 @@ fn main() -> ExitCode {
                 r.precision,
                 r.recall,
                 r.f_score,
+                r.normal_consistency,
                 r.boundary_edges,
                 r.non_manifold_edges
             )

@@ -1,27 +1,36 @@
 //! `octstore-gt-render MESH --out DIR`: depth maps of a ground-truth mesh (OFF, PLY, OBJ, each
 //! optionally .gz) from a ring or sphere of cameras, with noise, written as PFM files plus the
-//! manifest `DIR/scene.json` for `octstore ingest`.
+//! manifest `DIR/scene.json` for `octstore ingest`, and `DIR/seen-faces.txt`, the indices of the
+//! triangles some camera saw (for `octstore-evaluate --gt-faces`).
+//!
+//! `octstore-gt-render --layout interior --out DIR` needs no mesh: it renders the built-in
+//! furnished room from inside and writes its ground truth to `DIR/ground-truth.ply`.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
-use octstore::mesh::read_mesh;
+use octstore::mesh::{read_mesh, write_mesh};
 use octstore::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig};
+use octstore::quality::interior_scene::interior_room;
 
 #[derive(Parser)]
 #[command(version, about = "Render depth maps of a ground-truth mesh, with noise")]
 struct Args {
-    mesh: PathBuf,
+    /// The ground-truth mesh (not with `--layout interior`, which has its own room).
+    #[arg(required_unless_present = "layout")]
+    mesh: Option<PathBuf>,
     #[arg(long)]
     out: PathBuf,
     #[arg(long, default_value_t = 24)]
     views: usize,
-    #[arg(long, value_enum, default_value_t = Layout::Sphere)]
-    layout: Layout,
-    /// Camera distance from the mesh's centre, in bounding-box diagonals.
-    #[arg(long, default_value_t = 1.2)]
-    distance: f64,
+    /// Sphere or ring: cameras around the mesh; interior: inside the built-in room.
+    #[arg(long, value_enum)]
+    layout: Option<Layout>,
+    /// Camera distance from the mesh's centre, in bounding-box diagonals (interior: radius of
+    /// the circle the cameras walk; default 0.08).
+    #[arg(long)]
+    distance: Option<f64>,
     #[arg(long, default_value_t = 320)]
     width: u32,
     #[arg(long, default_value_t = 240)]
@@ -41,7 +50,8 @@ struct Args {
     /// Radius of each missing disc, a fraction of the image width.
     #[arg(long, default_value_t = 0.08)]
     missing_radius: f64,
-    /// Half-size of a room around the mesh, in diagonals (0: no room, misses stay empty).
+    /// Half-size of a room around the mesh, in diagonals (0: no room, misses stay empty; the
+    /// interior layout has none).
     #[arg(long, default_value_t = 1.6)]
     room: f64,
     #[arg(long, default_value_t = 1)]
@@ -51,20 +61,36 @@ struct Args {
 fn main() -> ExitCode {
     let args = Args::parse();
     let run = || -> Result<PathBuf, Box<dyn std::error::Error>> {
-        let mesh = read_mesh(&args.mesh)?;
-        let truth = GroundTruth::new(mesh, (args.room > 0.0).then_some(args.room))
-            .map_err(|e| format!("{}: {e}", args.mesh.display()))?;
-        if args.room > 0.0 && args.room <= args.distance {
+        let layout = args.layout.unwrap_or(Layout::Sphere);
+        let interior = layout == Layout::Interior;
+        let distance = args.distance.unwrap_or(if interior { 0.08 } else { 1.2 });
+        let truth = match (&args.mesh, interior) {
+            (Some(path), false) => {
+                let mesh = read_mesh(path)?;
+                GroundTruth::new(mesh, (args.room > 0.0).then_some(args.room))
+                    .map_err(|e| format!("{}: {e}", path.display()))?
+            }
+            (None, true) => {
+                let truth = GroundTruth::new(interior_room(), None)?;
+                std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
+                let path = args.out.join("ground-truth.ply");
+                write_mesh(&path, &truth.mesh).map_err(|e| format!("{}: {e}", path.display()))?;
+                truth
+            }
+            (Some(_), true) => return Err("--layout interior renders its own room: give no mesh".into()),
+            (None, false) => return Err("give a ground-truth mesh, or --layout interior".into()),
+        };
+        if !interior && args.room > 0.0 && args.room <= distance {
             return Err(format!(
                 "--room {} must exceed --distance {}: the cameras stand inside the room",
-                args.room, args.distance
+                args.room, distance
             )
             .into());
         }
         let rig = Rig {
             views: args.views,
-            layout: args.layout,
-            distance: args.distance,
+            layout,
+            distance,
             width: args.width,
             height: args.height,
             fov_degrees: args.fov,
@@ -76,9 +102,19 @@ fn main() -> ExitCode {
             missing_radius: args.missing_radius,
             seed: args.seed,
         };
-        Ok(truth
+        let manifest = truth
             .write_dataset(&rig, &noise, &args.out)
-            .map_err(|e| format!("{}: {e}", args.out.display()))?)
+            .map_err(|e| format!("{}: {e}", args.out.display()))?;
+        let seen: String = truth
+            .seen_faces(&rig)
+            .iter()
+            .enumerate()
+            .filter(|(_, seen)| **seen)
+            .map(|(index, _)| format!("{index}\n"))
+            .collect();
+        let faces = args.out.join("seen-faces.txt");
+        std::fs::write(&faces, seen).map_err(|e| format!("{}: {e}", faces.display()))?;
+        Ok(manifest)
     };
     match run() {
         Ok(manifest) => {

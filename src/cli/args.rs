@@ -178,6 +178,9 @@ pub struct PlanArgs {
     /// extract: keep about this fraction of each leaf's triangles.
     #[arg(long, value_parser = parse_ratio)]
     pub decimate: Option<f32>,
+    /// extract: the whole zero set, closed at the root cube (see `octstore extract --help`).
+    #[arg(long)]
+    pub closed: bool,
 }
 
 /// Arguments of `octstore work`.
@@ -260,6 +263,13 @@ pub struct ExtractArgs {
     /// treetop leaf that never moves a vertex shared with another leaf.
     #[arg(long, value_parser = parse_ratio)]
     pub decimate: Option<f32>,
+    /// Mesh the whole zero set of u, closed at the root cube, instead of only the surface
+    /// between cubes that depth maps saw. Without it (the default) an indoor capture gives the
+    /// room's inside with open borders where the cameras stopped, and nothing is invented
+    /// behind walls or under furniture; use it for an object seen from all around when a
+    /// watertight mesh matters more than honest borders (hidden parts are then filled in).
+    #[arg(long)]
+    pub closed: bool,
 }
 
 /// Arguments of `octstore query`.
@@ -267,8 +277,15 @@ pub struct ExtractArgs {
 pub struct QueryArgs {
     pub store: PathBuf,
     /// x,y,z in world coordinates.
-    #[arg(long, value_parser = parse_point, required_unless_present_any = ["levels", "leaves"])]
+    #[arg(long, value_parser = parse_point, required_unless_present_any = ["levels", "leaves", "cubes"])]
     pub point: Option<[f64; 3]>,
+    /// List the cubes of the finest level cut (or `--level`) that meet this box, with u, the
+    /// seen flag and the vote histogram (JSON): minx,miny,minz,maxx,maxy,maxz.
+    #[arg(long, value_parser = parse_region)]
+    pub cubes: Option<BoundingBox>,
+    /// The level cut `--cubes` lists (default: the finest solved level).
+    #[arg(long, requires = "cubes")]
+    pub level: Option<u8>,
     #[arg(long)]
     pub version: Option<u64>,
     #[arg(long)]

@@ -21,6 +21,7 @@ pub(super) fn plan(args: PlanArgs) -> Result<()> {
         let options = ExtractOptions {
             region: args.region,
             decimate: args.decimate,
+            closed: args.closed,
         };
         let plan = cluster::plan_extract(&store, args.chunks, options, output.clone())?;
         println!(

@@ -91,6 +91,7 @@ pub(super) fn extract(args: ExtractArgs) -> Result<()> {
     let options = ExtractOptions {
         region: args.region,
         decimate: args.decimate,
+        closed: args.closed,
     };
     let summary = pipeline::extract(&store, &args.output, &options, args.version)?;
     print_extract_summary(&summary, &args.output, started);
@@ -112,6 +113,21 @@ pub(super) fn query(args: QueryArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&value).unwrap_or_default());
         return Ok(());
     }
+    if let Some(region) = args.cubes {
+        let level = match args.level.or_else(|| snapshot.finest_level()) {
+            Some(level) => level,
+            None => {
+                return Err(CliError::Usage {
+                    verb: "query",
+                    problem: "nothing is solved yet: run `octstore solve` first",
+                });
+            }
+        };
+        let cubes = snapshot.cubes_in(&region, level)?;
+        let value = serde_json::json!({"version": snapshot.version(), "level": level, "cubes": cubes});
+        println!("{}", serde_json::to_string_pretty(&value).unwrap_or_default());
+        return Ok(());
+    }
     let Some(point) = args.point else {
         return Err(CliError::Usage {
             verb: "query",
@@ -119,14 +135,20 @@ pub(super) fn query(args: QueryArgs) -> Result<()> {
         });
     };
     let u = snapshot.indicator_at(glam::DVec3::from_array(point))?;
+    let seen = snapshot.seen_at(glam::DVec3::from_array(point))?;
     if args.json {
-        let value = serde_json::json!({"version": snapshot.version(), "point": point, "u": u, "level": snapshot.finest_level()});
+        let value = serde_json::json!({"version": snapshot.version(), "point": point, "u": u, "seen": seen, "level": snapshot.finest_level()});
         println!("{value}");
     } else {
         match u {
             Some(u) => println!(
-                "u = {u:.6} ({}) at version {}",
+                "u = {u:.6} ({}, {}) at version {}",
                 if u < 0.0 { "inside" } else { "outside" },
+                if seen == Some(true) {
+                    "seen"
+                } else {
+                    "not seen by any depth map"
+                },
                 snapshot.version()
             ),
             None => println!("no value: the point is outside the root cube, or nothing is solved yet"),

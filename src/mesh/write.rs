@@ -13,18 +13,34 @@ pub fn ply_header(vertices: u64, triangles: u64) -> String {
     )
 }
 
-/// Writes binary little-endian PLY, or OBJ when the path ends in `.obj`.
+/// Writes binary little-endian PLY, or OBJ when the path ends in `.obj`. A mesh without
+/// normals gets zero normals in PLY (whose header always has them) and none in OBJ.
 pub fn write_mesh(path: &Path, mesh: &Mesh) -> std::io::Result<()> {
     let file = std::fs::File::create(path)?;
     let mut out = std::io::BufWriter::new(file);
     let is_obj = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("obj"));
+    let has_normals = mesh.normals.len() == mesh.positions.len();
+    let normal = |i: usize| {
+        if has_normals {
+            mesh.normals.get(i).copied().unwrap_or_default()
+        } else {
+            [0.0; 3]
+        }
+    };
     if is_obj {
-        for (p, n) in mesh.positions.iter().zip(&mesh.normals) {
+        for (i, p) in mesh.positions.iter().enumerate() {
             writeln!(out, "v {} {} {}", p[0], p[1], p[2])?;
-            writeln!(out, "vn {} {} {}", n[0], n[1], n[2])?;
+            if has_normals {
+                let n = normal(i);
+                writeln!(out, "vn {} {} {}", n[0], n[1], n[2])?;
+            }
         }
         for t in &mesh.triangles {
-            writeln!(out, "f {0}//{0} {1}//{1} {2}//{2}", t[0] + 1, t[1] + 1, t[2] + 1)?;
+            if has_normals {
+                writeln!(out, "f {0}//{0} {1}//{1} {2}//{2}", t[0] + 1, t[1] + 1, t[2] + 1)?;
+            } else {
+                writeln!(out, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1)?;
+            }
         }
     } else {
         write!(
@@ -32,8 +48,8 @@ pub fn write_mesh(path: &Path, mesh: &Mesh) -> std::io::Result<()> {
             "{}",
             ply_header(mesh.positions.len() as u64, mesh.triangles.len() as u64)
         )?;
-        for (p, n) in mesh.positions.iter().zip(&mesh.normals) {
-            for v in p.iter().chain(n) {
+        for (i, p) in mesh.positions.iter().enumerate() {
+            for v in p.iter().chain(&normal(i)) {
                 out.write_all(&v.to_le_bytes())?;
             }
         }

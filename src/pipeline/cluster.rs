@@ -234,7 +234,7 @@ fn unit_mesh_name(unit: u64) -> String {
 /// Extracts chunk `chunk`'s units into the chunk folder (read-only on the catalog; safe to
 /// repeat and to run twice).
 pub fn work_extract(store: &Store, chunk: u32) -> Result<WorkReport> {
-    let (plan, _, finest) = checked_extract_plan(store)?;
+    let (plan, args, finest) = checked_extract_plan(store)?;
     plan.check_chunk(chunk)?;
     let scene = required_scene(store, EXTRACT)?;
     let snapshot = store.latest()?;
@@ -253,7 +253,7 @@ pub fn work_extract(store: &Store, chunk: u32) -> Result<WorkReport> {
             skipped += 1;
             continue;
         }
-        let mesh = unit_mesh(&snapshot, &treetop, &scene, finest, unit as usize)?;
+        let mesh = unit_mesh(&snapshot, &treetop, &scene, finest, unit as usize, args.options.closed)?;
         store.write_chunk_file(&dir, &name, &encode_chunk_file(UNIT_MESH_MAGIC, &mesh))?;
     }
     Ok(WorkReport {

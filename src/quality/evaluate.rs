@@ -9,7 +9,14 @@
 //! - Chamfer distance: the mean of the two;
 //! - precision: fraction of reconstruction samples within tau of the ground truth;
 //! - recall: fraction of ground-truth samples within tau of the reconstruction;
-//! - F-score: their harmonic mean.
+//! - F-score: their harmonic mean;
+//! - normal consistency: the mean of |n_r . n_g| over the samples of both meshes, n_r and n_g the
+//!   normals of a sample's own triangle and of the nearest triangle of the other mesh.
+//!
+//! When only some ground-truth faces were seen by any camera (`seen_faces`), completeness,
+//! recall and the ground truth's half of normal consistency use the samples on those faces
+//! only: a method cannot be asked to recover what no depth map shows. Accuracy and precision
+//! still measure against the whole ground truth.
 //!
 //! An optional crop keeps only reconstruction samples inside the ground truth's bounding box,
 //! grown by a margin (Tanks and Temples crops to a bounding volume too): parts of the
@@ -38,6 +45,8 @@ pub struct EvaluateOptions {
     /// Crop the reconstruction to the ground truth's bounds grown by this fraction of its
     /// diagonal.
     pub crop_margin: Option<f64>,
+    /// The ground-truth faces some camera saw (by triangle index); all when absent.
+    pub seen_faces: Option<Vec<bool>>,
     pub seed: u64,
 }
 
@@ -50,6 +59,7 @@ pub struct Report {
     pub precision: f64,
     pub recall: f64,
     pub f_score: f64,
+    pub normal_consistency: f64,
     pub reconstruction_samples: usize,
     pub ground_truth_samples: usize,
     pub boundary_edges: usize,
@@ -132,10 +142,19 @@ pub fn closest_point_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> DVec
 
 const CANDIDATES: usize = 8;
 
-/// Distance from each query point to `mesh`, through the k-d tree of its samples.
-fn distances(queries: &[DVec3], mesh: &Mesh, samples: &Samples) -> Vec<f64> {
+/// The unit normal of a triangle (zero when degenerate).
+fn triangle_normal(mesh: &Mesh, triangle: u32) -> DVec3 {
+    mesh.triangles
+        .get(triangle as usize)
+        .and_then(|t| corners(mesh, t))
+        .map_or(DVec3::ZERO, |[a, b, c]| (b - a).cross(c - a).normalize_or_zero())
+}
+
+/// Distance from each query point to `mesh`, and the nearest triangle, through the k-d tree of
+/// its samples.
+fn distances(queries: &[DVec3], mesh: &Mesh, samples: &Samples) -> Vec<(f64, u32)> {
     if samples.points.is_empty() {
-        return vec![f64::INFINITY; queries.len()];
+        return vec![(f64::INFINITY, u32::MAX); queries.len()];
     }
     let entries: Vec<[f64; 3]> = samples.points.iter().map(|p| p.to_array()).collect();
     let tree: ImmutableKdTree<f64, 3> = ImmutableKdTree::new_from_slice(&entries).unwrap_or_default();
@@ -150,11 +169,28 @@ fn distances(queries: &[DVec3], mesh: &Mesh, samples: &Samples) -> Vec<f64> {
                 .filter_map(|hit| {
                     let triangle = samples.triangles.get(hit.item as usize)?;
                     let [a, b, c] = corners(mesh, mesh.triangles.get(*triangle as usize)?)?;
-                    Some(q.distance(closest_point_on_triangle(*q, a, b, c)))
+                    Some((q.distance(closest_point_on_triangle(*q, a, b, c)), *triangle))
                 })
-                .fold(f64::INFINITY, f64::min)
+                .fold(
+                    (f64::INFINITY, u32::MAX),
+                    |best, next| if next.0 < best.0 { next } else { best },
+                )
         })
         .collect()
+}
+
+/// Mean |n . n'| between each sample's triangle in `own` and its nearest triangle in `other`.
+fn normal_agreement(own: &Mesh, samples: &Samples, other: &Mesh, nearest: &[(f64, u32)]) -> f64 {
+    if nearest.is_empty() {
+        return 0.0;
+    }
+    let sum: f64 = samples
+        .triangles
+        .iter()
+        .zip(nearest)
+        .map(|(&t, &(_, n))| triangle_normal(own, t).dot(triangle_normal(other, n)).abs())
+        .sum();
+    sum / nearest.len() as f64
 }
 
 /// Mean and the fraction below `tau`, summed in order (the same result for any thread count).
@@ -177,6 +213,31 @@ pub fn evaluate(reconstruction: &Mesh, ground_truth: &Mesh, options: &EvaluateOp
     if truth_samples.points.is_empty() {
         return Err(QualityError::NoArea);
     }
+    let seen_truth = match &options.seen_faces {
+        None => None,
+        Some(seen) => {
+            if seen.len() != ground_truth.triangles.len() {
+                return Err(QualityError::SeenFacesMismatch {
+                    listed: seen.len(),
+                    triangles: ground_truth.triangles.len(),
+                });
+            }
+            let keep = |t: &u32| seen.get(*t as usize).copied().unwrap_or(false);
+            let (points, triangles) = truth_samples
+                .points
+                .iter()
+                .zip(&truth_samples.triangles)
+                .filter(|(_, t)| keep(t))
+                .map(|(p, t)| (*p, *t))
+                .unzip();
+            let samples = Samples { points, triangles };
+            if samples.points.is_empty() {
+                return Err(QualityError::NoArea);
+            }
+            Some(samples)
+        }
+    };
+    let measured_truth = seen_truth.as_ref().unwrap_or(&truth_samples);
     let mut recon_samples = sample(reconstruction, spacing, options.seed ^ 0x5EED);
     if let Some(margin) = options.crop_margin {
         let (lo, hi) = bounds(ground_truth).ok_or(QualityError::NoTriangles)?;
@@ -195,7 +256,12 @@ pub fn evaluate(reconstruction: &Mesh, ground_truth: &Mesh, options: &EvaluateOp
         recon_samples.points.retain(|p| p.cmpge(lo).all() && p.cmple(hi).all());
     }
     let to_truth = distances(&recon_samples.points, ground_truth, &truth_samples);
-    let to_recon = distances(&truth_samples.points, reconstruction, &recon_samples);
+    let to_recon = distances(&measured_truth.points, reconstruction, &recon_samples);
+    let normal_consistency = 0.5
+        * (normal_agreement(reconstruction, &recon_samples, ground_truth, &to_truth)
+            + normal_agreement(ground_truth, measured_truth, reconstruction, &to_recon));
+    let to_truth: Vec<f64> = to_truth.into_iter().map(|(d, _)| d).collect();
+    let to_recon: Vec<f64> = to_recon.into_iter().map(|(d, _)| d).collect();
     let (accuracy, precision) = summarize(&to_truth, options.tau);
     let (completeness, recall) = summarize(&to_recon, options.tau);
     let f_score = if precision + recall > 0.0 {
@@ -212,8 +278,9 @@ pub fn evaluate(reconstruction: &Mesh, ground_truth: &Mesh, options: &EvaluateOp
         precision,
         recall,
         f_score,
+        normal_consistency,
         reconstruction_samples: recon_samples.points.len(),
-        ground_truth_samples: truth_samples.points.len(),
+        ground_truth_samples: measured_truth.points.len(),
         boundary_edges,
         non_manifold_edges,
     })
@@ -269,6 +336,7 @@ mod tests {
             tau: 0.01,
             spacing: Some(0.01),
             crop_margin: None,
+            seen_faces: None,
             seed: 1,
         };
         let same = evaluate(&truth, &truth, &options).unwrap();
@@ -293,6 +361,7 @@ mod tests {
             tau: 0.01,
             spacing: Some(0.005),
             crop_margin: Some(0.1),
+            seen_faces: None,
             seed: 1,
         };
         let report = evaluate(&half, &truth, &options).unwrap();

@@ -22,6 +22,10 @@ pub enum Layout {
     Ring,
     /// Spread evenly over a sphere (Fibonacci lattice).
     Sphere,
+    /// Inside the mesh, looking outwards: on a horizontal circle of radius `distance`
+    /// diagonals around the centre, each facing away from it, alternately tilted down and up,
+    /// turning once around over the views (a camera walking around inside a room).
+    Interior,
 }
 
 #[derive(Clone, Debug)]
@@ -86,6 +90,14 @@ impl GroundTruth {
                             elevation.sin(),
                         )
                     }
+                    Layout::Interior => {
+                        let angle = std::f64::consts::TAU * i as f64 / n as f64;
+                        let outwards = DVec3::new(angle.cos(), angle.sin(), 0.0);
+                        let tilt: f64 = if i % 2 == 0 { -0.35 } else { 0.1 };
+                        let eye = self.center + outwards * rig.distance * self.diagonal;
+                        let looking = DVec3::new(angle.cos() * tilt.cos(), angle.sin() * tilt.cos(), tilt.sin());
+                        return look_at(eye, eye + looking);
+                    }
                     Layout::Sphere => {
                         let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
                         let angle = std::f64::consts::PI * (3.0 - 5f64.sqrt()) * i as f64;
@@ -101,6 +113,25 @@ impl GroundTruth {
 
     /// The noise-free z-depth of view `pose`; NaN where nothing is hit.
     pub fn render_exact(&self, rig: &Rig, pose: &DMat4) -> DepthImage {
+        self.render_exact_with_faces(rig, pose).0
+    }
+
+    /// Which triangles of the mesh some view of the rig sees (in at least one pixel).
+    pub fn seen_faces(&self, rig: &Rig) -> Vec<bool> {
+        let mut seen = vec![false; self.mesh.triangles.len()];
+        for pose in self.poses(rig) {
+            for face in self.render_exact_with_faces(rig, &pose).1 {
+                if let Some(flag) = seen.get_mut(face as usize) {
+                    *flag = true;
+                }
+            }
+        }
+        seen
+    }
+
+    /// [`GroundTruth::render_exact`], and per pixel the triangle it sees (`u32::MAX` for none
+    /// or the room).
+    fn render_exact_with_faces(&self, rig: &Rig, pose: &DMat4) -> (DepthImage, Vec<u32>) {
         let (w, h) = (rig.width as usize, rig.height as usize);
         let f = self.focal(rig);
         let (cx, cy) = (f64::from(rig.width) * 0.5, f64::from(rig.height) * 0.5);
@@ -113,7 +144,8 @@ impl GroundTruth {
             .collect();
         let near = 1e-3 * self.diagonal;
         let mut depth = vec![f64::INFINITY; w * h];
-        for t in &self.mesh.triangles {
+        let mut faces = vec![u32::MAX; w * h];
+        for (index, t) in self.mesh.triangles.iter().enumerate() {
             let [Some(a), Some(b), Some(c)] = t.map(|v| camera.get(v as usize).copied()) else {
                 continue;
             };
@@ -148,6 +180,9 @@ impl GroundTruth {
                         && z < *d
                     {
                         *d = z;
+                        if let Some(face) = faces.get_mut(j * w + i) {
+                            *face = index as u32;
+                        }
                     }
                 }
             }
@@ -173,14 +208,15 @@ impl GroundTruth {
                 }
             }
         }
-        DepthImage {
+        let image = DepthImage {
             width: rig.width,
             height: rig.height,
             depth: depth
                 .into_iter()
                 .map(|d| if d.is_finite() { d as f32 } else { f32::NAN })
                 .collect(),
-        }
+        };
+        (image, faces)
     }
 
     /// View `index` with the noise model applied (deterministic in the seed and the index).

@@ -1,10 +1,12 @@
 //! Quality tools: synthetic scenes rendered into depth maps ([`synthetic_scenes`], the demo's
-//! input), depth maps of ground-truth meshes with noise ([`ground_truth_views`]), and
+//! input), depth maps of ground-truth meshes with noise ([`ground_truth_views`]), a furnished
+//! room seen from inside ([`interior_scene`]), and
 //! reconstructions measured against the truth ([`evaluate`]). The binaries in `tools/`
 //! (`octstore-gt-render`, `octstore-evaluate`) are thin command lines over these.
 
 pub mod evaluate;
 pub mod ground_truth_views;
+pub mod interior_scene;
 pub mod synthetic_scenes;
 
 /// Errors of the quality tools' library calls.
@@ -20,4 +22,12 @@ pub enum QualityError {
     /// A ground-truth mesh without triangles has no bounds.
     #[error("the mesh has no triangles")]
     NoTriangles,
+    /// A list of seen ground-truth faces must have one entry per triangle.
+    #[error("the seen-faces list covers {listed} triangles, the ground truth has {triangles}")]
+    SeenFacesMismatch {
+        /// Entries in the list.
+        listed: usize,
+        /// Triangles in the ground-truth mesh.
+        triangles: usize,
+    },
 }

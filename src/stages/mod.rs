@@ -7,6 +7,7 @@ pub mod exercise;
 pub mod extract;
 pub mod histograms;
 pub mod ingest;
+pub mod observed;
 pub mod octree;
 pub mod solve;
 pub mod treetop;

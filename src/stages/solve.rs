@@ -15,6 +15,9 @@ use redb::WriteTransaction;
 use serde::{Deserialize, Serialize};
 
 use super::HISTOGRAMS;
+#[cfg(doc)]
+use super::observed::sampled_nodes;
+use super::observed::{sampled_of, seen_weight, surface_offset};
 use super::treetop::{Treetop, UnitKeys, children_on_min_face, plus_neighbour};
 use crate::format::Scene;
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
@@ -63,6 +66,12 @@ pub const LEVEL_STAGES: [&str; MAX_DEPTH as usize + 1] = [
 /// Solver parameters, recorded with every level's run. alpha1 and alpha0 multiply h and h^2
 /// (h the cube side, in units of the root side), which makes the result invariant to the
 /// scene's scale; v is likewise in units of 1 / root side.
+///
+/// lambda is 0.5: at 0.1 the data term of a cube that only a few depth maps see (3 or 4 votes,
+/// the usual count on a floor seen at a slant) was too weak against the regulariser, and u's
+/// zero set sat up to 3.5 finest cubes off the measured surface; extraction, which keeps only
+/// surface near samples, then tore holes there. 0.5 follows such surfaces and is as robust to
+/// outliers (README, "Quality").
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
 pub struct SolveParams {
     pub alpha1: f32,
@@ -76,7 +85,7 @@ impl Default for SolveParams {
         SolveParams {
             alpha1: 1.0,
             alpha0: 2.0,
-            lambda: 0.1,
+            lambda: 0.5,
             iterations: 200,
         }
     }
@@ -97,7 +106,9 @@ impl LevelValues {
     }
 }
 
-fn columns_of(values: &LevelValues) -> Vec<Column> {
+/// The level segment's columns: the solver's state, then what the data says about each cube
+/// (`stages::observed`).
+fn columns_of(values: &LevelValues, seen: Vec<f32>, sampled: Vec<u32>, offset: Vec<f32>) -> Vec<Column> {
     let flat = |rows: &[[f32; 3]]| rows.iter().flatten().copied().collect::<Vec<f32>>();
     vec![
         Column::keys(values.keys.clone()),
@@ -105,23 +116,55 @@ fn columns_of(values: &LevelValues) -> Vec<Column> {
         Column::new("v", 3, ColumnValues::F32(flat(&values.v))),
         Column::new("p", 3, ColumnValues::F32(flat(&values.p))),
         Column::new("q", 6, ColumnValues::F32(values.q.iter().flatten().copied().collect())),
+        Column::new("seen", 1, ColumnValues::F32(seen)),
+        Column::new("sampled", 1, ColumnValues::U32(sampled)),
+        Column::new("offset", 1, ColumnValues::F32(offset)),
     ]
 }
 
-/// Reads a level segment's keys and u only: what the indicator field needs (extraction and
-/// queries), without decoding v, p and q, which are 3.4 times the bytes.
+/// Reads a level segment's keys, u and what the data says about each cube ([`CutValue`]) only:
+/// what the indicator field needs (extraction and queries), without decoding v, p and q, which
+/// are 3.4 times the bytes. A segment written before those columns existed reads as seen and
+/// sampled everywhere, with no offsets (extraction then gives the closed surface).
 pub fn read_level_u(snapshot: &Snapshot<'_>, segment: &str) -> Result<LeafValues> {
     let file = snapshot.open_segment(segment)?;
     let reader = file.reader()?;
     let c = |e| file.corruption(e);
     let keys = reader.read_keys().map_err(c)?;
     let (_, u) = reader.read_f32("u").map_err(c)?;
-    if u.len() != keys.len() {
+    let optional = |name: &str, missing: f32| -> Result<Vec<f32>> {
+        if reader.column(name).is_ok() {
+            Ok(reader.read_f32(name).map_err(c)?.1)
+        } else {
+            Ok(vec![missing; keys.len()])
+        }
+    };
+    let seen = optional("seen", 1.0)?;
+    let offset = optional("offset", f32::NAN)?;
+    let sampled = if reader.column("sampled").is_ok() {
+        reader.read_u32("sampled").map_err(c)?.1
+    } else {
+        vec![1; keys.len()]
+    };
+    let n = keys.len();
+    if u.len() != n || seen.len() != n || offset.len() != n || sampled.len() != n {
         return Err(file.corruption(crate::format::DecodeError::MissingColumn(
-            "u of the keys' length".into(),
+            "u, seen, sampled and offset of the keys' length".into(),
         )));
     }
-    Ok((keys, u))
+    let values = u
+        .into_iter()
+        .zip(seen)
+        .zip(sampled)
+        .zip(offset)
+        .map(|(((u, seen), sampled), offset)| CutValue {
+            u,
+            seen: seen > 0.0,
+            sampled: sampled > 0,
+            offset,
+        })
+        .collect();
+    Ok((keys, values))
 }
 
 /// Reads a level segment.
@@ -584,6 +627,13 @@ impl Stage for LevelStage {
             &mut state,
             self.params.iterations as usize,
         );
+        let seen = problem.hist.iter().map(seen_weight).collect();
+        let offset = problem.hist.iter().map(surface_offset).collect();
+        let treetop = self
+            .treetop
+            .get()
+            .ok_or_else(|| self.stage_error(unit, "units run before planning".into()))?;
+        let sampled = sampled_of(base, treetop, &keys)?.into_iter().map(u32::from).collect();
         let values = LevelValues {
             keys,
             u: state.u,
@@ -592,7 +642,7 @@ impl Stage for LevelStage {
             q: state.q,
         };
         Ok(UnitOutput {
-            segments: vec![columns_of(&values)],
+            segments: vec![columns_of(&values, seen, sampled, offset)],
             extra: catalog::encode(&LevelUnitExtra {
                 cubes: values.keys.len() as u64,
                 energy_before,
@@ -631,8 +681,30 @@ fn full_resolution_side(cube: CubeKey) -> u64 {
     1u64 << (u32::from(MAX_DEPTH) - u32::from(cube.depth().min(MAX_DEPTH)))
 }
 
-/// Sorted cut keys of a unit at one level and their u.
-pub type LeafValues = (Vec<CubeKey>, Vec<f32>);
+/// The indicator of a cut cube and what the data says about it (`stages::observed`). Equal
+/// values are bit for bit equal (a missing offset is NaN, which equals itself here).
+#[derive(Clone, Copy, Debug)]
+pub struct CutValue {
+    pub u: f32,
+    /// [`seen_weight`] > 0.
+    pub seen: bool,
+    /// Samples spawned the cube, an ancestor or a descendant ([`sampled_nodes`]).
+    pub sampled: bool,
+    /// [`surface_offset`]: NaN when no vote measured a distance.
+    pub offset: f32,
+}
+
+impl PartialEq for CutValue {
+    fn eq(&self, other: &CutValue) -> bool {
+        self.u.to_bits() == other.u.to_bits()
+            && self.seen == other.seen
+            && self.sampled == other.sampled
+            && self.offset.to_bits() == other.offset.to_bits()
+    }
+}
+
+/// Sorted cut keys of a unit at one level and their values.
+pub type LeafValues = (Vec<CubeKey>, Vec<CutValue>);
 
 /// The values of one solved level, unit by unit, loaded on demand; answers "which cut cube
 /// contains this point".
@@ -690,8 +762,8 @@ impl<'a, 's> LevelCut<'a, 's> {
                 let side = full_resolution_side(*key);
                 (0..3).all(|axis| corner[axis] < high[axis] && corner[axis] + side > low[axis])
             };
-            let (keys, u) = loaded;
-            loaded = keys.into_iter().zip(u).filter(|(key, _)| meets(key)).unzip();
+            let (keys, values) = loaded;
+            loaded = keys.into_iter().zip(values).filter(|(key, _)| meets(key)).unzip();
         }
         let loaded = Arc::new(loaded);
         self.groups.insert(id, loaded.clone());
@@ -715,14 +787,14 @@ impl<'a, 's> LevelCut<'a, 's> {
                 Some(group)
             }
             Some(group) => {
-                let (keys, u): (Vec<CubeKey>, Vec<f32>) = group
+                let (keys, values): (Vec<CubeKey>, Vec<CutValue>) = group
                     .0
                     .iter()
                     .zip(&group.1)
                     .filter(|(key, _)| self.treetop.unit_of(**key) == unit)
-                    .map(|(key, u)| (*key, *u))
+                    .map(|(key, value)| (*key, *value))
                     .unzip();
-                (!keys.is_empty()).then(|| Arc::new((keys, u)))
+                (!keys.is_empty()).then(|| Arc::new((keys, values)))
             }
             None => None,
         };
@@ -730,36 +802,42 @@ impl<'a, 's> LevelCut<'a, 's> {
         Ok(own)
     }
 
-    /// The cut cube containing the finest cell at full-resolution coordinates `cell`, and its u.
-    pub fn cube_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, f32)>> {
+    /// The cut cube containing the finest cell at full-resolution coordinates `cell`, and its
+    /// values.
+    pub fn cube_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, CutValue)>> {
         self.cube_containing(CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]))
     }
 
-    /// The cut cube that is `probe` or an ancestor of it, and its u.
-    pub fn cube_containing(&mut self, probe: CubeKey) -> Result<Option<(CubeKey, f32)>> {
+    /// The cut cube that is `probe` or an ancestor of it, and its values.
+    pub fn cube_containing(&mut self, probe: CubeKey) -> Result<Option<(CubeKey, CutValue)>> {
         let unit = self.treetop.unit_of(probe);
         // The group's cut tiles its units' cubes, so the one ancestor of the probe among its
         // keys is the answer.
         let Some(values) = self.group(unit)? else {
             return Ok(None);
         };
-        let (keys, u) = (&values.0, &values.1);
+        let (keys, cut_values) = (&values.0, &values.1);
         Ok(cut_cube_ending_at(
             keys,
-            u,
+            cut_values,
             keys.partition_point(|k| *k <= probe),
             probe,
         ))
     }
 }
 
-/// The cube of a sorted cut (`keys`, their `u`) just before `position`, the cut's first key
+/// The cube of a sorted cut (`keys`, their values) just before `position`, the cut's first key
 /// after `probe`, when it contains `probe`: the cut tiles what it covers, so that cube is the
 /// only candidate.
-pub fn cut_cube_ending_at(keys: &[CubeKey], u: &[f32], position: usize, probe: CubeKey) -> Option<(CubeKey, f32)> {
+pub fn cut_cube_ending_at<T: Copy>(
+    keys: &[CubeKey],
+    values: &[T],
+    position: usize,
+    probe: CubeKey,
+) -> Option<(CubeKey, T)> {
     position
         .checked_sub(1)
-        .and_then(|i| keys.get(i).zip(u.get(i)))
+        .and_then(|i| keys.get(i).zip(values.get(i)))
         .filter(|(k, _)| k.is_ancestor_or_self_of(probe))
-        .map(|(k, u)| (*k, *u))
+        .map(|(k, value)| (*k, *value))
 }

@@ -222,11 +222,23 @@ def octstore(store, source, args_ingest, args_solve, mesh, budget=None):
     return total_wall, total_cpu, peak, stages
 
 
-def evaluate(mesh, truth):
-    out = subprocess.run(
-        [str(BIN / "octstore-evaluate"), str(mesh), str(truth), "--json"], check=True, capture_output=True, text=True
-    )
-    return json.loads(out.stdout)
+TAUS = (0.01, 0.005, 0.002)
+
+
+def evaluate(mesh, truth, extra=()):
+    """octstore-evaluate at tau = 1 % of the diagonal (all its figures) and the F-score at 0.5 %
+    and 0.2 % (`f_score_0.005`, `f_score_0.002`)."""
+    result = {}
+    for tau in TAUS:
+        out = subprocess.run(
+            [str(BIN / "octstore-evaluate"), str(mesh), str(truth), "--json", "--tau", str(tau), *extra],
+            check=True, capture_output=True, text=True,
+        )
+        figures = json.loads(out.stdout)
+        if tau == TAUS[0]:
+            result.update(figures)
+        result[f"f_score_{tau}"] = figures["f_score"]
+    return result
 
 
 # ---------------------------------------------------------------------------------------------
@@ -238,12 +250,77 @@ GT_NOISE = [0.002, 0.01]
 GT_OUTLIERS = [0.0, 0.05, 0.2]
 
 
-def groundtruth(work, quick):
+def interior(work, out_dir):
+    """The furnished room seen from inside (`octstore-gt-render --layout interior`, 60 views of
+    320x240): octstore (observed surface, the default, and `--closed`), TSDF and Poisson at the
+    same cube size, measured over the whole ground truth (no crop: what lies behind the walls
+    counts) with completeness over the faces some camera saw; pictures from two of the views."""
+    case = work / "interior"
+    views = case / "views"
+    subprocess.run(
+        [str(BIN / "octstore-gt-render"), "--layout", "interior", "--out", str(views), "--views", "60",
+         "--width", "320", "--height", "240", "--fov", "70", "--noise", "0.002"],
+        check=True, capture_output=True,
+    )
+    manifest, truth = views / "scene.json", views / "ground-truth.ply"
+    extra = ["--no-crop", "--gt-faces", str(views / "seen-faces.txt")]
+    mesh = case / "octstore.ply"
+    wall, cpu, peak, _ = octstore(case / "store", manifest, ["--max-depth", "9"], [], mesh)
+    closed = case / "octstore-closed.ply"
+    subprocess.run([str(BIN / "octstore"), "--quiet", "extract", str(case / "store"), "-o", str(closed), "--closed"],
+                   check=True, capture_output=True)
+    info = json.loads(subprocess.run(
+        [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
+    ).stdout)
+    voxel = info["finest_cube_side"]
+    results = {"octstore": (mesh, wall, cpu, peak), "octstore --closed": (closed, wall, cpu, peak)}
+    results["tsdf"] = (case / "tsdf.ply", *run_worker("tsdf", manifest, case / "tsdf.ply", voxel, 100.0))
+    results["poisson"] = (case / "poisson.ply", *run_worker("poisson", manifest, case / "poisson.ply", 9))
+    spec = json.loads(manifest.read_text())
+    focal = spec["depth_maps"][0]["intrinsics"]["fx"] * 2.0
+    rows = []
+    for method, (mesh, wall, cpu, peak) in results.items():
+        row = {"scene": "interior", "method": method, "wall_s": wall, "cpu_s": cpu, "peak_mb": peak, "voxel": voxel,
+               **evaluate(mesh, truth, extra), "pictures": []}
+        for view in (6, 31):
+            pose = case / f"pose-{view}.txt"
+            pose.write_text(" ".join(map(str, spec["depth_maps"][view]["pose"]["camera_to_world"])))
+            png = out_dir / f"interior-view{view}-{method.replace(' --', '-')}.png"
+            subprocess.run([str(BIN / "octstore"), "--quiet", "render", str(mesh), "-o", str(png), "--pose", str(pose),
+                            "--focal", str(focal), "--width", "640", "--height", "480"], check=True, capture_output=True)
+            row["pictures"].append(png.name)
+        rows.append(row)
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def invented_area(mesh, frames, voxel):
+    """The fraction of the mesh's area farther than 3 finest cubes from every input sample (the
+    RedKitchen frames' pixels, every second one), from 200,000 area-uniform samples."""
+    import numpy as np
+    import open3d as o3d
+
+    points = []
+    for depth, intrinsic, pose in read_redkitchen(frames):
+        h, w = depth.shape
+        jj, ii = np.mgrid[0:h:2, 0:w:2]
+        z = depth[jj, ii]
+        keep = z > 0
+        x = (ii[keep] - intrinsic[0, 2]) * z[keep] / intrinsic[0, 0]
+        y = (jj[keep] - intrinsic[1, 2]) * z[keep] / intrinsic[1, 1]
+        points.append((pose @ np.stack([x, y, z[keep], np.ones_like(x)]))[:3].T)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points)))
+    samples = o3d.io.read_triangle_mesh(str(mesh)).sample_points_uniformly(200000)
+    distances = np.asarray(samples.compute_point_cloud_distance(cloud))
+    return float((distances > 3 * voxel).mean())
+
+
+def groundtruth(work, quick, noises=GT_NOISE, outlier_levels=GT_OUTLIERS):
     rows = []
     meshes = {"bunny": GT_MESHES["bunny"]} if quick else GT_MESHES
     for name, truth in meshes.items():
-        for noise in GT_NOISE[:1] if quick else GT_NOISE:
-            for outliers in GT_OUTLIERS:
+        for noise in noises[:1] if quick else noises:
+            for outliers in outlier_levels:
                 case = work / f"{name}-{noise}-{outliers}"
                 views = case / "views"
                 subprocess.run(
@@ -316,13 +393,28 @@ def picture_pose(out_dir):
     return path
 
 
-def picture(mesh, pose, png):
+def picture(mesh, pose, png, focal=585):
     subprocess.run(
         [str(BIN / "octstore"), "--quiet", "render", str(mesh), "-o", str(png), "--pose", str(pose),
-         "--focal", "585", "--width", "640", "--height", "480"],
+         "--focal", str(focal), "--width", "640", "--height", "480"],
         check=True,
         capture_output=True,
     )
+
+
+# Frame 500 looks down at the kitchen's table top, a flat surface seen at the finest cubes:
+# terraces show there first. The close view is the same camera with 3 times the focal length.
+CLOSE_FRAME = 500
+
+
+def close_pictures(mesh, prefix, out_dir):
+    pose = SHARED / "7scenes-redkitchen" / f"frame-{CLOSE_FRAME:06d}.pose.txt"
+    names = []
+    for label, focal in (("frame500", 585), ("frame500-close", 1755)):
+        png = out_dir / f"{prefix}-{label}.png"
+        picture(mesh, pose, png, focal)
+        names.append(png.name)
+    return names
 
 
 def redkitchen(work, frames_list, max_depth, out_dir):
@@ -353,7 +445,8 @@ def redkitchen(work, frames_list, max_depth, out_dir):
         picture(mesh, pose, png)
         rows.append({"frames": frames, "max_depth": max_depth, "method": "octstore", "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
                      "voxel_m": voxel, "mesh_mb": mesh.stat().st_size / 1e6, "cubes": info["cubes"],
-                     "stages": stages, "picture": png.name})
+                     "stages": stages, "picture": png.name, "invented_area": invented_area(mesh, frames, voxel),
+                     "close_pictures": close_pictures(mesh, f"redkitchen-{frames}{tag}-octstore", out_dir)})
         print(json.dumps(rows[-1]), flush=True)
         tsdf_mesh = case / "tsdf.ply"
         try:
@@ -367,7 +460,9 @@ def redkitchen(work, frames_list, max_depth, out_dir):
         png = out_dir / f"redkitchen-{frames}{tag}-tsdf.png"
         picture(tsdf_mesh, pose, png)
         rows.append({"frames": frames, "max_depth": max_depth, "method": "tsdf", "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
-                     "voxel_m": voxel, "mesh_mb": tsdf_mesh.stat().st_size / 1e6, "picture": png.name})
+                     "voxel_m": voxel, "mesh_mb": tsdf_mesh.stat().st_size / 1e6, "picture": png.name,
+                     "invented_area": invented_area(tsdf_mesh, frames, voxel),
+                     "close_pictures": close_pictures(tsdf_mesh, f"redkitchen-{frames}{tag}-tsdf", out_dir)})
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -657,11 +752,38 @@ def commits(rows):
     return ", ".join(sorted({r.get("commit", "unknown") for r in rows}))
 
 
+def fmt(row, key, digits=3):
+    """A figure older runs did not record shows as a dash."""
+    return f"{row[key]:.{digits}f}" if key in row else "-"
+
+
 def write_markdown(results, out_dir, path):
     gt_rows, rk_rows, scale_rows = results["groundtruth"], results["redkitchen"], results["scale"]
     lines = ["# Benchmarks", "",
              "Written by `tools/bench/run.sh` (see the README); raw figures in `benchmarks/results-*.json`. "
              f"Machine: {machine()}. Generated {time.strftime('%Y-%m-%d')}.", ""]
+    interior_rows = results.get("interior", [])
+    if interior_rows:
+        lines += ["## Interior: a furnished room seen from inside", "",
+                  "`octstore-gt-render --layout interior` renders 60 views of 320x240 (70 degrees) from a camera "
+                  "walking a 0.67 m circle in a 6 x 5 x 3 m room with a table on thin legs, a cabinet 10 cm from a "
+                  "wall, a sofa, a 2 cm plate and a sphere; depth noise 0.2 %. Nothing behind the walls is ever "
+                  "observed. octstore: `--max-depth 9` (1.4 cm cubes), default solver; TSDF at the same voxel, "
+                  "truncation 4 voxels; Poisson depth 9 as above. Measured over the whole ground truth, uncropped, "
+                  "with completeness, recall and the ground truth's half of normal consistency over the faces some "
+                  f"camera saw (`--gt-faces`). tau = 1 % of the diagonal (8.4 cm). octstore commit {commits(interior_rows)}.", "",
+                  "| method | precision | recall | F@1 % | F@0.5 % | F@0.2 % | accuracy | completeness | Chamfer | normal consistency | boundary edges |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in interior_rows:
+            lines.append(f"| {r['method']} | {r['precision']:.3f} | {r['recall']:.3f} | {r['f_score']:.3f} | "
+                         f"{fmt(r, 'f_score_0.005')} | {fmt(r, 'f_score_0.002')} | {r['accuracy']:.4f} | "
+                         f"{r['completeness']:.4f} | {r['chamfer']:.4f} | {fmt(r, 'normal_consistency')} | {r['boundary_edges']:,} |")
+        lines += ["", "| view | " + " | ".join(r["method"] for r in interior_rows) + " |",
+                  "|---|" + "---|" * len(interior_rows)]
+        for index, view in enumerate((6, 31)):
+            cells = [f"![{r['method']}]({(out_dir / r['pictures'][index]).relative_to(path.parent)})" for r in interior_rows]
+            lines.append(f"| {view} | " + " | ".join(cells) + " |")
+        lines.append("")
     if gt_rows:
         lines += ["## Ground truth: bunny and dragon", "",
                   "`octstore-gt-render` renders 24 views of 320x240 around each mesh inside a room (so every ray "
@@ -674,12 +796,13 @@ def write_markdown(results, out_dir, path):
                   "the diagonal, reconstruction cropped to the ground truth's box grown by 5 %; accuracy, "
                   "completeness and Chamfer are mean distances in the mesh's units; boundary edges (holes) are "
                   f"counted on the whole mesh. octstore commit {commits(gt_rows)}.", "",
-                  "| mesh | depth noise | outliers | method | precision | recall | F-score | accuracy | completeness | Chamfer | boundary edges | wall s | CPU s | peak MB |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| mesh | depth noise | outliers | method | precision | recall | F@1 % | F@0.5 % | F@0.2 % | accuracy | completeness | Chamfer | normal consistency | boundary edges | wall s | CPU s | peak MB |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in gt_rows:
             lines.append(
                 f"| {r['mesh']} | {100 * r['noise']:g} % | {100 * r['outliers']:g} % | {r['method']} | {r['precision']:.3f} | "
-                f"{r['recall']:.3f} | {r['f_score']:.3f} | {r['accuracy']:.5f} | {r['completeness']:.5f} | {r['chamfer']:.5f} | "
+                f"{r['recall']:.3f} | {r['f_score']:.3f} | {fmt(r, 'f_score_0.005')} | {fmt(r, 'f_score_0.002')} | "
+                f"{r['accuracy']:.5f} | {r['completeness']:.5f} | {r['chamfer']:.5f} | {fmt(r, 'normal_consistency')} | "
                 f"{r['boundary_edges']:,} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['peak_mb']:.0f} |"
             )
         images = groundtruth_plots(gt_rows, out_dir)
@@ -703,6 +826,19 @@ def write_markdown(results, out_dir, path):
             cubes = f"{r['cubes']:,}" if "cubes" in r else "-"
             lines.append(f"| {r['frames']} | {depth} | {r['method']} | {r['voxel_m']:.4f} | {cubes} | {r['wall_s']:.1f} | "
                          f"{r['cpu_s']:.1f} | {r['peak_mb']:.0f} | {r['mesh_mb']:.1f} |")
+        invented = [r for r in rk_rows if "invented_area" in r]
+        if invented:
+            lines += ["", "Invented area: the fraction of each mesh's area farther than 3 finest cubes from every input "
+                      "sample (every second pixel of the frames), from 200,000 area-uniform samples.", "",
+                      "| frames | `--max-depth` | method | invented area |", "|---|---|---|---|"]
+            for r in invented:
+                lines.append(f"| {r['frames']} | {r.get('max_depth') or 'default'} | {r['method']} | {100 * r['invented_area']:.2f} % |")
+            lines += ["", f"Frame {CLOSE_FRAME}'s own camera, and the same camera with 3 times the focal length (a close "
+                      "view of the table top, where terraces would show):", "",
+                      "| frames | method | frame 500 | close |", "|---|---|---|---|"]
+            for r in invented:
+                pictures = [f"![{r['method']}]({(out_dir / name).relative_to(path.parent)})" for name in r["close_pictures"]]
+                lines.append(f"| {r['frames']} | {r['method']} | {pictures[0]} | {pictures[1]} |")
         lines += ["", f"Pictures: the same camera for every mesh (frame {PICTURE_FRAME}'s pose pulled {PICTURE_PULLBACK_M:g} m "
                   "back, `octstore render --pose`).", "", "| frames | `--max-depth` | octstore | TSDF |", "|---|---|---|---|"]
         for frames, depth in sorted({(r["frames"], r.get("max_depth") or 99) for r in rk_rows}):
@@ -768,13 +904,15 @@ def main():
     if len(sys.argv) > 1 and sys.argv[1] == "worker":
         return worker(sys.argv[2:])
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sections", nargs="*", default=["groundtruth", "redkitchen", "scale"],
+    parser.add_argument("--sections", nargs="*", default=["groundtruth", "interior", "redkitchen", "scale"],
                         help="sections to run; none (a bare --sections) only rewrites BENCHMARKS.md")
     parser.add_argument("--frames", nargs="+", type=int, default=[100, 300, 1000])
     parser.add_argument("--redkitchen-max-depth", type=int, default=10,
                         help="octstore --max-depth of the RedKitchen runs; 10 gives 5.6 mm cubes, at which "
                              "Open3D's TSDF fits in memory; 0 keeps ingest's default (1.4 mm)")
     parser.add_argument("--quick", action="store_true", help="bunny only, one noise level")
+    parser.add_argument("--gt-noise", nargs="+", type=float, default=GT_NOISE, help="depth noise levels of groundtruth")
+    parser.add_argument("--gt-outliers", nargs="+", type=float, default=GT_OUTLIERS, help="outlier levels of groundtruth")
     parser.add_argument("--scale-budget", default="1GiB", help="--memory-budget of the scale section")
     parser.add_argument("--scale-sizes", nargs="+", type=int, default=[4, 8, 16, 22],
                         help="city sizes (blocks per side, squared) of the scale section")
@@ -788,7 +926,9 @@ def main():
         work = Path(scratch)
         for section in args.sections:
             if section == "groundtruth":
-                rows = groundtruth(work, args.quick)
+                rows = groundtruth(work, args.quick, args.gt_noise, args.gt_outliers)
+            elif section == "interior":
+                rows = interior(work, args.out)
             elif section == "redkitchen":
                 rows = redkitchen(work, args.frames, args.redkitchen_max_depth or None, args.out)
             elif section == "scale":
@@ -801,6 +941,11 @@ def main():
             if section == "scale" and path.exists():
                 # Sweeps at other budgets stay.
                 rows = [r for r in json.loads(path.read_text()) if r["budget"] != args.scale_budget] + rows
+            if section == "groundtruth" and path.exists():
+                # Cases this run did not make stay.
+                made = {(r["mesh"], r["noise"], r["outliers"]) for r in rows}
+                rows = [r for r in json.loads(path.read_text()) if (r["mesh"], r["noise"], r["outliers"]) not in made] + rows
+                rows.sort(key=lambda r: (r["mesh"], r["noise"], r["outliers"]))
             if section == "redkitchen" and path.exists():
                 # Runs of other frame counts or cube sizes stay: the 1000-frame run can be made
                 # on its own.
@@ -810,7 +955,7 @@ def main():
                 rows.sort(key=lambda r: (r.get("max_depth") or 99, r["frames"], r["method"] != "octstore"))
             path.write_text(json.dumps(rows, indent=1))
     results = {}
-    for section in ("groundtruth", "redkitchen", "scale"):
+    for section in ("groundtruth", "interior", "redkitchen", "scale"):
         path = args.out / f"results-{section}.json"
         results[section] = json.loads(path.read_text()) if path.exists() else []
     write_markdown(results, args.out, args.markdown)

@@ -7,7 +7,7 @@ use glam::DVec3;
 use super::weld::NameIndex;
 use crate::format::{CubeKey, MAX_DEPTH, Scene};
 use crate::mesh::{CornerId, UnitMesh};
-use crate::stages::solve::{LevelCut, cut_cube_ending_at};
+use crate::stages::solve::{CutValue, LevelCut, cut_cube_ending_at};
 use crate::store::Result;
 
 /// Corner ids with this bit set are virtual exterior cells (see [`CornerId`]).
@@ -18,7 +18,31 @@ struct Corner {
     id: CornerId,
     center: DVec3,
     u: f32,
+    /// Whether a depth map saw the cell (virtual cells never are).
+    seen: bool,
+    /// Whether samples reached the cell.
+    sampled: bool,
+    /// Signed distance from the centre to the surface its votes measured, in world units; NaN
+    /// when none did.
+    offset: f64,
     depth: u8,
+}
+
+/// The voting distance delta is 6 sample radii, and a cube's natural radius is half its side
+/// (format-spec.md, "Columns used by stages"); offsets are stored in units of delta.
+const DELTA_PER_SIDE: f64 = 3.0;
+
+/// Where on the edge from `lo` to `hi` (as a fraction) the surface crosses. u decides that it
+/// crosses (its signs differ), and places it by linear interpolation when the votes measured no
+/// distance at one end; otherwise the ends' measured distances place it, like a TSDF, because
+/// u itself snaps to histogram bin centres under its L1 data term and would leave terraces. A
+/// crossing the distances put beyond an end is held just inside it, on the edge u chose.
+fn crossing(lo: &Corner, hi: &Corner) -> f64 {
+    let (a, b) = (lo.offset, hi.offset);
+    if a.is_finite() && b.is_finite() && a != b {
+        return (a / (a - b)).clamp(0.05, 0.95);
+    }
+    f64::from(lo.u) / (f64::from(lo.u) - f64::from(hi.u))
 }
 
 /// The Kuhn subdivision of a cube with corners indexed by octant bits (x = 1, y = 2, z = 4):
@@ -36,17 +60,17 @@ pub(super) fn full_side(depth: u8) -> u64 {
     1u64 << (u32::from(MAX_DEPTH) - u32::from(depth))
 }
 
-/// The cut cube containing the finest cell `cell`, and its u. The unit's own sorted cut
+/// The cut cube containing the finest cell `cell`, and its values. The unit's own sorted cut
 /// (`keys`, `values`) is searched first, outwards from `near` (the cube whose corners are being
 /// probed, so the answer is usually a few keys away): the cut tiles the root, so a cube of the
 /// unit that contains the cell is the answer. Cells outside the unit go to the level's lookup.
 fn cut_cube_near(
     level: &mut LevelCut<'_, '_>,
     keys: &[CubeKey],
-    values: &[f32],
+    values: &[CutValue],
     near: usize,
     cell: [u32; 3],
-) -> Result<Option<(CubeKey, f32)>> {
+) -> Result<Option<(CubeKey, CutValue)>> {
     let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
     match cut_cube_ending_at(keys, values, partition_point_near(keys, near, probe), probe) {
         Some(found) => Ok(Some(found)),
@@ -94,17 +118,20 @@ fn partition_point_near(keys: &[CubeKey], near: usize, probe: CubeKey) -> usize 
         .map_or(0, |range| range.partition_point(|k| *k <= probe))
 }
 
+/// The surface pieces of a unit's dual cells; unless `closed`, only the observed surface
+/// ([`mesh_cell`]).
 pub(super) fn dual_cells_of_unit(
     scene: &Scene,
     level: &mut LevelCut<'_, '_>,
     keys: &[CubeKey],
-    values: &[f32],
+    values: &[CutValue],
+    closed: bool,
 ) -> Result<UnitMesh> {
     let mut mesh = UnitMesh::default();
     // The unit's vertices by name, as indices into `mesh.vertices`.
     let mut vertex_index = NameIndex::default();
     let limit = 1u64 << 32;
-    for (index, (key, own_u)) in keys.iter().zip(values).enumerate() {
+    for (index, (key, own)) in keys.iter().zip(values).enumerate() {
         let d = key.depth();
         let side = full_side(d);
         let [x, y, z] = key.corner_full_resolution().map(u64::from);
@@ -126,7 +153,10 @@ pub(super) fn dual_cells_of_unit(
                     *slot = Some(Corner {
                         id: key.raw(),
                         center: scene.cube_center(*key),
-                        u: *own_u,
+                        u: own.u,
+                        seen: own.seen,
+                        sampled: own.sampled,
+                        offset: f64::from(own.offset) * DELTA_PER_SIDE * scene.cube_side(d),
                         depth: d,
                     });
                     continue;
@@ -155,7 +185,7 @@ pub(super) fn dual_cells_of_unit(
                     };
                     probe[axis] = m.clamp(0, limit as i64 - 1) as u32;
                 }
-                let Some((leaf, u)) = cut_cube_near(level, keys, values, index, probe)? else {
+                let Some((leaf, value)) = cut_cube_near(level, keys, values, index, probe)? else {
                     generator_ok = false;
                     break;
                 };
@@ -183,7 +213,14 @@ pub(super) fn dual_cells_of_unit(
                         leaf.raw()
                     },
                     center,
-                    u: if mirrored != 0 { 1.0 } else { u },
+                    u: if mirrored != 0 { 1.0 } else { value.u },
+                    seen: mirrored == 0 && value.seen,
+                    sampled: mirrored == 0 && value.sampled,
+                    offset: if mirrored != 0 {
+                        f64::NAN
+                    } else {
+                        f64::from(value.offset) * DELTA_PER_SIDE * scene.cube_side(leaf.depth())
+                    },
                     depth: leaf.depth(),
                 };
                 *slot = Some(c);
@@ -193,6 +230,9 @@ pub(super) fn dual_cells_of_unit(
                     id: VIRTUAL,
                     center: DVec3::ZERO,
                     u: 1.0,
+                    seen: false,
+                    sampled: false,
+                    offset: f64::NAN,
                     depth: 0,
                 })
             });
@@ -213,7 +253,7 @@ pub(super) fn dual_cells_of_unit(
                 continue;
             }
             let gradient = cell_gradient(&corners);
-            mesh_cell(&corners, gradient, &mut mesh, &mut vertex_index);
+            mesh_cell(&corners, gradient, closed, &mut mesh, &mut vertex_index);
         }
     }
     Ok(mesh)
@@ -247,10 +287,17 @@ fn cell_gradient(corners: &[Corner; 8]) -> DVec3 {
 
 /// Cuts the dual cell's 6 Kuhn tetrahedra at u = 0 and adds the triangles, oriented towards
 /// positive u, to `mesh`; vertices are found or added by name through `vertex_index`, and each
-/// triangle's vertices accumulate the cell's `gradient` as their normal.
-fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, mesh: &mut UnitMesh, vertex_index: &mut NameIndex) {
+/// triangle's vertices accumulate the cell's `gradient` as their normal. Unless `closed`, a
+/// tetrahedron adds nothing unless depth maps saw all four of its cells and samples reached one
+/// of the dual cell's eight (module docs of `stages::extract`, "Observed surface only").
+fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, mesh: &mut UnitMesh, vertex_index: &mut NameIndex) {
+    let near_samples = corners.iter().any(|c| c.sampled);
     for tet in KUHN {
         let t = tet.map(|i| corners[i]);
+        let observed = near_samples && t.iter().all(|c| c.seen);
+        if !(closed || observed) {
+            continue;
+        }
         let inside: Vec<usize> = (0..4).filter(|&i| t[i].u <= 0.0).collect();
         let outside: Vec<usize> = (0..4).filter(|&i| t[i].u > 0.0).collect();
         if inside.is_empty() || outside.is_empty() {
@@ -264,8 +311,7 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, mesh: &mut UnitMesh, vertex
                 hashbrown::hash_table::Entry::Occupied(found) => *found.get(),
                 hashbrown::hash_table::Entry::Vacant(slot) => {
                     let (lo, hi) = if ca.id <= cb.id { (ca, cb) } else { (cb, ca) };
-                    let s = f64::from(lo.u) / (f64::from(lo.u) - f64::from(hi.u));
-                    let position = lo.center + (hi.center - lo.center) * s;
+                    let position = lo.center + (hi.center - lo.center) * crossing(&lo, &hi);
                     let index = mesh.vertices.len() as u32;
                     mesh.vertices.push((edge, position, DVec3::ZERO));
                     *slot.insert(index).get()

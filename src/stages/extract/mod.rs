@@ -10,6 +10,26 @@
 //! is named by the unordered pair of cells at its ends, so the same vertex is produced, and
 //! welded, wherever the edge appears: on both sides of a level change and of a treetop border.
 //!
+//! Observed surface only. The zero set of u is closed: where no depth map looked (behind the
+//! walls of a room, under furniture) the solver still decides inside or outside, and the
+//! mirrored exterior closes every surface at the root cube. By default a tetrahedron is meshed
+//! only when the data supports a surface there: depth maps voted into all four of its cells
+//! (the level segment's `seen`), and samples reached at least one of its dual cell's eight
+//! cells (`sampled`: the cube, an ancestor or a descendant holds samples). The first drops the
+//! space no map reached (virtual exterior cells are never seen); the second drops the boundary
+//! between occluded space (which votes "inside" up to eta behind a surface) and free space, the
+//! sheets that would hang behind a plate or under a table, where no sample lies. The decision
+//! reads only the cell's own corners, so a cell on a seam between treetop leaves gets the same
+//! answer whichever unit generates it, and the pieces stay seamless. `closed` keeps the whole
+//! zero set (a watertight mesh, hidden parts filled in).
+//!
+//! Vertices inside cubes. u's L1 data term snaps it to histogram bin centres, and linear
+//! interpolation of u between cell centres then leaves terraces about one bin (near one finest
+//! cube) high on smooth surfaces. Where both ends of a cut edge have a measured surface offset
+//! (the level segment's `offset`, the mean of the votes that measured a distance), the vertex
+//! sits where those offsets cross zero, like a TSDF's, held inside the edge u chose; u alone
+//! decides which edges are cut, so outliers cannot move the surface by more than an edge.
+//!
 //! Files: `dual_cells` (a unit's piece), `weld` (streaming weld in unit order), `mesh_file`
 //! (the temporary vertex and face files and the final PLY), `in_order` (workers compute
 //! pieces ahead while the weld consumes them in order).
@@ -48,6 +68,8 @@ pub struct ExtractOptions {
     /// Keep about this fraction of each treetop leaf's triangles (quadric error simplification;
     /// vertices shared with another leaf never move, so the whole stays seamless).
     pub decimate: Option<f32>,
+    /// Mesh the whole zero set, closed at the root cube, instead of only what depth maps saw.
+    pub closed: bool,
 }
 
 /// Extracts the surface u = 0 of the latest solution, optionally only what lies in a region.
@@ -56,7 +78,7 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &Ext
     let treetop = Treetop::of(snapshot)?;
     let meshes: Vec<UnitMesh> = units
         .par_iter()
-        .map(|&unit| unit_mesh(snapshot, &treetop, scene, finest, unit))
+        .map(|&unit| unit_mesh(snapshot, &treetop, scene, finest, unit, options.closed))
         .collect::<Result<_>>()?;
     Ok(assemble(meshes, options))
 }
@@ -99,13 +121,15 @@ pub fn extract_units(
         .collect())
 }
 
-/// The surface pieces that treetop unit `unit` generates.
+/// The surface pieces that treetop unit `unit` generates: only between cells depth maps saw,
+/// unless `closed`.
 pub fn unit_mesh(
     snapshot: &Snapshot<'_>,
     treetop: &Treetop,
     scene: &Scene,
     finest: u8,
     unit: usize,
+    closed: bool,
 ) -> Result<UnitMesh> {
     let Some(key) = treetop.units.get(unit).map(|u| u.key) else {
         return Ok(UnitMesh::default());
@@ -113,7 +137,7 @@ pub fn unit_mesh(
     // Every probe of the unit's dual cells lies within one finest cell of its cube.
     let mut level = LevelCut::around(snapshot, treetop, finest, key);
     match level.unit(unit)? {
-        Some(values) => dual_cells_of_unit(scene, &mut level, &values.0, &values.1),
+        Some(values) => dual_cells_of_unit(scene, &mut level, &values.0, &values.1, closed),
         None => Ok(UnitMesh::default()),
     }
 }
@@ -233,7 +257,11 @@ pub fn extract_to_file(
                 unit: unit.to_string(),
                 message: "no such treetop unit".into(),
             })?;
-        Ok((unit, key, unit_mesh(snapshot, &treetop, scene, finest, unit)?))
+        Ok((
+            unit,
+            key,
+            unit_mesh(snapshot, &treetop, scene, finest, unit, options.closed)?,
+        ))
     };
     let threads = rayon::current_num_threads().max(1);
     in_order_while_computing(&units, threads, 2 * threads, piece, |pieces| {

@@ -1,0 +1,156 @@
+//! What the data says about each cube of a level cut, beside u: whether a depth map saw it,
+//! whether samples reached it, and where its votes put the surface. The solve stage writes them
+//! as the level segment's `seen`, `sampled` and `offset` columns (format-spec.md, "Columns used
+//! by stages"); extraction reads them to mesh only observed surface and to place vertices
+//! inside cubes (module docs of `stages::extract`).
+
+use std::collections::BTreeMap;
+
+use super::treetop::Treetop;
+use crate::format::CubeKey;
+use crate::kernels::votes::{BINS, bin_center};
+use crate::store::{Result, Snapshot};
+
+/// The vote weight that says a depth map saw a cube: all its votes, near a surface, in free
+/// space in front of one, or up to eta behind one.
+pub fn seen_weight(hist: &[f32; BINS]) -> f32 {
+    hist.iter().sum()
+}
+
+/// Where the votes put the surface relative to a cube's centre: the vote-weighted mean bin
+/// centre over bins 1 to 6, the votes that measured a distance rather than hitting a clamp
+/// (free space in bin 7, far behind in bin 0), in units of the voting distance delta
+/// (positive: the centre is outside). NaN when no vote measured one. u decides where the
+/// surface is, robustly; this places it inside the cube, where u's L1 data term snaps to bin
+/// centres and would leave terraces one bin high.
+pub fn surface_offset(hist: &[f32; BINS]) -> f32 {
+    let (mut weight, mut sum) = (0f64, 0f64);
+    for (bin, h) in hist.iter().enumerate().take(BINS - 1).skip(1) {
+        weight += f64::from(*h);
+        sum += f64::from(*h) * f64::from(bin_center(bin));
+    }
+    if weight > 0.0 { (sum / weight) as f32 } else { f32::NAN }
+}
+
+/// For each node of a unit's sorted octree keys (an ancestor sorts just before its
+/// descendants) and its sample counts: whether samples spawned the node, one of its ancestors
+/// in the unit, or one of its descendants. A measured surface passes through such cubes only.
+pub fn sampled_nodes(keys: &[CubeKey], counts: &[u32]) -> Vec<bool> {
+    let spawned = |i: usize| counts.get(i).is_some_and(|c| *c > 0);
+    // spawned_before[i]: how many of keys[..i] samples spawned.
+    let mut spawned_before = Vec::with_capacity(keys.len() + 1);
+    spawned_before.push(0usize);
+    for i in 0..keys.len() {
+        spawned_before.push(spawned_before.last().copied().unwrap_or(0) + usize::from(spawned(i)));
+    }
+    let mut sampled = Vec::with_capacity(keys.len());
+    // Ancestors of the current node, each with whether it or an ancestor was spawned.
+    let mut ancestors: Vec<(CubeKey, bool)> = Vec::new();
+    for (i, key) in keys.iter().enumerate() {
+        while ancestors.last().is_some_and(|(a, _)| !a.is_ancestor_or_self_of(*key)) {
+            ancestors.pop();
+        }
+        let from_above = spawned(i) || ancestors.last().is_some_and(|(_, s)| *s);
+        let rest = keys.get(i + 1..).unwrap_or_default();
+        let end = i + 1 + rest.partition_point(|k| key.is_ancestor_or_self_of(*k));
+        let from_below =
+            spawned_before.get(end).copied().unwrap_or(0) > spawned_before.get(i + 1).copied().unwrap_or(0);
+        sampled.push(from_above || from_below);
+        ancestors.push((*key, from_above));
+    }
+    sampled
+}
+
+/// A unit's octree keys and sample counts.
+fn nodes_of(base: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeKey>, Vec<u32>)> {
+    let file = base.open_segment(segment)?;
+    let reader = file.reader()?;
+    let nodes = reader.read_keys().map_err(|e| file.corruption(e))?;
+    let (_, counts) = reader.read_u32("radius_count").map_err(|e| file.corruption(e))?;
+    Ok((nodes, counts))
+}
+
+/// [`sampled_nodes`] for the cubes `keys` of a level cut, read from their units' octree
+/// segments. Samples that spawned a node of the treetop's internal unit, an ancestor of a
+/// whole leaf unit, mark that unit's every node too.
+pub fn sampled_of(base: &Snapshot<'_>, treetop: &Treetop, keys: &[CubeKey]) -> Result<Vec<bool>> {
+    let mut units: BTreeMap<usize, (Vec<CubeKey>, Vec<bool>)> = BTreeMap::new();
+    let mut top: Option<(Vec<CubeKey>, Vec<u32>)> = None;
+    let mut out = Vec::with_capacity(keys.len());
+    for key in keys {
+        let unit = treetop.unit_of(*key);
+        if let std::collections::btree_map::Entry::Vacant(slot) = units.entry(unit) {
+            let Some(info) = treetop.units.get(unit) else {
+                out.push(false);
+                continue;
+            };
+            let (nodes, counts) = nodes_of(base, &info.segment)?;
+            let mut flags = sampled_nodes(&nodes, &counts);
+            if !info.top {
+                if top.is_none()
+                    && let Some(internal) = treetop.units.iter().find(|u| u.top)
+                {
+                    top = Some(nodes_of(base, &internal.segment)?);
+                }
+                let spawned_above = top.as_ref().is_some_and(|(top_nodes, top_counts)| {
+                    std::iter::successors(Some(info.key), |k| k.parent()).any(|ancestor| {
+                        top_nodes
+                            .binary_search(&ancestor)
+                            .is_ok_and(|at| top_counts.get(at).is_some_and(|c| *c > 0))
+                    })
+                });
+                if spawned_above {
+                    flags.iter_mut().for_each(|flag| *flag = true);
+                }
+            }
+            slot.insert((nodes, flags));
+        }
+        let flag = units.get(&unit).and_then(|(nodes, flags)| {
+            let at = nodes.binary_search(key).ok()?;
+            flags.get(at).copied()
+        });
+        out.push(flag.unwrap_or(false));
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn samples_mark_their_cube_its_ancestors_and_its_descendants() {
+        // Root, two children, grandchildren under the first; samples spawned one grandchild.
+        let root = CubeKey::new(0, 0, 0, 0);
+        let a = CubeKey::new(1, 0, 0, 0);
+        let a0 = CubeKey::new(2, 0, 0, 0);
+        let a1 = CubeKey::new(2, 1, 0, 0);
+        let b = CubeKey::new(1, 1, 0, 0);
+        let b0 = CubeKey::new(2, 2, 0, 0);
+        let mut keys = vec![root, a, a0, a1, b, b0];
+        keys.sort();
+        let counts: Vec<u32> = keys.iter().map(|k| u32::from(*k == a1)).collect();
+        let flags: BTreeMap<CubeKey, bool> = keys.iter().copied().zip(sampled_nodes(&keys, &counts)).collect();
+        assert!(flags[&a1], "spawned");
+        assert_eq!((flags[&a], flags[&root]), (true, true), "ancestors");
+        assert!(!flags[&a0], "a sibling");
+        assert_eq!((flags[&b], flags[&b0]), (false, false), "another branch");
+        // A spawned coarse node marks its whole subtree.
+        let counts: Vec<u32> = keys.iter().map(|k| u32::from(*k == b)).collect();
+        let flags: BTreeMap<CubeKey, bool> = keys.iter().copied().zip(sampled_nodes(&keys, &counts)).collect();
+        assert_eq!((flags[&b], flags[&b0], flags[&a0]), (true, true, false));
+    }
+
+    #[test]
+    fn offsets_average_the_measured_bins_only() {
+        let mut hist = [0f32; BINS];
+        assert!(surface_offset(&hist).is_nan());
+        hist[0] = 5.0;
+        hist[7] = 3.0;
+        assert!(surface_offset(&hist).is_nan(), "clamped votes measure no distance");
+        hist[3] = 1.0;
+        hist[4] = 1.0;
+        assert_eq!(surface_offset(&hist), 0.0);
+        assert_eq!(seen_weight(&hist), 10.0);
+    }
+}
