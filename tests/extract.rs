@@ -174,6 +174,30 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
     let bytes_a = std::fs::read(a.path().join("mesh.ply")).unwrap();
     let bytes_b = std::fs::read(b.path().join("mesh.ply")).unwrap();
     assert!(bytes_a == bytes_b, "meshes differ between 1 and 2 threads");
+    // The observed surface too.
+    let observed: Vec<Vec<u8>> = [(&store_a, "1"), (&store_b, "2")]
+        .iter()
+        .map(|(store, threads)| {
+            let ply = store.with_file_name("observed.ply");
+            let out = octstore(
+                &[
+                    "extract",
+                    store.to_str().unwrap(),
+                    "-o",
+                    ply.to_str().unwrap(),
+                    "--threads",
+                    threads,
+                ],
+                &[],
+            );
+            assert!(out.status.success(), "{}", stderr(&out));
+            std::fs::read(&ply).unwrap()
+        })
+        .collect();
+    assert!(
+        observed[0] == observed[1],
+        "observed meshes differ between 1 and 2 threads"
+    );
     let info_b: serde_json::Value =
         serde_json::from_str(&stdout(&octstore(&["info", store_b.to_str().unwrap(), "--json"], &[]))).unwrap();
     assert_eq!(info["digest"], info_b["digest"]);

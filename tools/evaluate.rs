@@ -27,6 +27,10 @@ struct Args {
     /// Measure the whole reconstruction, uncropped.
     #[arg(long)]
     no_crop: bool,
+    /// Sample spacing as a fraction of the diagonal (default: tau / 5). A coarser spacing
+    /// makes small taus on large scenes affordable, at the cost of noisier figures.
+    #[arg(long)]
+    spacing: Option<f64>,
     /// The ground-truth faces some camera saw: a text file of triangle indices, one per line
     /// (`seen-faces.txt` from `octstore-gt-render`).
     #[arg(long)]
@@ -71,7 +75,7 @@ fn main() -> ExitCode {
         let (lo, hi) = bounds(&truth).ok_or_else(|| format!("{}: no triangles", args.ground_truth.display()))?;
         let options = EvaluateOptions {
             tau: args.tau * (hi - lo).length(),
-            spacing: None,
+            spacing: args.spacing.map(|fraction| fraction * (hi - lo).length()),
             crop_margin: (!args.no_crop).then_some(args.crop_margin),
             seen_faces: match &args.gt_faces {
                 Some(path) => Some(read_seen_faces(path, truth.triangles.len())?),

@@ -27,8 +27,11 @@
 //! interpolation of u between cell centres then leaves terraces about one bin (near one finest
 //! cube) high on smooth surfaces. Where both ends of a cut edge have a measured surface offset
 //! (the level segment's `offset`, the mean of the votes that measured a distance), the vertex
-//! sits where those offsets cross zero, like a TSDF's, held inside the edge u chose; u alone
+//! sits half way between where those offsets cross zero (like a TSDF's) and where u's linear
+//! interpolation does, held inside the edge u chose; u alone
 //! decides which edges are cut, so outliers cannot move the surface by more than an edge.
+//! Then `relax` moves each vertex that only its unit produces a little towards its neighbours,
+//! along its edge (seam vertices stay, so the pieces still weld).
 //!
 //! Files: `dual_cells` (a unit's piece), `weld` (streaming weld in unit order), `mesh_file`
 //! (the temporary vertex and face files and the final PLY), `in_order` (workers compute
@@ -37,6 +40,7 @@
 mod dual_cells;
 mod in_order;
 mod mesh_file;
+mod relax;
 mod weld;
 
 use std::collections::HashMap;
@@ -48,7 +52,8 @@ use rayon::prelude::*;
 use self::dual_cells::dual_cells_of_unit;
 use self::in_order::in_order_while_computing;
 use self::mesh_file::MeshFile;
-use self::weld::StreamingWeld;
+use self::relax::relax_along_edges;
+use self::weld::{StreamingWeld, private_to};
 use super::solve::{LEVEL_STAGES, LevelCut};
 use super::treetop::Treetop;
 use crate::format::{BoundingBox, CubeKey, Scene};
@@ -136,10 +141,14 @@ pub fn unit_mesh(
     };
     // Every probe of the unit's dual cells lies within one finest cell of its cube.
     let mut level = LevelCut::around(snapshot, treetop, finest, key);
-    match level.unit(unit)? {
-        Some(values) => dual_cells_of_unit(scene, &mut level, &values.0, &values.1, closed),
-        None => Ok(UnitMesh::default()),
-    }
+    let Some(values) = level.unit(unit)? else {
+        return Ok(UnitMesh::default());
+    };
+    let (mut mesh, ends) = dual_cells_of_unit(scene, &mut level, &values.0, &values.1, closed)?;
+    let private = private_to(key);
+    let movable: Vec<bool> = mesh.vertices.iter().map(|v| private(&v.0)).collect();
+    relax_along_edges(&mut mesh, &ends, &movable);
+    Ok(mesh)
 }
 
 /// Decimates (if asked), welds the units' pieces in unit order, and cuts at the region.

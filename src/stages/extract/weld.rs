@@ -21,7 +21,7 @@ const CORNER_KEY_MASK: u128 = (1 << 124) - 1;
 /// cell with that edge surrounds an octree vertex V at a corner of such a leaf; V is then inside
 /// the unit's cube or on the root's boundary, so every leaf incident to V, the cell's generator
 /// among them, belongs to the unit. Other vertices may be shared with other units.
-fn private_to(unit: CubeKey) -> impl Fn(&VertexId) -> bool {
+pub(super) fn private_to(unit: CubeKey) -> impl Fn(&VertexId) -> bool {
     let lo = unit.corner_full_resolution().map(u64::from);
     let side = full_side(unit.depth());
     let limit = 1u64 << 32;
