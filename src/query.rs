@@ -89,6 +89,16 @@ fn full_resolution(scene: &Scene, p: DVec3) -> Option<[i64; 3]> {
     Some([q.x as i64, q.y as i64, q.z as i64])
 }
 
+/// The scene, the finest solved level and the full-resolution cell of a point; `None` before a
+/// solve or outside the root.
+fn finest_cell_at(snapshot: &Snapshot<'_>, point: DVec3) -> Result<Option<(Scene, u8, [i64; 3])>> {
+    let Some(level) = snapshot.finest_level() else {
+        return Ok(None);
+    };
+    let scene = scene_of(snapshot)?;
+    Ok(full_resolution(&scene, point).map(|cell| (scene, level, cell)))
+}
+
 impl IndicatorField for Snapshot<'_> {
     fn finest_level(&self) -> Option<u8> {
         (0..=MAX_DEPTH)
@@ -123,11 +133,7 @@ impl IndicatorField for Snapshot<'_> {
     }
 
     fn indicator_at(&self, point: DVec3) -> Result<Option<f32>> {
-        let Some(level) = self.finest_level() else {
-            return Ok(None);
-        };
-        let scene = scene_of(self)?;
-        let Some(cell) = full_resolution(&scene, point) else {
+        let Some((scene, level, cell)) = finest_cell_at(self, point)? else {
             return Ok(None);
         };
         let treetop = Treetop::of(self)?;
@@ -173,11 +179,7 @@ impl IndicatorField for Snapshot<'_> {
     }
 
     fn seen_at(&self, point: DVec3) -> Result<Option<bool>> {
-        let Some(level) = self.finest_level() else {
-            return Ok(None);
-        };
-        let scene = scene_of(self)?;
-        let Some(cell) = full_resolution(&scene, point) else {
+        let Some((_, level, cell)) = finest_cell_at(self, point)? else {
             return Ok(None);
         };
         let treetop = Treetop::of(self)?;
