@@ -89,12 +89,13 @@ fn main() {
         let time = |passes: usize| -> Result<(f64, u64), octstore::gpu::GpuError> {
             let started = Instant::now();
             let hist = vec![0f32; cubes * 8];
-            let unit = gpu.upload_unit(origin, &centers, &radii, &hist)?;
+            let distance = vec![0f32; 2 * cubes];
+            let unit = gpu.upload_unit(origin, &centers, &radii, &hist, &distance)?;
             let map = gpu.upload_pyramid(&pyramid)?;
             for _ in 0..passes {
                 gpu.vote(&unit, &map, &source, &world_to_camera, 1.0)?;
             }
-            let (_, votes) = gpu.finish_unit(&unit)?;
+            let votes = gpu.finish_unit(&unit)?.votes;
             Ok((started.elapsed().as_secs_f64(), votes))
         };
         match (time(1), time(maps)) {

@@ -1,5 +1,6 @@
 // Algorithm 1 (paper 4.4) for a batch of cubes and one depth map's mipmap pyramid: one
-// invocation per cube, which adds the map's weight to one bin of its own histogram row.
+// invocation per cube, which adds the map's weight to one bin of its own histogram row and
+// the truncated distance (times the weight, and the weight) to its own distance sums.
 // CPU twin: `gpu::twins::votes` (same name, same f32 arithmetic); host side: `gpu::votes`.
 //
 // The CPU reference (`Pyramid::vote`) works in f64 on world coordinates. Here cubes come as
@@ -20,7 +21,8 @@ struct VoteMap {
     weight: f32,
     n: u32,
     row_stride: u32,
-    _padding: u32,
+    // Distance sums' truncation band in units of delta (`kernels::votes::truncated_distance`).
+    band_per_delta: f32,
 }
 
 @group(0) @binding(0) var<uniform> map: VoteMap;
@@ -32,6 +34,8 @@ struct VoteMap {
 @group(0) @binding(3) var<storage, read> depths: array<f32>;
 @group(0) @binding(4) var<storage, read_write> hist: array<f32>;
 @group(0) @binding(5) var<storage, read_write> votes: array<u32>;
+// Per cube: the weighted sum of the truncated distances, then the sum of their weights.
+@group(0) @binding(6) var<storage, read_write> measured_distance: array<f32>;
 
 const TAU: f32 = 6.28318530717958647692;
 const PI: f32 = 3.14159265358979323846;
@@ -101,5 +105,10 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let bin = min(u32((clamp(a / delta, -1.0, 1.0) + 1.0) / 2.0 * 8.0), BINS - 1u);
     hist[c * BINS + bin] += map.weight;
+    let band = map.band_per_delta * delta;
+    if a >= -band {
+        measured_distance[2u * c] += map.weight * min(a, band);
+        measured_distance[2u * c + 1u] += map.weight;
+    }
     votes[c] += 1u;
 }

@@ -31,6 +31,12 @@ pub struct CubeInfo {
     /// Whether a depth map saw the cube (votes near a surface or in free space; format-spec.md,
     /// "Columns used by stages"). Extraction meshes only between seen cubes unless `--closed`.
     pub seen: bool,
+    /// Whether samples spawned the cube, an ancestor or a descendant (format-spec.md, "Columns
+    /// used by stages"). Extraction meshes only dual cells with a sampled corner.
+    pub sampled: bool,
+    /// Where the votes that measured a distance put the surface from the centre, in units of
+    /// the voting distance; absent when no vote measured one.
+    pub offset: Option<f32>,
     /// The cube's vote histogram (8 bins over the signed distance [-1, 1]).
     pub histogram: [f32; BINS],
 }
@@ -184,7 +190,7 @@ impl IndicatorField for Snapshot<'_> {
         };
         let treetop = Treetop::of(self)?;
         let mut lookup = LevelCut::new(self, &treetop, level);
-        Ok(lookup.cube_at(cell.map(|c| c as u32))?.map(|(_, value)| value.seen))
+        Ok(lookup.cube_at(cell.map(|c| c as u32))?.map(|(_, value)| value.seen()))
     }
 
     fn cubes_in(&self, bbox: &BoundingBox, level: u8) -> Result<Vec<CubeInfo>> {
@@ -237,7 +243,9 @@ impl IndicatorField for Snapshot<'_> {
                     center: center.to_array(),
                     size: 2.0 * half,
                     u: value.u,
-                    seen: value.seen,
+                    seen: value.seen(),
+                    sampled: value.sampled,
+                    offset: (!value.offset.is_nan()).then_some(value.offset),
                     histogram,
                 });
             }

@@ -561,7 +561,8 @@ fn voted_bins(hist: &[f32]) -> Vec<Option<usize>> {
     hist.chunks(8).map(|row| row.iter().position(|h| *h != 0.0)).collect()
 }
 
-fn twin_votes(case: &VoteCase) -> Vec<f32> {
+/// The twin's histogram rows and distance sums.
+fn twin_votes(case: &VoteCase) -> (Vec<f32>, Vec<f32>) {
     use octstore::gpu::votes_dispatch::{cube_offsets, pyramid_arrays, vote_map};
     let n = case.centers.len();
     let (levels, depths) = pyramid_arrays(&case.pyramid);
@@ -572,10 +573,11 @@ fn twin_votes(case: &VoteCase) -> Vec<f32> {
     let cubes = cube_offsets(case.origin, &case.centers, &case.radii);
     let mut hist = vec![0f32; 8 * n];
     let mut votes = vec![0u32; n];
+    let mut distance = vec![0f32; 2 * n];
     for c in 0..n {
-        twins::votes(c, &map, &cubes, &levels, &depths, &mut hist, &mut votes);
+        twins::votes(c, &map, &cubes, &levels, &depths, &mut hist, &mut votes, &mut distance);
     }
-    hist
+    (hist, distance)
 }
 
 /// The votes twin (f32, unit-relative) against the CPU reference (f64, world coordinates):
@@ -584,14 +586,42 @@ fn twin_votes(case: &VoteCase) -> Vec<f32> {
 fn votes_twin_matches_the_cpu_reference() {
     for spherical in [false, true] {
         let case = vote_case(spherical, 17);
-        let reference: Vec<Option<usize>> = case
+        let with_distance: Vec<Option<(usize, Option<f64>)>> = case
             .centers
             .iter()
             .zip(&case.radii)
-            .map(|(c, r)| case.pyramid.vote(&case.world_to_camera, *c, *r))
+            .map(|(c, r)| case.pyramid.vote_with_distance(&case.world_to_camera, *c, *r))
             .collect();
-        let twin = voted_bins(&twin_votes(&case));
+        let reference: Vec<Option<usize>> = with_distance.iter().map(|v| v.map(|(bin, _)| bin)).collect();
+        let (twin_hist, twin_distance) = twin_votes(&case);
+        let twin = voted_bins(&twin_hist);
         let differ = reference.iter().zip(&twin).filter(|(a, b)| a != b).count();
+        // Where both voted into the same measuring bin, they added the same truncated distance to
+        // f32 precision of unit-relative coordinates (1e-3 of the voting distance delta), unless
+        // they read neighbouring pixels whose depths fall into one bin: as rare as bins that
+        // differ.
+        let mut compared = 0;
+        let mut distances_differ = 0;
+        for (((reference, twin), sums), radius) in with_distance
+            .iter()
+            .zip(&twin)
+            .zip(twin_distance.chunks(2))
+            .zip(&case.radii)
+        {
+            if let (Some((bin, Some(d))), Some(twin_bin), [sum, weight]) = (reference, twin, sums)
+                && bin == twin_bin
+                && octstore::kernels::votes::measures(*bin)
+            {
+                assert_eq!(*weight, 1.0);
+                compared += 1;
+                distances_differ += usize::from((f64::from(*sum) - d).abs() > 1e-3 * 6.0 * radius);
+            }
+        }
+        assert!(
+            distances_differ * 1000 <= reference.len(),
+            "{distances_differ} of {compared} distances differ"
+        );
+        assert!(compared > 1000, "{compared} measured distances compared");
         let voted = reference.iter().filter(|b| b.is_some()).count();
         let bins: std::collections::BTreeSet<usize> = reference.iter().flatten().copied().collect();
         eprintln!(
@@ -616,17 +646,35 @@ fn votes_shader_matches_the_twin() {
     let Some(gpu) = open_gpu() else { return };
     for spherical in [false, true] {
         let case = vote_case(spherical, 23);
-        let twin = twin_votes(&case);
+        let (twin, twin_distance) = twin_votes(&case);
         let n = case.centers.len();
         let previous: Vec<f32> = (0..8 * n).map(|i| (i % 3) as f32 * 0.5).collect();
+        let previous_distance: Vec<f32> = (0..2 * n).map(|i| (i % 5) as f32 * 0.25).collect();
         let unit = gpu
-            .upload_unit(case.origin, &case.centers, &case.radii, &previous)
+            .upload_unit(case.origin, &case.centers, &case.radii, &previous, &previous_distance)
             .expect("upload");
         let map = gpu.upload_pyramid(&case.pyramid).expect("upload");
         gpu.vote(&unit, &map, &case.pyramid.source, &case.world_to_camera, 1.0)
             .expect("vote");
-        let (hist, votes) = gpu.finish_unit(&unit).expect("read back");
-        let on_gpu: Vec<f32> = hist.iter().zip(&previous).map(|(h, p)| h - p).collect();
+        let voted = gpu.finish_unit(&unit).expect("read back");
+        let votes = voted.votes;
+        let on_gpu: Vec<f32> = voted.hist.iter().zip(&previous).map(|(h, p)| h - p).collect();
+        // Where the shader and the twin chose the same bin, the distance sums agree to f32
+        // arithmetic (1e-3 of delta; the previous sums add exactly representable values),
+        // unless they read neighbouring pixels whose depths fall into one bin.
+        let same_bin = voted_bins(&twin)
+            .into_iter()
+            .zip(voted_bins(&on_gpu))
+            .map(|(a, b)| a == b);
+        let mut distances_differ = 0;
+        for (c, same) in same_bin.enumerate() {
+            let tolerance = 1e-3 * 6.0 * case.radii[c] as f32;
+            let differs = (2 * c..2 * c + 2).any(|k| {
+                let (gpu_sum, twin_sum, before) = (voted.distance[k], twin_distance[k], previous_distance[k]);
+                ((gpu_sum - before) - twin_sum).abs() > tolerance
+            });
+            distances_differ += usize::from(same && differs);
+        }
         let expected_votes = twin.iter().filter(|h| **h != 0.0).count() as u64;
         let differ = voted_bins(&twin)
             .iter()
@@ -639,6 +687,10 @@ fn votes_shader_matches_the_twin() {
         // transcendental function.
         let allowed = if spherical { n / 500 } else { n / 10_000 };
         assert!(differ <= allowed, "{differ} of {n} cubes differ");
+        assert!(
+            distances_differ <= allowed,
+            "{distances_differ} of {n} distance sums differ"
+        );
         assert!(votes.abs_diff(expected_votes) as usize <= allowed);
     }
 }
@@ -674,7 +726,7 @@ fn vote_map_matches_the_shader_layout() {
         ("weight", offset_of!(VoteMap, weight)),
         ("n", offset_of!(VoteMap, n)),
         ("row_stride", offset_of!(VoteMap, row_stride)),
-        ("_padding", offset_of!(VoteMap, padding)),
+        ("band_per_delta", offset_of!(VoteMap, band_per_delta)),
     ];
     let expected: Vec<(String, usize)> = expected.iter().map(|(n, o)| (n.to_string(), *o)).collect();
     assert_eq!(offsets, expected);

@@ -99,7 +99,7 @@ fn field_and_seen(store: &Store, scene: &Scene) -> Vec<(octstore::CubeKey, DVec3
                 scene.cube_center(*k),
                 scene.cube_side(k.depth()),
                 value.u,
-                value.seen,
+                value.seen(),
             ));
         }
     }
@@ -123,7 +123,7 @@ fn operator_and_adjoint_agree_on_real_balanced_octrees() {
         use octstore::store::Stage;
         let plan = stage.plan(&base).unwrap();
         for unit in plan.units.iter().take(6) {
-            let Some((keys, problem, _)) = stage.build_problem(&base, unit.id as usize).unwrap() else {
+            let Some((keys, problem, _, _)) = stage.build_problem(&base, unit.id as usize).unwrap() else {
                 continue;
             };
             let jumps = keys.windows(2).any(|w| w[0].depth() != w[1].depth());
@@ -177,7 +177,7 @@ fn energy_decreases_on_a_noisy_scene() {
     let stage = LevelStage::new(6, scene, SolveParams::default());
     use octstore::store::Stage;
     stage.plan(&base).unwrap();
-    let (_, problem, initial) = stage.build_problem(&base, 0).unwrap().unwrap();
+    let (_, problem, initial, _) = stage.build_problem(&base, 0).unwrap().unwrap();
     let op = Operator::new(&problem);
     // Start far from the optimum: everything "outside".
     let mut state = State {

@@ -285,11 +285,13 @@ pub fn iterate_chunks(chunks: &[Chunk], state: &mut Packed, iterations: usize) {
 }
 
 /// Twin of `shaders/votes.wgsl`, invocation `c`: the bin cube `c` votes into for the map
-/// `map`, added to its row, in f32 like the shader.
+/// `map`, added to its row (and its truncated distance to its distance sums), in f32 like the
+/// shader.
 #[expect(
     clippy::neg_cmp_op_on_partial_ord,
     reason = "the shader's !(x > 0) tests, which also reject NaN"
 )]
+#[expect(clippy::too_many_arguments, reason = "the shader's bindings, one by one")]
 pub fn votes(
     c: usize,
     map: &crate::gpu::votes_dispatch::VoteMap,
@@ -298,6 +300,7 @@ pub fn votes(
     depths: &[f32],
     hist: &mut [f32],
     votes: &mut [u32],
+    measured_distance: &mut [f32],
 ) {
     use std::f32::consts::{PI, TAU};
     const BINS: usize = crate::kernels::votes::BINS;
@@ -362,6 +365,13 @@ pub fn votes(
     let bin = bin.min(BINS - 1);
     if let Some(h) = hist.get_mut(c * BINS + bin) {
         *h += map.weight;
+    }
+    let band = map.band_per_delta * delta;
+    if a >= -band
+        && let Some([sum, total]) = measured_distance.get_mut(2 * c..2 * c + 2)
+    {
+        *sum += map.weight * a.min(band);
+        *total += map.weight;
     }
     if let Some(count) = votes.get_mut(c) {
         *count += 1;

@@ -21,7 +21,7 @@ pub struct VoteMap {
     pub weight: f32,
     pub n: u32,
     pub row_stride: u32,
-    pub padding: u32,
+    pub band_per_delta: f32,
 }
 
 pub const VOTES_SHADER: &str = include_str!("../../shaders/votes.wgsl");
@@ -43,7 +43,7 @@ pub fn vote_map(source: &DepthMapSource, world_to_camera: &DMat4, origin: DVec3,
         weight,
         n,
         row_stride: 0,
-        padding: 0,
+        band_per_delta: crate::kernels::votes::DISTANCE_BAND_PER_DELTA as f32,
     }
 }
 
@@ -114,6 +114,17 @@ pub struct UnitOnGpu {
     cubes: wgpu::Buffer,
     hist: wgpu::Buffer,
     votes: wgpu::Buffer,
+    measured_distance: wgpu::Buffer,
+}
+
+/// A unit's rows read back from the GPU.
+pub struct VotedRows {
+    /// BINS per cube.
+    pub hist: Vec<f32>,
+    /// Two per cube: the weighted sum of the truncated distances, and the sum of their weights.
+    pub distance: Vec<f32>,
+    /// Votes cast since the upload.
+    pub votes: u64,
 }
 
 impl Gpu {
@@ -145,7 +156,7 @@ impl Gpu {
     }
 
     /// Uploads a unit (or a batch of one): its cubes as offsets from `origin`, and its
-    /// histogram rows so far. Batches of one unit share its `origin`, so they compute what the
+    /// histogram rows and distance sums so far. Batches of one unit share its `origin`, so they compute what the
     /// whole unit would.
     pub fn upload_unit(
         &self,
@@ -153,6 +164,7 @@ impl Gpu {
         centers: &[DVec3],
         radii: &[f64],
         hist: &[f32],
+        distance: &[f32],
     ) -> Result<UnitOnGpu, GpuError> {
         let n = u32::try_from(centers.len()).map_err(|_| GpuError::TooLarge {
             what: "cube index",
@@ -181,6 +193,7 @@ impl Gpu {
             cubes: buffer("cubes", padded(bytemuck::cast_slice(&cubes))),
             hist: buffer("hist", padded(bytemuck::cast_slice(hist))),
             votes: buffer("votes", padded(&vec![0u8; 4 * centers.len()])),
+            measured_distance: buffer("distance", padded(bytemuck::cast_slice(distance))),
         })
     }
 
@@ -210,7 +223,15 @@ impl Gpu {
         let pipeline = &self.votes.pipeline;
         let group = self.bind(
             pipeline,
-            &[&uniform, &unit.cubes, &map.levels, &map.depths, &unit.hist, &unit.votes],
+            &[
+                &uniform,
+                &unit.cubes,
+                &map.levels,
+                &map.depths,
+                &unit.hist,
+                &unit.votes,
+                &unit.measured_distance,
+            ],
         );
         let mut encoder = self
             .device
@@ -228,18 +249,29 @@ impl Gpu {
         Ok(())
     }
 
-    /// Reads a unit's histogram rows back, with the number of votes cast since its upload.
-    pub fn finish_unit(&self, unit: &UnitOnGpu) -> Result<(Vec<f32>, u64), GpuError> {
+    /// Reads a unit's rows back.
+    pub fn finish_unit(&self, unit: &UnitOnGpu) -> Result<VotedRows, GpuError> {
         let n = unit.n as usize;
         let hist_bytes = (n * BINS * std::mem::size_of::<f32>()) as u64;
-        let vote_bytes = (n * std::mem::size_of::<u32>()) as u64;
-        let bytes = super::read_back(self, &[(&unit.hist, hist_bytes), (&unit.votes, vote_bytes)])?;
+        let per_cube = (n * std::mem::size_of::<u32>()) as u64;
+        let distance_bytes = 2 * per_cube;
+        let bytes = super::read_back(
+            self,
+            &[
+                (&unit.hist, hist_bytes),
+                (&unit.votes, per_cube),
+                (&unit.measured_distance, distance_bytes),
+            ],
+        )?;
         let mut parts = bytes.into_iter();
-        let (Some(hist), Some(votes)) = (parts.next(), parts.next()) else {
+        let (Some(hist), Some(votes), Some(distance)) = (parts.next(), parts.next(), parts.next()) else {
             return Err(GpuError::Readback("missing columns".into()));
         };
-        let hist: Vec<f32> = bytemuck::pod_collect_to_vec(&hist);
         let votes: Vec<u32> = bytemuck::pod_collect_to_vec(&votes);
-        Ok((hist, votes.iter().map(|v| u64::from(*v)).sum()))
+        Ok(VotedRows {
+            hist: bytemuck::pod_collect_to_vec(&hist),
+            distance: bytemuck::pod_collect_to_vec(&distance),
+            votes: votes.iter().map(|v| u64::from(*v)).sum(),
+        })
     }
 }

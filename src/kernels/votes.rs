@@ -34,6 +34,27 @@ pub fn bin_center(b: usize) -> f32 {
     -1.0 + (2.0 * b as f32 + 1.0) / 8.0
 }
 
+/// Whether a vote into `bin` measured a distance to the surface: bins 1 to 6, not clamped to
+/// free space (7) or far behind (0).
+pub fn measures(bin: usize) -> bool {
+    (1..BINS - 1).contains(&bin)
+}
+
+/// The truncation band of a cube's distance sum, in units of the voting distance delta. The
+/// measuring bins alone (|a| < 0.75 delta, about 1.3 finest cubes on RedKitchen) drop most of
+/// a surface's votes to depth noise and leave the mean noisy; at 2 delta (3.5 cubes, near a
+/// TSDF's usual truncation) the table top's mean normal deviation fell from 17 to 11 degrees.
+pub const DISTANCE_BAND_PER_DELTA: f64 = 2.0;
+
+/// What a vote with signed distance a (the depth the map measured minus the voxel's, world
+/// units, positive in front of the surface) adds to its cube's distance sum, a truncated
+/// signed distance as a TSDF integrates it: a clamped to the band T = [`DISTANCE_BAND_PER_DELTA`]
+/// x delta, nothing when the voxel lies more than T behind the surface.
+pub fn truncated_distance(a: f64, delta: f64) -> Option<f64> {
+    let band = DISTANCE_BAND_PER_DELTA * delta;
+    (a >= -band).then_some(a.min(band))
+}
+
 /// Vote weights are rounded to multiples of 1/16 so that sums are exact in any order.
 pub fn quantized_weight(weight: f32) -> f32 {
     ((weight * 16.0).round() / 16.0).max(0.0)
@@ -116,6 +137,17 @@ impl Pyramid {
 
     /// Algorithm 1 for one voxel: the bin it votes into, if any.
     pub fn vote(&self, world_to_camera: &glam::DMat4, center: DVec3, radius: f64) -> Option<usize> {
+        self.vote_with_distance(world_to_camera, center, radius)
+            .map(|(bin, _)| bin)
+    }
+
+    /// [`Pyramid::vote`], with the vote's [`truncated_distance`], if any.
+    pub fn vote_with_distance(
+        &self,
+        world_to_camera: &glam::DMat4,
+        center: DVec3,
+        radius: f64,
+    ) -> Option<(usize, Option<f64>)> {
         let local = world_to_camera.transform_point3(center);
         let (u, v, distance) = self.source.project(local)?;
         let pixels_per_unit = match self.source.projection {
@@ -149,7 +181,7 @@ impl Pyramid {
         if a < -eta {
             return None;
         }
-        Some(bin_of((a / delta).clamp(-1.0, 1.0)))
+        Some((bin_of((a / delta).clamp(-1.0, 1.0)), truncated_distance(a, delta)))
     }
 
     /// Whether any cube whose centre lies in the ball, and whose voting radius is at most the
@@ -255,13 +287,15 @@ pub struct ChunkedCubes<'a> {
     pub chunks: &'a [Chunk],
 }
 
-/// Votes `pyramid` into `hist` (BINS per cube) for the cubes of the chunks listed in `seen`
-/// (ascending), and returns the number of votes cast. Chunks own disjoint rows of the
+/// Votes `pyramid` into `hist` (BINS per cube) and `distance` (two per cube: the weighted sum
+/// of the votes' [`truncated_distance`]s, in world units, and the sum of their weights) for
+/// the cubes of the chunks listed in `seen` (ascending), and returns the number of votes cast. Chunks own disjoint rows of the
 /// histogram, so they vote in parallel: a group of one large leaf still uses every core, and
 /// each cube still receives the maps in the order they are voted.
 pub fn vote_chunks(
     cubes: &ChunkedCubes<'_>,
     hist: &mut [f32],
+    distance: &mut [f32],
     pyramid: &Pyramid,
     world_to_camera: &glam::DMat4,
     weight: f32,
@@ -270,6 +304,7 @@ pub fn vote_chunks(
     use rayon::prelude::*;
     let mut work = Vec::with_capacity(seen.len());
     let mut rest: &mut [f32] = hist;
+    let mut rest_distance: &mut [f32] = distance;
     let mut consumed = 0;
     for chunk in seen.iter().filter_map(|&c| cubes.chunks.get(c)) {
         let Some((_, tail)) = rest.split_at_mut_checked((chunk.start - consumed) * BINS) else {
@@ -278,20 +313,35 @@ pub fn vote_chunks(
         let Some((rows, tail)) = tail.split_at_mut_checked((chunk.end - chunk.start) * BINS) else {
             break;
         };
-        work.push((chunk, rows));
+        let Some((_, tail_distance)) = rest_distance.split_at_mut_checked((chunk.start - consumed) * 2) else {
+            break;
+        };
+        let Some((distances, tail_distance)) = tail_distance.split_at_mut_checked((chunk.end - chunk.start) * 2) else {
+            break;
+        };
+        work.push((chunk, rows, distances));
         rest = tail;
+        rest_distance = tail_distance;
         consumed = chunk.end;
     }
     let (centers, radii) = (cubes.centers, cubes.radii);
     work.into_par_iter()
-        .map(|(chunk, rows)| {
+        .map(|(chunk, rows, distances)| {
             let cubes = centers.iter().zip(radii).take(chunk.end).skip(chunk.start);
             let mut votes = 0u64;
-            for (row, (center, radius)) in rows.chunks_exact_mut(BINS).zip(cubes) {
-                if let Some(bin) = pyramid.vote(world_to_camera, *center, *radius)
+            for ((row, sums), (center, radius)) in rows
+                .chunks_exact_mut(BINS)
+                .zip(distances.chunks_exact_mut(2))
+                .zip(cubes)
+            {
+                if let Some((bin, distance)) = pyramid.vote_with_distance(world_to_camera, *center, *radius)
                     && let Some(h) = row.get_mut(bin)
                 {
                     *h += weight;
+                    if let (Some(d), [sum, total]) = (distance, sums) {
+                        *sum += weight * d as f32;
+                        *total += weight;
+                    }
                     votes += 1;
                 }
             }

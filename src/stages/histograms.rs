@@ -386,6 +386,7 @@ impl Stage for HistogramsStage {
             segments.push(vec![
                 Column::keys(voter.keys),
                 Column::new("hist", BINS as u16, ColumnValues::F32(voter.hist)),
+                Column::new("distance", 2, ColumnValues::F32(voter.distance)),
             ]);
         }
         Ok(UnitOutput {
@@ -467,6 +468,9 @@ struct Voter {
     centers: Vec<DVec3>,
     radii: Vec<f64>,
     hist: Vec<f32>,
+    /// Two per cube: the weighted sum of its votes' truncated distances
+    /// ([`crate::kernels::votes::truncated_distance`]) and the sum of their weights.
+    distance: Vec<f32>,
     already: Arc<BTreeSet<u64>>,
     voted: BTreeSet<u64>,
     votes: u64,
@@ -488,7 +492,15 @@ impl Voter {
             radii: &self.radii,
             chunks: &self.chunks,
         };
-        self.votes += vote_chunks(&cubes, &mut self.hist, pyramid, world_to_camera, weight, seen);
+        self.votes += vote_chunks(
+            &cubes,
+            &mut self.hist,
+            &mut self.distance,
+            pyramid,
+            world_to_camera,
+            weight,
+            seen,
+        );
     }
 }
 
@@ -571,11 +583,12 @@ impl HistogramsStage {
                         .map(|start| {
                             let end = (start + per_batch).min(v.centers.len());
                             let hist = v.hist.get(start * BINS..end * BINS).unwrap_or(&[]);
+                            let distance = v.distance.get(2 * start..2 * end).unwrap_or(&[]);
                             let (centers, radii) = (
                                 v.centers.get(start..end).unwrap_or(&[]),
                                 v.radii.get(start..end).unwrap_or(&[]),
                             );
-                            gpu.upload_unit(v.center, centers, radii, hist)
+                            gpu.upload_unit(v.center, centers, radii, hist, distance)
                                 .map(|batch| (start, end, batch))
                         })
                         .collect::<std::result::Result<Vec<_>, _>>()
@@ -624,11 +637,12 @@ impl HistogramsStage {
             units
                 .iter()
                 .map(|batches| {
-                    let mut rows = (Vec::new(), 0u64);
+                    let mut rows = (Vec::new(), Vec::new(), 0u64);
                     for (_, _, batch) in batches {
-                        let (hist, votes) = gpu.finish_unit(batch)?;
-                        rows.0.extend(hist);
-                        rows.1 += votes;
+                        let voted = gpu.finish_unit(batch)?;
+                        rows.0.extend(voted.hist);
+                        rows.1.extend(voted.distance);
+                        rows.2 += voted.votes;
                     }
                     Ok(rows)
                 })
@@ -638,8 +652,9 @@ impl HistogramsStage {
             return Err(error);
         }
         Ok(outcome.map(|rows| {
-            for (voter, (hist, votes)) in voters.iter_mut().zip(rows) {
+            for (voter, (hist, distance, votes)) in voters.iter_mut().zip(rows) {
                 voter.hist = hist;
+                voter.distance = distance;
                 voter.votes += votes;
             }
         }))
@@ -652,21 +667,33 @@ impl HistogramsStage {
         let (_, sums) = reader.read_u64("radius_sum").map_err(|e| file.corruption(e))?;
         let (_, counts) = reader.read_u32("radius_count").map_err(|e| file.corruption(e))?;
         let (centers, radii) = cube_geometry(&self.scene, &keys, &sums, &counts);
-        let (hist, already) = match &plan.previous {
+        let fresh = || {
+            (
+                vec![0f32; keys.len() * BINS],
+                vec![0f32; 2 * keys.len()],
+                Arc::default(),
+            )
+        };
+        let (hist, distance, already) = match &plan.previous {
             Some((name, maps)) => {
                 let previous = base.open_segment(name)?;
-                let (_, hist) = previous
-                    .reader()?
-                    .read_f32("hist")
-                    .map_err(|e| previous.corruption(e))?;
-                if hist.len() != keys.len() * BINS {
-                    return Err(previous.corruption(crate::format::DecodeError::MissingColumn(
-                        "hist rows matching the octree unit".into(),
-                    )));
+                let reader = previous.reader()?;
+                if reader.column("distance").is_ok() {
+                    let (_, hist) = reader.read_f32("hist").map_err(|e| previous.corruption(e))?;
+                    let (_, distance) = reader.read_f32("distance").map_err(|e| previous.corruption(e))?;
+                    if hist.len() != keys.len() * BINS || distance.len() != 2 * keys.len() {
+                        return Err(previous.corruption(crate::format::DecodeError::MissingColumn(
+                            "hist and distance rows matching the octree unit".into(),
+                        )));
+                    }
+                    (hist, distance, maps.clone())
+                } else {
+                    // Written before the distance column existed: every map votes again, so
+                    // the distances cover the same votes as the bins.
+                    fresh()
                 }
-                (hist, maps.clone())
             }
-            None => (vec![0f32; keys.len() * BINS], Arc::default()),
+            None => fresh(),
         };
         let center = self.scene.cube_center(plan.key);
         let radius = self.scene.cube_side(plan.key.depth()) * 0.87 + radii.iter().copied().fold(0.0, f64::max);
@@ -677,6 +704,7 @@ impl HistogramsStage {
             centers,
             radii,
             hist,
+            distance,
             voted: (*already).clone(),
             already,
             votes: 0,

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 
 use super::treetop::Treetop;
 use crate::format::CubeKey;
-use crate::kernels::votes::{BINS, bin_center};
+use crate::kernels::votes::BINS;
 use crate::store::{Result, Snapshot};
 
 /// The vote weight that says a depth map saw a cube: all its votes, near a surface, in free
@@ -17,19 +17,21 @@ pub fn seen_weight(hist: &[f32; BINS]) -> f32 {
     hist.iter().sum()
 }
 
-/// Where the votes put the surface relative to a cube's centre: the vote-weighted mean bin
-/// centre over bins 1 to 6, the votes that measured a distance rather than hitting a clamp
-/// (free space in bin 7, far behind in bin 0), in units of the voting distance delta
-/// (positive: the centre is outside). NaN when no vote measured one. u decides where the
-/// surface is, robustly; this places it inside the cube, where u's L1 data term snaps to bin
-/// centres and would leave terraces one bin high.
-pub fn surface_offset(hist: &[f32; BINS]) -> f32 {
-    let (mut weight, mut sum) = (0f64, 0f64);
-    for (bin, h) in hist.iter().enumerate().take(BINS - 1).skip(1) {
-        weight += f64::from(*h);
-        sum += f64::from(*h) * f64::from(bin_center(bin));
-    }
-    if weight > 0.0 { (sum / weight) as f32 } else { f32::NAN }
+/// The vote weight that measured a distance to a surface: bins 1 to 6, not clamped to free
+/// space (bin 7) or far behind (bin 0). Around a surface the maps saw, a good share of a
+/// cube's votes; where u only separates free space one map saw from space behind another
+/// map's surface (occluded space no map looked into), almost none.
+pub fn measured_weight(hist: &[f32; BINS]) -> f32 {
+    hist.iter().take(BINS - 1).skip(1).sum()
+}
+
+/// Where the votes put the surface relative to a cube's centre, in world units (positive: the
+/// centre is outside): the mean truncated signed distance of its votes, a TSDF value at the
+/// centre, from the histogram segment's `distance` sums (weighted sum, weight). NaN when no
+/// vote measured one. u decides where the surface is, robustly; this places it inside the
+/// cube, where u's L1 data term snaps to bin centres and would leave terraces one bin high.
+pub fn surface_offset([sum, weight]: [f32; 2]) -> f32 {
+    if weight > 0.0 { sum / weight } else { f32::NAN }
 }
 
 /// For each node of a unit's sorted octree keys (an ancestor sorts just before its
@@ -142,15 +144,15 @@ mod tests {
     }
 
     #[test]
-    fn offsets_average_the_measured_bins_only() {
+    fn offsets_average_the_truncated_distances() {
         let mut hist = [0f32; BINS];
-        assert!(surface_offset(&hist).is_nan());
+        assert!(surface_offset([0.0, 0.0]).is_nan(), "no votes");
+        assert_eq!(surface_offset([0.5, 2.0]), 0.25);
         hist[0] = 5.0;
         hist[7] = 3.0;
-        assert!(surface_offset(&hist).is_nan(), "clamped votes measure no distance");
         hist[3] = 1.0;
         hist[4] = 1.0;
-        assert_eq!(surface_offset(&hist), 0.0);
         assert_eq!(seen_weight(&hist), 10.0);
+        assert_eq!(measured_weight(&hist), 2.0);
     }
 }

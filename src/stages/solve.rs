@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::HISTOGRAMS;
 #[cfg(doc)]
 use super::observed::sampled_nodes;
-use super::observed::{sampled_of, seen_weight, surface_offset};
+use super::observed::{measured_weight, sampled_of, seen_weight, surface_offset};
 use super::treetop::{Treetop, UnitKeys, children_on_min_face, plus_neighbour};
 use crate::format::Scene;
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
@@ -108,7 +108,7 @@ impl LevelValues {
 
 /// The level segment's columns: the solver's state, then what the data says about each cube
 /// (`stages::observed`).
-fn columns_of(values: &LevelValues, seen: Vec<f32>, sampled: Vec<u32>, offset: Vec<f32>) -> Vec<Column> {
+fn columns_of(values: &LevelValues, observed: ObservedColumns) -> Vec<Column> {
     let flat = |rows: &[[f32; 3]]| rows.iter().flatten().copied().collect::<Vec<f32>>();
     vec![
         Column::keys(values.keys.clone()),
@@ -116,16 +116,26 @@ fn columns_of(values: &LevelValues, seen: Vec<f32>, sampled: Vec<u32>, offset: V
         Column::new("v", 3, ColumnValues::F32(flat(&values.v))),
         Column::new("p", 3, ColumnValues::F32(flat(&values.p))),
         Column::new("q", 6, ColumnValues::F32(values.q.iter().flatten().copied().collect())),
-        Column::new("seen", 1, ColumnValues::F32(seen)),
-        Column::new("sampled", 1, ColumnValues::U32(sampled)),
-        Column::new("offset", 1, ColumnValues::F32(offset)),
+        Column::new("seen", 1, ColumnValues::F32(observed.seen)),
+        Column::new("sampled", 1, ColumnValues::U32(observed.sampled)),
+        Column::new("surface_offset", 1, ColumnValues::F32(observed.offset)),
+        Column::new("measured", 1, ColumnValues::F32(observed.measured)),
     ]
+}
+
+/// A level segment's columns from `stages::observed`, one row per cube.
+struct ObservedColumns {
+    seen: Vec<f32>,
+    sampled: Vec<u32>,
+    offset: Vec<f32>,
+    measured: Vec<f32>,
 }
 
 /// Reads a level segment's keys, u and what the data says about each cube ([`CutValue`]) only:
 /// what the indicator field needs (extraction and queries), without decoding v, p and q, which
-/// are 3.4 times the bytes. A segment written before those columns existed reads as seen and
-/// sampled everywhere, with no offsets (extraction then gives the closed surface).
+/// are 3.4 times the bytes. A segment written before those columns existed reads as seen,
+/// measured and sampled everywhere, with no offsets (extraction then gives the closed
+/// surface).
 pub fn read_level_u(snapshot: &Snapshot<'_>, segment: &str) -> Result<LeafValues> {
     let file = snapshot.open_segment(segment)?;
     let reader = file.reader()?;
@@ -140,16 +150,24 @@ pub fn read_level_u(snapshot: &Snapshot<'_>, segment: &str) -> Result<LeafValues
         }
     };
     let seen = optional("seen", 1.0)?;
-    let offset = optional("offset", f32::NAN)?;
+    let offset = optional("surface_offset", f32::NAN)?;
+    let measured = if reader.column("measured").is_ok() {
+        reader.read_f32("measured").map_err(c)?.1
+    } else {
+        seen.clone()
+    };
     let sampled = if reader.column("sampled").is_ok() {
         reader.read_u32("sampled").map_err(c)?.1
     } else {
         vec![1; keys.len()]
     };
     let n = keys.len();
-    if u.len() != n || seen.len() != n || offset.len() != n || sampled.len() != n {
+    if [seen.len(), offset.len(), sampled.len(), measured.len(), u.len()]
+        .iter()
+        .any(|len| *len != n)
+    {
         return Err(file.corruption(crate::format::DecodeError::MissingColumn(
-            "u, seen, sampled and offset of the keys' length".into(),
+            "u, seen, sampled, surface_offset and measured of the keys' length".into(),
         )));
     }
     let values = u
@@ -157,9 +175,11 @@ pub fn read_level_u(snapshot: &Snapshot<'_>, segment: &str) -> Result<LeafValues
         .zip(seen)
         .zip(sampled)
         .zip(offset)
-        .map(|(((u, seen), sampled), offset)| CutValue {
+        .zip(measured)
+        .map(|((((u, votes), sampled), offset), measured)| CutValue {
             u,
-            seen: seen > 0.0,
+            votes,
+            measured,
             sampled: sampled > 0,
             offset,
         })
@@ -403,11 +423,7 @@ impl LevelStage {
 
     // long function build_problem: one pass that gathers a unit's cubes, their frozen neighbours and the difference terms, in the order the kernel's gather lists need.
     /// Builds the unit's problem and initial state; `None` when the unit has no cut cubes.
-    pub fn build_problem(
-        &self,
-        base: &Snapshot<'_>,
-        unit_index: usize,
-    ) -> Result<Option<(Vec<CubeKey>, Problem, State)>> {
+    pub fn build_problem(&self, base: &Snapshot<'_>, unit_index: usize) -> Result<Option<UnitProblem>> {
         let treetop = self.treetop.get().ok_or_else(|| StoreError::Stage {
             stage: LEVEL_STAGES[usize::from(self.level)].into(),
             unit: format!("unit {unit_index}"),
@@ -435,7 +451,7 @@ impl LevelStage {
             .collect();
         // The cut cubes of every member with their histograms, then sorted by key (the internal
         // unit's cubes interleave with the leaves').
-        let mut cut: Vec<(CubeKey, [f32; BINS])> = Vec::new();
+        let mut cut: Vec<(CubeKey, [f32; BINS], [f32; 2])> = Vec::new();
         for &member in &members {
             let own = hood.unit_keys(member)?;
             let rows: Vec<usize> = (0..own.keys.keys.len())
@@ -456,10 +472,17 @@ impl LevelStage {
                     message: "no histograms for this unit: run the histograms stage first".into(),
                 })?;
             let file = base.open_segment(name)?;
-            let (_, h) = file.reader()?.read_f32("hist").map_err(|e| file.corruption(e))?;
-            if h.len() != own.total * BINS {
+            let reader = file.reader()?;
+            let (_, h) = reader.read_f32("hist").map_err(|e| file.corruption(e))?;
+            // Histograms written before the distance column existed measured no distances.
+            let distance = if reader.column("distance").is_ok() {
+                reader.read_f32("distance").map_err(|e| file.corruption(e))?.1
+            } else {
+                vec![0.0; 2 * own.total]
+            };
+            if h.len() != own.total * BINS || distance.len() != 2 * own.total {
                 return Err(file.corruption(crate::format::DecodeError::MissingColumn(
-                    "hist rows matching the octree unit".into(),
+                    "hist and distance rows matching the octree unit".into(),
                 )));
             }
             cut.extend(rows.iter().map(|&i| {
@@ -467,14 +490,22 @@ impl LevelStage {
                 (
                     own.keys.keys[i],
                     std::array::from_fn(|b| h.get(row.saturating_mul(BINS) + b).copied().unwrap_or(0.0)),
+                    std::array::from_fn(|k| distance.get(row.saturating_mul(2) + k).copied().unwrap_or(0.0)),
                 )
             }));
         }
         if cut.is_empty() {
             return Ok(None);
         }
-        cut.sort_by_key(|(key, _)| *key);
-        let (keys, hist): (Vec<CubeKey>, Vec<[f32; BINS]>) = cut.into_iter().unzip();
+        cut.sort_by_key(|(key, _, _)| *key);
+        let mut keys = Vec::with_capacity(cut.len());
+        let mut hist = Vec::with_capacity(cut.len());
+        let mut offset = Vec::with_capacity(cut.len());
+        for (key, row, distance) in cut {
+            keys.push(key);
+            offset.push(surface_offset(distance));
+            hist.push(row);
+        }
         let n = keys.len();
         let index_of = |k: CubeKey| keys.binary_search(&k).ok();
 
@@ -553,7 +584,7 @@ impl LevelStage {
             alpha0: keys.iter().map(|k| self.params.alpha0 * side(*k) * side(*k)).collect(),
             lambda: self.params.lambda,
         };
-        Ok(Some((keys, problem, state)))
+        Ok(Some((keys, problem, state, offset)))
     }
 }
 
@@ -612,7 +643,7 @@ impl Stage for LevelStage {
     }
 
     fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput> {
-        let Some((keys, problem, mut state)) = self.build_problem(base, unit.id as usize)? else {
+        let Some((keys, problem, mut state, offset)) = self.build_problem(base, unit.id as usize)? else {
             return Ok(UnitOutput {
                 extra: catalog::encode(&LevelUnitExtra::default()),
                 ..UnitOutput::default()
@@ -628,7 +659,7 @@ impl Stage for LevelStage {
             self.params.iterations as usize,
         );
         let seen = problem.hist.iter().map(seen_weight).collect();
-        let offset = problem.hist.iter().map(surface_offset).collect();
+        let measured = problem.hist.iter().map(measured_weight).collect();
         let treetop = self
             .treetop
             .get()
@@ -642,7 +673,15 @@ impl Stage for LevelStage {
             q: state.q,
         };
         Ok(UnitOutput {
-            segments: vec![columns_of(&values, seen, sampled, offset)],
+            segments: vec![columns_of(
+                &values,
+                ObservedColumns {
+                    seen,
+                    sampled,
+                    offset,
+                    measured,
+                },
+            )],
             extra: catalog::encode(&LevelUnitExtra {
                 cubes: values.keys.len() as u64,
                 energy_before,
@@ -686,22 +725,36 @@ fn full_resolution_side(cube: CubeKey) -> u64 {
 #[derive(Clone, Copy, Debug)]
 pub struct CutValue {
     pub u: f32,
-    /// [`seen_weight`] > 0.
-    pub seen: bool,
+    /// [`seen_weight`]: the cube's whole vote weight.
+    pub votes: f32,
+    /// [`measured_weight`]: the part of `votes` that measured a distance to a surface.
+    pub measured: f32,
     /// Samples spawned the cube, an ancestor or a descendant ([`sampled_nodes`]).
     pub sampled: bool,
-    /// [`surface_offset`]: NaN when no vote measured a distance.
+    /// [`surface_offset`], in world units: NaN when no vote measured a distance.
     pub offset: f32,
+}
+
+impl CutValue {
+    /// Whether a depth map saw the cube: it has votes.
+    pub fn seen(&self) -> bool {
+        self.votes > 0.0
+    }
 }
 
 impl PartialEq for CutValue {
     fn eq(&self, other: &CutValue) -> bool {
         self.u.to_bits() == other.u.to_bits()
-            && self.seen == other.seen
+            && self.votes.to_bits() == other.votes.to_bits()
+            && self.measured.to_bits() == other.measured.to_bits()
             && self.sampled == other.sampled
             && self.offset.to_bits() == other.offset.to_bits()
     }
 }
+
+/// A unit's problem at one level: its cut keys, the problem, the starting state, and each
+/// cube's measured surface offset (`stages::observed::surface_offset`).
+pub type UnitProblem = (Vec<CubeKey>, Problem, State, Vec<f32>);
 
 /// Sorted cut keys of a unit at one level and their values.
 pub type LeafValues = (Vec<CubeKey>, Vec<CutValue>);

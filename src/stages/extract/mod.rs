@@ -14,24 +14,26 @@
 //! walls of a room, under furniture) the solver still decides inside or outside, and the
 //! mirrored exterior closes every surface at the root cube. By default a tetrahedron is meshed
 //! only when the data supports a surface there: depth maps voted into all four of its cells
-//! (the level segment's `seen`), and samples reached at least one of its dual cell's eight
-//! cells (`sampled`: the cube, an ancestor or a descendant holds samples). The first drops the
-//! space no map reached (virtual exterior cells are never seen); the second drops the boundary
-//! between occluded space (which votes "inside" up to eta behind a surface) and free space, the
-//! sheets that would hang behind a plate or under a table, where no sample lies. The decision
-//! reads only the cell's own corners, so a cell on a seam between treetop leaves gets the same
-//! answer whichever unit generates it, and the pieces stay seamless. `closed` keeps the whole
-//! zero set (a watertight mesh, hidden parts filled in).
+//! (the level segment's `seen`), samples lie in at least one of its dual cell's eight cells
+//! (`sampled`: samples spawned the cube, an ancestor or a descendant), and at least a tenth of the dual
+//! cell's votes measured a distance to a surface (`measured`, the votes in histogram bins 1
+//! to 6). The first drops the space no map reached (virtual exterior cells are never seen);
+//! the other two drop the boundary between occluded space (which votes "inside" up to eta
+//! behind a surface) and free space, the sheets that would hang behind a plate or under a
+//! counter, where no sample lies and the votes are all clamped. The decision reads only the
+//! cell's own corners, so a cell on a seam between treetop leaves gets the same answer
+//! whichever unit generates it, and the pieces stay seamless. `closed` keeps the whole zero set
+//! (a watertight mesh, hidden parts filled in).
 //!
 //! Vertices inside cubes. u's L1 data term snaps it to histogram bin centres, and linear
 //! interpolation of u between cell centres then leaves terraces about one bin (near one finest
 //! cube) high on smooth surfaces. Where both ends of a cut edge have a measured surface offset
-//! (the level segment's `offset`, the mean of the votes that measured a distance), the vertex
-//! sits half way between where those offsets cross zero (like a TSDF's) and where u's linear
-//! interpolation does, held inside the edge u chose; u alone
-//! decides which edges are cut, so outliers cannot move the surface by more than an edge.
-//! Then `relax` moves each vertex that only its unit produces a little towards its neighbours,
-//! along its edge (seam vertices stay, so the pieces still weld).
+//! (the level segment's `surface_offset`, the mean truncated signed distance of the cube's
+//! votes: a TSDF value at its centre), the vertex sits where those offsets cross zero, held
+//! inside the edge u chose; u alone decides which edges are cut, so outliers cannot move the
+//! surface by more than an edge. Then `relax` smooths the vertices only their unit produces
+//! (Taubin's steps, each vertex within half its edge of where it was; seam vertices stay, so
+//! the pieces still weld).
 //!
 //! Files: `dual_cells` (a unit's piece), `weld` (streaming weld in unit order), `mesh_file`
 //! (the temporary vertex and face files and the final PLY), `in_order` (workers compute

@@ -1,8 +1,10 @@
-//! Relaxing a unit's surface along its cut edges: each vertex the unit alone produces moves
-//! towards the mean of its neighbours, but only along the edge it lies on and never past the
-//! edge's middle 90 %, so it stays between the two cells whose u signs put the surface there.
-//! What is left of the votes' noise (a few tenths of a cube) smooths out; the surface cannot
-//! move by more than an edge, and its topology does not change.
+//! Smoothing a unit's surface: Taubin's alternating steps (a shrinking step towards the
+//! neighbours' mean, then an inflating one away from it), which remove the noise the vertex
+//! placement leaves without shrinking curved parts. Marching tetrahedra cut every dual cell
+//! into six thin tetrahedra split the same way, so that noise comes out as small triangles with
+//! scattered normals in a regular pattern, ridges under raking light. Each vertex stays within
+//! half its edge's length of where extraction put it, so the surface moves by less than a cube
+//! and its topology does not change.
 //!
 //! Vertices another unit may also produce (seam vertices) stay where they are: both units then
 //! agree on them, and the mesh stays seamless and independent of how it is split into units.
@@ -13,15 +15,19 @@ use glam::DVec3;
 
 use crate::mesh::UnitMesh;
 
-/// Relaxation steps, each moving a vertex half way to its neighbours' mean (projected on its
-/// edge). Measured on the bunny (0.2 % depth noise, 24 views, 1 % of the diagonal): normal
-/// consistency 0.937 without, 0.957 after 2 steps, 0.955 after 3, 0.951 after 10 (Chamfer
-/// 0.00098, 0.00107, 0.00113, 0.00137: more steps shrink curved parts); Taubin's alternating
-/// steps kept Chamfer at 0.00097 but reached only 0.953.
-pub(super) const STEPS: usize = 2;
+/// Taubin step pairs. Measured on the bunny (0.2 % depth noise, 24 views, in its room, finest
+/// cube 1/512 of the root): normal consistency 0.962 with two steps along edges (the previous
+/// smoothing), 0.974 after 3 pairs, Chamfer 0.00118 and 0.00117; RedKitchen's table top (100
+/// frames, 5.8 mm cubes): mean normal deviation from its plane 10.9 degrees without, 7.9 after
+/// 3 pairs, 7.4 after 6, 7.0 after 10 (TSDF at the same voxel: 5.2).
+pub(super) const STEP_PAIRS: usize = 3;
 
-/// Relaxes the vertices of `mesh` flagged `movable`, each along the segment `ends` (the centres
-/// of the two cells of its edge).
+/// Taubin's shrinking and inflating factors (lambda, mu; the pass band's edge k = 1/lambda +
+/// 1/mu is about 0.1).
+const FACTORS: [f64; 2] = [0.5, -0.53];
+
+/// Smooths the vertices of `mesh` flagged `movable`; `ends` are the centres of the two cells of
+/// each vertex's edge, whose distance bounds how far it moves.
 pub(super) fn relax_along_edges(mesh: &mut UnitMesh, ends: &[(DVec3, DVec3)], movable: &[bool]) {
     let n = mesh.vertices.len();
     let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
@@ -39,25 +45,31 @@ pub(super) fn relax_along_edges(mesh: &mut UnitMesh, ends: &[(DVec3, DVec3)], mo
         list.sort_unstable();
         list.dedup();
     }
-    let mut positions: Vec<DVec3> = mesh.vertices.iter().map(|v| v.1).collect();
-    for _ in 0..STEPS {
+    let original: Vec<DVec3> = mesh.vertices.iter().map(|v| v.1).collect();
+    let mut positions = original.clone();
+    for step in 0..2 * STEP_PAIRS {
+        let [shrink, inflate] = FACTORS;
+        let factor = if step % 2 == 0 { shrink } else { inflate };
         let next: Vec<DVec3> = (0..n)
             .map(|i| {
                 let here = positions.get(i).copied().unwrap_or_default();
-                let (Some(true), Some(list), Some(&(a, b))) = (movable.get(i), neighbours.get(i), ends.get(i)) else {
+                let (Some(true), Some(list), Some(&(a, b)), Some(&start)) =
+                    (movable.get(i), neighbours.get(i), ends.get(i), original.get(i))
+                else {
                     return here;
                 };
                 if list.is_empty() {
                     return here;
                 }
                 let mean = list.iter().filter_map(|&j| positions.get(j as usize)).sum::<DVec3>() / list.len() as f64;
-                let target = here + (mean - here) * 0.5;
-                let edge = b - a;
-                let length2 = edge.length_squared();
-                if length2 <= 0.0 {
-                    return here;
+                let target = here + (mean - here) * factor;
+                let moved = target - start;
+                let limit = 0.5 * (b - a).length();
+                if moved.length() > limit {
+                    start + moved * (limit / moved.length())
+                } else {
+                    target
                 }
-                a + edge * ((target - a).dot(edge) / length2).clamp(0.05, 0.95)
             })
             .collect();
         positions = next;
