@@ -29,6 +29,17 @@ fn sphere() -> SceneSpec {
 }
 
 /// Ingest, solve and extract the closed surface through the CLI; returns the store path.
+/// `octstore extract STORE -o NAME ARGS` beside the store; the mesh's bytes.
+fn extract_bytes(store: &Path, name: &str, args: &[&str]) -> Vec<u8> {
+    let ply = store.with_file_name(name);
+    let out = octstore(
+        &[&["extract", store.to_str().unwrap(), "-o", ply.to_str().unwrap()], args].concat(),
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    std::fs::read(&ply).unwrap()
+}
+
 fn run_cli(dir: &Path, manifest: &Path, leaf_cubes: &str, threads: &str) -> std::path::PathBuf {
     let store = dir.join("store");
     let s = store.to_str().unwrap();
@@ -177,22 +188,7 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
     // The observed surface too.
     let observed: Vec<Vec<u8>> = [(&store_a, "1"), (&store_b, "2")]
         .iter()
-        .map(|(store, threads)| {
-            let ply = store.with_file_name("observed.ply");
-            let out = octstore(
-                &[
-                    "extract",
-                    store.to_str().unwrap(),
-                    "-o",
-                    ply.to_str().unwrap(),
-                    "--threads",
-                    threads,
-                ],
-                &[],
-            );
-            assert!(out.status.success(), "{}", stderr(&out));
-            std::fs::read(&ply).unwrap()
-        })
+        .map(|(store, threads)| extract_bytes(store, "observed.ply", &["--threads", threads]))
         .collect();
     assert!(
         observed[0] == observed[1],
@@ -268,23 +264,8 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
     let full = read_mesh(&a.path().join("mesh.ply")).unwrap();
     let mut decimated = Vec::new();
     for (store, threads) in [(&store_a, "1"), (&store_b, "2")] {
-        let ply = store.with_file_name("decimated.ply");
-        let out = octstore(
-            &[
-                "extract",
-                store.to_str().unwrap(),
-                "-o",
-                ply.to_str().unwrap(),
-                "--decimate",
-                "0.3",
-                "--closed",
-                "--threads",
-                threads,
-            ],
-            &[],
-        );
-        assert!(out.status.success(), "{}", stderr(&out));
-        decimated.push(std::fs::read(&ply).unwrap());
+        let args = ["--decimate", "0.3", "--closed", "--threads", threads];
+        decimated.push(extract_bytes(store, "decimated.ply", &args));
     }
     assert!(
         decimated[0] == decimated[1],

@@ -332,7 +332,9 @@ def flat_normal_deviation(mesh, radius=0.06):
     rows, cols = np.mgrid[380:440:2, 250:400:2]
     z = depth[rows, cols]
     keep = (z > 0) & (z < 60)  # 65535 marks a missing depth
-    camera = np.stack([(cols[keep] - 320) * z[keep] / 585, (rows[keep] - 240) * z[keep] / 585, z[keep], np.ones(keep.sum())])
+    k = np.loadtxt(folder / "camera-intrinsics.txt")
+    camera = np.stack([(cols[keep] - k[0, 2]) * z[keep] / k[0, 0], (rows[keep] - k[1, 2]) * z[keep] / k[1, 1], z[keep],
+                       np.ones(keep.sum())])
     points = (pose @ camera)[:3].T
     center = points.mean(0)
     normal = np.linalg.svd(points - center)[2][2]

@@ -54,7 +54,7 @@ use rayon::prelude::*;
 use self::dual_cells::dual_cells_of_unit;
 use self::in_order::in_order_while_computing;
 use self::mesh_file::MeshFile;
-use self::relax::relax_along_edges;
+use self::relax::smooth_private_vertices;
 use self::weld::{StreamingWeld, private_to};
 use super::solve::{LEVEL_STAGES, LevelCut};
 use super::treetop::Treetop;
@@ -149,7 +149,7 @@ pub fn unit_mesh(
     let (mut mesh, ends) = dual_cells_of_unit(scene, &mut level, &values.0, &values.1, closed)?;
     let private = private_to(key);
     let movable: Vec<bool> = mesh.vertices.iter().map(|v| private(&v.0)).collect();
-    relax_along_edges(&mut mesh, &ends, &movable);
+    smooth_private_vertices(&mut mesh, &ends, &movable);
     Ok(mesh)
 }
 

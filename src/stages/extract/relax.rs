@@ -28,7 +28,7 @@ const FACTORS: [f64; 2] = [0.5, -0.53];
 
 /// Smooths the vertices of `mesh` flagged `movable`; `ends` are the centres of the two cells of
 /// each vertex's edge, whose distance bounds how far it moves.
-pub(super) fn relax_along_edges(mesh: &mut UnitMesh, ends: &[(DVec3, DVec3)], movable: &[bool]) {
+pub(super) fn smooth_private_vertices(mesh: &mut UnitMesh, ends: &[(DVec3, DVec3)], movable: &[bool]) {
     let n = mesh.vertices.len();
     let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
     for t in &mesh.triangles {
