@@ -24,6 +24,10 @@ pub use crate::store::catalog::DEPTH_MAPS;
 /// Block size of ingest runs: small, so that merging many runs at once stays within memory.
 pub const RUN_BLOCK_ROWS: u32 = 1024;
 
+/// The column of ingest runs and octree segments that counts, per cube, the spikes among the
+/// samples that spawned it (format-spec.md, "Columns used by stages").
+pub const SPIKE_COUNT: &str = "spike_count";
+
 /// A depth is absurd when it exceeds this multiple of the map's median depth.
 const ABSURD_DEPTH_FACTOR: f32 = 1.0e4;
 
@@ -386,12 +390,12 @@ impl IngestStage {
         self.maps.len()
     }
 
-    /// Cubes of one depth map, merged by key: (keys, radius sums, counts).
+    /// Cubes of one depth map, merged by key: (keys, radius sums, counts, spike counts).
     pub fn cubes(&self, source: &DepthMapSource) -> std::result::Result<(Vec<Column>, SampleStats), InputError> {
         let image = source.load()?;
         let samples = back_project(source, &image);
         let mut stats = samples.stats;
-        let mut entries: Vec<(CubeKey, u64)> = Vec::with_capacity(samples.points.len());
+        let mut entries: Vec<(CubeKey, u64, bool)> = Vec::with_capacity(samples.points.len());
         // Consistent samples outside the root mean the map sees beyond the scene the store was
         // sized for; spikes outside it are noise.
         let mut consistent_outside = 0u64;
@@ -402,7 +406,7 @@ impl IngestStage {
                 continue;
             }
             let depth = self.scene.depth_for_radius(*r);
-            entries.push((self.scene.key_at(*p, depth), self.scene.quantize_radius(*r)));
+            entries.push((self.scene.key_at(*p, depth), self.scene.quantize_radius(*r), *spike));
         }
         if consistent_outside * 100 > stats.samples.max(1) {
             return Err(crate::inputs::bad(
@@ -417,16 +421,19 @@ impl IngestStage {
         let mut keys: Vec<CubeKey> = Vec::new();
         let mut sums: Vec<u64> = Vec::new();
         let mut counts: Vec<u32> = Vec::new();
-        for (key, r) in entries {
+        let mut spike_counts: Vec<u32> = Vec::new();
+        for (key, r, spike) in entries {
             if keys.last() == Some(&key) {
-                if let (Some(s), Some(c)) = (sums.last_mut(), counts.last_mut()) {
+                if let (Some(s), Some(c), Some(sc)) = (sums.last_mut(), counts.last_mut(), spike_counts.last_mut()) {
                     *s += r;
                     *c += 1;
+                    *sc += u32::from(spike);
                 }
             } else {
                 keys.push(key);
                 sums.push(r);
                 counts.push(1);
+                spike_counts.push(u32::from(spike));
             }
         }
         stats.cubes = keys.len() as u64;
@@ -435,6 +442,7 @@ impl IngestStage {
                 Column::keys(keys),
                 Column::new("radius_sum", 1, ColumnValues::U64(sums)),
                 Column::new("radius_count", 1, ColumnValues::U32(counts)),
+                Column::new(SPIKE_COUNT, 1, ColumnValues::U32(spike_counts)),
             ],
             stats,
         ))

@@ -6,6 +6,7 @@
 
 use std::collections::BTreeMap;
 
+use super::ingest::SPIKE_COUNT;
 use super::treetop::Treetop;
 use crate::format::CubeKey;
 use crate::kernels::votes::BINS;
@@ -34,50 +35,103 @@ pub fn surface_offset([sum, weight]: [f32; 2]) -> f32 {
     if weight > 0.0 { sum / weight } else { f32::NAN }
 }
 
+/// The sample counts of a unit's octree nodes: all samples that spawned each node, and how
+/// many of them were spikes (isolated samples, `stages::ingest`).
+pub struct SpawnCounts<'a> {
+    pub samples: &'a [u32],
+    pub spikes: &'a [u32],
+}
+
+impl SpawnCounts<'_> {
+    fn spawned(&self, i: usize) -> bool {
+        self.samples.get(i).is_some_and(|c| *c > 0)
+    }
+
+    /// Whether samples other than spikes spawned node i.
+    fn vouched(&self, i: usize) -> bool {
+        let samples = self.samples.get(i).copied().unwrap_or(0);
+        samples > self.spikes.get(i).copied().unwrap_or(0)
+    }
+}
+
 /// For each node of a unit's sorted octree keys (an ancestor sorts just before its
-/// descendants) and its sample counts: whether samples spawned the node, one of its ancestors
-/// in the unit, or one of its descendants. A measured surface passes through such cubes only.
-pub fn sampled_nodes(keys: &[CubeKey], counts: &[u32]) -> Vec<bool> {
-    let spawned = |i: usize| counts.get(i).is_some_and(|c| *c > 0);
+/// descendants): whether samples spawned the node or one of its descendants, or samples other
+/// than spikes spawned one of its ancestors in the unit or one of its siblings. A measured
+/// surface passes through such cubes only.
+///
+/// Siblings count because a surface sampled at about the cube size (a low-resolution view, a
+/// grazing one) leaves cubes between its samples that no sample spawned, and a dual cell of
+/// only those would tear the mesh. Spikes vouch for their own cube alone: a spike (a flying
+/// pixel between a foreground edge and the background, or an outlier) gets a radius as large
+/// as the gap to its neighbours and so spawns a coarse cube, and its subtree would count the
+/// space behind objects as sampled.
+pub fn sampled_nodes(keys: &[CubeKey], counts: &SpawnCounts<'_>) -> Vec<bool> {
     // spawned_before[i]: how many of keys[..i] samples spawned.
     let mut spawned_before = Vec::with_capacity(keys.len() + 1);
     spawned_before.push(0usize);
     for i in 0..keys.len() {
-        spawned_before.push(spawned_before.last().copied().unwrap_or(0) + usize::from(spawned(i)));
+        spawned_before.push(spawned_before.last().copied().unwrap_or(0) + usize::from(counts.spawned(i)));
     }
-    let mut sampled = Vec::with_capacity(keys.len());
-    // Ancestors of the current node, each with whether it or an ancestor was spawned.
-    let mut ancestors: Vec<(CubeKey, bool)> = Vec::new();
+    // parents[i]: the index of node i's parent, when the unit holds it.
+    let mut parents = Vec::with_capacity(keys.len());
+    let mut stack: Vec<usize> = Vec::new();
     for (i, key) in keys.iter().enumerate() {
-        while ancestors.last().is_some_and(|(a, _)| !a.is_ancestor_or_self_of(*key)) {
-            ancestors.pop();
+        while stack
+            .last()
+            .is_some_and(|a| !keys.get(*a).is_some_and(|a| a.is_ancestor_or_self_of(*key)))
+        {
+            stack.pop();
         }
-        let from_above = spawned(i) || ancestors.last().is_some_and(|(_, s)| *s);
+        parents.push(stack.last().copied().filter(|p| keys.get(*p).copied() == key.parent()));
+        stack.push(i);
+    }
+    let mut vouched_child = vec![false; keys.len()];
+    for (i, parent) in parents.iter().enumerate() {
+        if let Some(flag) = parent.and_then(|p| vouched_child.get_mut(p)) {
+            *flag |= counts.vouched(i);
+        }
+    }
+    // vouched_from_above[i]: samples other than spikes spawned node i or an ancestor.
+    let mut vouched_from_above: Vec<bool> = Vec::with_capacity(keys.len());
+    let mut sampled = Vec::with_capacity(keys.len());
+    for (i, parent) in parents.iter().enumerate() {
+        let parent_vouched = parent.and_then(|p| vouched_from_above.get(p).copied()).unwrap_or(false);
+        let sibling_vouched = parent.and_then(|p| vouched_child.get(p).copied()).unwrap_or(false);
+        vouched_from_above.push(counts.vouched(i) || parent_vouched);
         let rest = keys.get(i + 1..).unwrap_or_default();
-        let end = i + 1 + rest.partition_point(|k| key.is_ancestor_or_self_of(*k));
+        let end = i
+            + 1
+            + keys
+                .get(i)
+                .map_or(0, |key| rest.partition_point(|k| key.is_ancestor_or_self_of(*k)));
         let from_below =
             spawned_before.get(end).copied().unwrap_or(0) > spawned_before.get(i + 1).copied().unwrap_or(0);
-        sampled.push(from_above || from_below);
-        ancestors.push((*key, from_above));
+        sampled.push(counts.spawned(i) || parent_vouched || sibling_vouched || from_below);
     }
     sampled
 }
 
-/// A unit's octree keys and sample counts.
-fn nodes_of(base: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeKey>, Vec<u32>)> {
+/// A unit's octree keys, sample counts and spike counts (zero for segments written before
+/// spikes were counted).
+fn nodes_of(base: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeKey>, Vec<u32>, Vec<u32>)> {
     let file = base.open_segment(segment)?;
     let reader = file.reader()?;
     let nodes = reader.read_keys().map_err(|e| file.corruption(e))?;
     let (_, counts) = reader.read_u32("radius_count").map_err(|e| file.corruption(e))?;
-    Ok((nodes, counts))
+    let spikes = if reader.column(SPIKE_COUNT).is_ok() {
+        reader.read_u32(SPIKE_COUNT).map_err(|e| file.corruption(e))?.1
+    } else {
+        vec![0; counts.len()]
+    };
+    Ok((nodes, counts, spikes))
 }
 
 /// [`sampled_nodes`] for the cubes `keys` of a level cut, read from their units' octree
-/// segments. Samples that spawned a node of the treetop's internal unit, an ancestor of a
-/// whole leaf unit, mark that unit's every node too.
+/// segments. Samples other than spikes that spawned a node of the treetop's internal unit, an
+/// ancestor of a whole leaf unit, mark that unit's every node too.
 pub fn sampled_of(base: &Snapshot<'_>, treetop: &Treetop, keys: &[CubeKey]) -> Result<Vec<bool>> {
     let mut units: BTreeMap<usize, (Vec<CubeKey>, Vec<bool>)> = BTreeMap::new();
-    let mut top: Option<(Vec<CubeKey>, Vec<u32>)> = None;
+    let mut top: Option<(Vec<CubeKey>, Vec<u32>, Vec<u32>)> = None;
     let mut out = Vec::with_capacity(keys.len());
     for key in keys {
         let unit = treetop.unit_of(*key);
@@ -86,22 +140,32 @@ pub fn sampled_of(base: &Snapshot<'_>, treetop: &Treetop, keys: &[CubeKey]) -> R
                 out.push(false);
                 continue;
             };
-            let (nodes, counts) = nodes_of(base, &info.segment)?;
-            let mut flags = sampled_nodes(&nodes, &counts);
+            let (nodes, samples, spikes) = nodes_of(base, &info.segment)?;
+            let mut flags = sampled_nodes(
+                &nodes,
+                &SpawnCounts {
+                    samples: &samples,
+                    spikes: &spikes,
+                },
+            );
             if !info.top {
                 if top.is_none()
                     && let Some(internal) = treetop.units.iter().find(|u| u.top)
                 {
                     top = Some(nodes_of(base, &internal.segment)?);
                 }
-                let spawned_above = top.as_ref().is_some_and(|(top_nodes, top_counts)| {
+                let vouched_above = top.as_ref().is_some_and(|(top_nodes, top_samples, top_spikes)| {
+                    let top_counts = SpawnCounts {
+                        samples: top_samples,
+                        spikes: top_spikes,
+                    };
                     std::iter::successors(Some(info.key), |k| k.parent()).any(|ancestor| {
                         top_nodes
                             .binary_search(&ancestor)
-                            .is_ok_and(|at| top_counts.get(at).is_some_and(|c| *c > 0))
+                            .is_ok_and(|at| top_counts.vouched(at))
                     })
                 });
-                if spawned_above {
+                if vouched_above {
                     flags.iter_mut().for_each(|flag| *flag = true);
                 }
             }
@@ -121,7 +185,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn samples_mark_their_cube_its_ancestors_and_its_descendants() {
+    fn samples_mark_their_cube_ancestors_descendants_and_siblings() {
         // Root, two children, grandchildren under the first; samples spawned one grandchild.
         let root = CubeKey::new(0, 0, 0, 0);
         let a = CubeKey::new(1, 0, 0, 0);
@@ -129,18 +193,38 @@ mod tests {
         let a1 = CubeKey::new(2, 1, 0, 0);
         let b = CubeKey::new(1, 1, 0, 0);
         let b0 = CubeKey::new(2, 2, 0, 0);
-        let mut keys = vec![root, a, a0, a1, b, b0];
+        let b00 = CubeKey::new(3, 4, 0, 0);
+        let mut keys = vec![root, a, a0, a1, b, b0, b00];
         keys.sort();
+        let none = vec![0u32; keys.len()];
+        let flags_of = |samples: &[u32], spikes: &[u32]| -> BTreeMap<CubeKey, bool> {
+            let flags = sampled_nodes(&keys, &SpawnCounts { samples, spikes });
+            keys.iter().copied().zip(flags).collect()
+        };
         let counts: Vec<u32> = keys.iter().map(|k| u32::from(*k == a1)).collect();
-        let flags: BTreeMap<CubeKey, bool> = keys.iter().copied().zip(sampled_nodes(&keys, &counts)).collect();
+        let flags = flags_of(&counts, &none);
         assert!(flags[&a1], "spawned");
         assert_eq!((flags[&a], flags[&root]), (true, true), "ancestors");
-        assert!(!flags[&a0], "a sibling");
+        assert!(flags[&a0], "a sibling");
         assert_eq!((flags[&b], flags[&b0]), (false, false), "another branch");
         // A spawned coarse node marks its whole subtree.
         let counts: Vec<u32> = keys.iter().map(|k| u32::from(*k == b)).collect();
-        let flags: BTreeMap<CubeKey, bool> = keys.iter().copied().zip(sampled_nodes(&keys, &counts)).collect();
-        assert_eq!((flags[&b], flags[&b0], flags[&a0]), (true, true, false));
+        let flags = flags_of(&counts, &none);
+        assert_eq!(
+            (flags[&b], flags[&b0], flags[&b00], flags[&a0]),
+            (true, true, true, false)
+        );
+        assert!(flags[&a], "b's sibling");
+        // Unless only spikes spawned it: then it marks itself and its ancestors alone.
+        let flags = flags_of(&counts, &counts);
+        assert_eq!(
+            (flags[&b], flags[&root], flags[&b0], flags[&a]),
+            (true, true, false, false)
+        );
+        // One sample besides the spikes vouches for the whole subtree again.
+        let samples: Vec<u32> = counts.iter().map(|c| c * 3).collect();
+        let spikes: Vec<u32> = counts.iter().map(|c| c * 2).collect();
+        assert!(flags_of(&samples, &spikes)[&b00]);
     }
 
     #[test]

@@ -729,7 +729,8 @@ pub struct CutValue {
     pub votes: f32,
     /// [`measured_weight`]: the part of `votes` that measured a distance to a surface.
     pub measured: f32,
-    /// Samples spawned the cube, an ancestor or a descendant ([`sampled_nodes`]).
+    /// Samples spawned the cube or a descendant, or samples other than spikes an ancestor
+    /// ([`sampled_nodes`]).
     pub sampled: bool,
     /// [`surface_offset`], in world units: NaN when no vote measured a distance.
     pub offset: f32,

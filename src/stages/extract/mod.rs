@@ -15,7 +15,8 @@
 //! mirrored exterior closes every surface at the root cube. By default a tetrahedron is meshed
 //! only when the data supports a surface there: depth maps voted into all four of its cells
 //! (the level segment's `seen`), samples lie in at least one of its dual cell's eight cells
-//! (`sampled`: samples spawned the cube, an ancestor or a descendant), and at least a tenth of the dual
+//! (`sampled`: samples spawned the cube or a descendant, or samples other than spikes its
+//! parent, an ancestor or a sibling; `stages::observed::sampled_nodes`), and at least a tenth of the dual
 //! cell's votes measured a distance to a surface (`measured`, the votes in histogram bins 1
 //! to 6). The first drops the space no map reached (virtual exterior cells are never seen);
 //! the other two drop the boundary between occluded space (which votes "inside" up to eta

@@ -20,16 +20,18 @@ pub struct CubeRecord {
     pub key: CubeKey,
     pub radius_sum: u64,
     pub radius_count: u32,
-    pub reserved: u32,
+    /// How many of the `radius_count` samples were spikes (`stages::ingest`): they spawn the
+    /// cube but vouch for no surface in its subtree (`stages::observed::sampled_nodes`).
+    pub spike_count: u32,
 }
 
 impl CubeRecord {
-    pub fn new(key: CubeKey, radius_sum: u64, radius_count: u32) -> CubeRecord {
+    pub fn new(key: CubeKey, radius_sum: u64, radius_count: u32, spike_count: u32) -> CubeRecord {
         CubeRecord {
             key,
             radius_sum,
             radius_count,
-            reserved: 0,
+            spike_count,
         }
     }
 }

@@ -24,6 +24,7 @@ use redb::{ReadableTable, WriteTransaction};
 use serde::{Deserialize, Serialize};
 
 use self::external_sort::{CubeRecord, KeySorter, RecordReader, RecordWriter};
+use super::ingest::SPIKE_COUNT;
 use super::{INGEST, OCTREE};
 use crate::format::segment::content_digest;
 use crate::format::{Column, ColumnValues, CubeKey, Scene};
@@ -184,20 +185,27 @@ impl RunCursor {
         let keys = reader.read_block("key", self.block).map_err(corrupt)?;
         let sums = reader.read_block("radius_sum", self.block).map_err(corrupt)?;
         let counts = reader.read_block("radius_count", self.block).map_err(corrupt)?;
-        match (keys, sums, counts) {
-            (ColumnValues::Key(k), ColumnValues::U64(s), ColumnValues::U32(c))
-                if k.len() == s.len() && k.len() == c.len() =>
+        // Runs ingested before spikes were counted lack the column: no sample counts as one.
+        let spikes = if reader.column(SPIKE_COUNT).is_ok() {
+            reader.read_block(SPIKE_COUNT, self.block).map_err(corrupt)?
+        } else {
+            ColumnValues::U32(vec![0; counts.len()])
+        };
+        match (keys, sums, counts, spikes) {
+            (ColumnValues::Key(k), ColumnValues::U64(s), ColumnValues::U32(c), ColumnValues::U32(sp))
+                if k.len() == s.len() && k.len() == c.len() && k.len() == sp.len() =>
             {
                 self.buffer = k
                     .into_iter()
                     .zip(s)
                     .zip(c)
-                    .map(|((k, s), c)| CubeRecord::new(k, s, c))
+                    .zip(sp)
+                    .map(|(((k, s), c), sp)| CubeRecord::new(k, s, c, sp))
                     .collect();
             }
             _ => {
                 return Err(file.corruption(crate::format::DecodeError::MissingColumn(
-                    "radius_sum (u64) / radius_count (u32) of an ingest run".into(),
+                    "radius_sum (u64) / radius_count (u32) / spike_count (u32) of an ingest run".into(),
                 )));
             }
         }
@@ -298,6 +306,7 @@ fn merge_sorted(runs: &[SortedRun], mut emit: impl FnMut(CubeRecord) -> Result<(
             Some(c) if c.key == key => {
                 c.radius_sum += record.radius_sum;
                 c.radius_count += record.radius_count;
+                c.spike_count += record.spike_count;
             }
             _ => {
                 if let Some(done) = current.replace(record) {
@@ -514,7 +523,7 @@ impl OctreeStage {
         let mut total = 0u64;
         let mut write_node =
             |key: CubeKey, request_heap: &mut BinaryHeap<Reverse<(CubeRecord, usize)>>| -> Result<()> {
-                let mut record = CubeRecord::new(key, 0, 0);
+                let mut record = CubeRecord::new(key, 0, 0, 0);
                 while let Some(Reverse((r, index))) = request_heap.peek().copied() {
                     if r.key > key {
                         break;
@@ -670,6 +679,11 @@ fn columns_of(records: &[CubeRecord]) -> Vec<Column> {
             "radius_count",
             1,
             ColumnValues::U32(records.iter().map(|r| r.radius_count).collect()),
+        ),
+        Column::new(
+            SPIKE_COUNT,
+            1,
+            ColumnValues::U32(records.iter().map(|r| r.spike_count).collect()),
         ),
     ]
 }
