@@ -21,8 +21,13 @@ struct VoteMap {
     weight: f32,
     n: u32,
     row_stride: u32,
-    // Distance sums' truncation band in units of delta (`kernels::votes::truncated_distance`).
+    // Distance sums' truncation band in units of delta, and its least value in world units
+    // (`kernels::votes::truncated_distance`).
     band_per_delta: f32,
+    band_floor: f32,
+    padding0: u32,
+    padding1: u32,
+    padding2: u32,
 }
 
 @group(0) @binding(0) var<uniform> map: VoteMap;
@@ -105,7 +110,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let bin = min(u32((clamp(a / delta, -1.0, 1.0) + 1.0) / 2.0 * 8.0), BINS - 1u);
     hist[c * BINS + bin] += map.weight;
-    let band = map.band_per_delta * delta;
+    let band = max(map.band_per_delta * delta, map.band_floor);
     if a >= -band {
         measured_distance[2u * c] += map.weight * min(a, band);
         measured_distance[2u * c + 1u] += map.weight;

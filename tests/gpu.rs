@@ -468,6 +468,8 @@ struct VoteCase {
     centers: Vec<glam::DVec3>,
     radii: Vec<f64>,
     origin: glam::DVec3,
+    /// The distance band's floor: above 2 delta for the smaller half of the radii.
+    band_floor: f64,
 }
 
 fn vote_case(spherical: bool, seed: u64) -> VoteCase {
@@ -553,6 +555,7 @@ fn vote_case(spherical: bool, seed: u64) -> VoteCase {
         centers,
         radii,
         origin,
+        band_floor: 0.2,
     }
 }
 
@@ -568,7 +571,14 @@ fn twin_votes(case: &VoteCase) -> (Vec<f32>, Vec<f32>) {
     let (levels, depths) = pyramid_arrays(&case.pyramid);
     let map = octstore::gpu::votes_dispatch::VoteMap {
         levels: levels.len() as u32,
-        ..vote_map(&case.pyramid.source, &case.world_to_camera, case.origin, 1.0, n as u32)
+        ..vote_map(
+            &case.pyramid.source,
+            &case.world_to_camera,
+            case.origin,
+            1.0,
+            n as u32,
+            case.band_floor,
+        )
     };
     let cubes = cube_offsets(case.origin, &case.centers, &case.radii);
     let mut hist = vec![0f32; 8 * n];
@@ -590,7 +600,10 @@ fn votes_twin_matches_the_cpu_reference() {
             .centers
             .iter()
             .zip(&case.radii)
-            .map(|(c, r)| case.pyramid.vote_with_distance(&case.world_to_camera, *c, *r))
+            .map(|(c, r)| {
+                case.pyramid
+                    .vote_with_distance(&case.world_to_camera, *c, *r, case.band_floor)
+            })
             .collect();
         let reference: Vec<Option<usize>> = with_distance.iter().map(|v| v.map(|(bin, _)| bin)).collect();
         let (twin_hist, twin_distance) = twin_votes(&case);
@@ -651,7 +664,14 @@ fn votes_shader_matches_the_twin() {
         let previous: Vec<f32> = (0..8 * n).map(|i| (i % 3) as f32 * 0.5).collect();
         let previous_distance: Vec<f32> = (0..2 * n).map(|i| (i % 5) as f32 * 0.25).collect();
         let unit = gpu
-            .upload_unit(case.origin, &case.centers, &case.radii, &previous, &previous_distance)
+            .upload_unit(
+                case.origin,
+                &case.centers,
+                &case.radii,
+                &previous,
+                &previous_distance,
+                case.band_floor,
+            )
             .expect("upload");
         let map = gpu.upload_pyramid(&case.pyramid).expect("upload");
         gpu.vote(&unit, &map, &case.pyramid.source, &case.world_to_camera, 1.0)
@@ -727,6 +747,10 @@ fn vote_map_matches_the_shader_layout() {
         ("n", offset_of!(VoteMap, n)),
         ("row_stride", offset_of!(VoteMap, row_stride)),
         ("band_per_delta", offset_of!(VoteMap, band_per_delta)),
+        ("band_floor", offset_of!(VoteMap, band_floor)),
+        ("padding0", offset_of!(VoteMap, padding)),
+        ("padding1", offset_of!(VoteMap, padding) + 4),
+        ("padding2", offset_of!(VoteMap, padding) + 8),
     ];
     let expected: Vec<(String, usize)> = expected.iter().map(|(n, o)| (n.to_string(), *o)).collect();
     assert_eq!(offsets, expected);

@@ -366,7 +366,7 @@ pub fn votes(
     if let Some(h) = hist.get_mut(c * BINS + bin) {
         *h += map.weight;
     }
-    let band = map.band_per_delta * delta;
+    let band = (map.band_per_delta * delta).max(map.band_floor);
     if a >= -band
         && let Some([sum, total]) = measured_distance.get_mut(2 * c..2 * c + 2)
     {

@@ -22,12 +22,22 @@ pub struct VoteMap {
     pub n: u32,
     pub row_stride: u32,
     pub band_per_delta: f32,
+    /// The least band, world units ([`crate::kernels::votes::band_floor`]).
+    pub band_floor: f32,
+    pub padding: [u32; 3],
 }
 
 pub const VOTES_SHADER: &str = include_str!("../../shaders/votes.wgsl");
 
 /// What a map's vote reads, besides its pyramid: composed in f64, rounded to f32 once.
-pub fn vote_map(source: &DepthMapSource, world_to_camera: &DMat4, origin: DVec3, weight: f32, n: u32) -> VoteMap {
+pub fn vote_map(
+    source: &DepthMapSource,
+    world_to_camera: &DMat4,
+    origin: DVec3,
+    weight: f32,
+    n: u32,
+    band_floor: f64,
+) -> VoteMap {
     let unit_to_camera = *world_to_camera * DMat4::from_translation(origin);
     let (intrinsics, spherical) = match source.projection {
         Projection::Pinhole { fx, fy, cx, cy } => (Vec4::new(fx as f32, fy as f32, cx as f32, cy as f32), 0),
@@ -44,6 +54,8 @@ pub fn vote_map(source: &DepthMapSource, world_to_camera: &DMat4, origin: DVec3,
         n,
         row_stride: 0,
         band_per_delta: crate::kernels::votes::DISTANCE_BAND_PER_DELTA as f32,
+        band_floor: band_floor as f32,
+        padding: [0; 3],
     }
 }
 
@@ -111,6 +123,7 @@ pub struct MapOnGpu {
 pub struct UnitOnGpu {
     origin: DVec3,
     n: u32,
+    band_floor: f64,
     cubes: wgpu::Buffer,
     hist: wgpu::Buffer,
     votes: wgpu::Buffer,
@@ -165,6 +178,7 @@ impl Gpu {
         radii: &[f64],
         hist: &[f32],
         distance: &[f32],
+        band_floor: f64,
     ) -> Result<UnitOnGpu, GpuError> {
         let n = u32::try_from(centers.len()).map_err(|_| GpuError::TooLarge {
             what: "cube index",
@@ -190,6 +204,7 @@ impl Gpu {
         Ok(UnitOnGpu {
             origin,
             n,
+            band_floor,
             cubes: buffer("cubes", padded(bytemuck::cast_slice(&cubes))),
             hist: buffer("hist", padded(bytemuck::cast_slice(hist))),
             votes: buffer("votes", padded(&vec![0u8; 4 * centers.len()])),
@@ -213,7 +228,7 @@ impl Gpu {
         let uniform = VoteMap {
             levels: map.count,
             row_stride,
-            ..vote_map(source, world_to_camera, unit.origin, weight, unit.n)
+            ..vote_map(source, world_to_camera, unit.origin, weight, unit.n, unit.band_floor)
         };
         let uniform = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("vote map"),

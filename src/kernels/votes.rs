@@ -44,20 +44,33 @@ pub fn measures(bin: usize) -> bool {
 /// measuring bins alone (|a| < 0.75 delta, about 1.3 finest cubes on RedKitchen) drop most of
 /// a surface's votes to depth noise and leave the mean noisy; at 2 delta (3.5 cubes, near a
 /// TSDF's usual truncation) the table top's mean normal deviation fell from 17 to 11 degrees.
-/// At 2 delta a map seeing the surface at a grazing angle (its depth difference is the
-/// surface distance over the cosine of that angle) still counted in front of the surface but
-/// was cut off a few millimetres behind it, so the mean bent at the surface and vertices on
-/// edges of different lengths and directions disagreed by a fraction of a cube: faint regular
-/// ridges. At 4 delta RedKitchen's table top (100 frames, 5.8 mm cubes) went from 7.9 to 6.1
-/// degrees; 8 delta gave 6.0.
-pub const DISTANCE_BAND_PER_DELTA: f64 = 4.0;
+pub const DISTANCE_BAND_PER_DELTA: f64 = 2.0;
+
+/// The least truncation band, in finest cube sides ([`band_floor`]). delta follows the sample
+/// radius, and where `--max-depth` caps the octree (RedKitchen at 10: 1.3 mm samples in
+/// 5.8 mm cubes) 2 delta is under 3 finest cubes. A map seeing the surface at a grazing angle
+/// (its depth difference is the surface distance over the cosine of that angle) then still
+/// counted in front of the surface but was cut off a few millimetres behind it, so the mean
+/// bent at the surface and vertices on edges of different lengths and directions disagreed
+/// by a fraction of a cube: faint regular ridges. With the floor at 6 sides RedKitchen's table
+/// top (100 frames) went from 7.9 to 6.0 degrees. Raising the band for every cube instead (4
+/// delta) gave 6.1 there but let votes from behind thin parts reach further on the synthetic
+/// objects, whose delta is already 3 cubes (bunny normal consistency 0.974 to 0.961).
+pub const DISTANCE_BAND_FLOOR_SIDES: f64 = 6.0;
+
+/// The least truncation band of a scene's distance sums, in world units:
+/// [`DISTANCE_BAND_FLOOR_SIDES`] finest cube sides.
+pub fn band_floor(scene: &Scene) -> f64 {
+    DISTANCE_BAND_FLOOR_SIDES * scene.cube_side(scene.max_depth)
+}
 
 /// What a vote with signed distance a (the depth the map measured minus the voxel's, world
 /// units, positive in front of the surface) adds to its cube's distance sum, a truncated
-/// signed distance as a TSDF integrates it: a clamped to the band T = [`DISTANCE_BAND_PER_DELTA`]
-/// x delta, nothing when the voxel lies more than T behind the surface.
-pub fn truncated_distance(a: f64, delta: f64) -> Option<f64> {
-    let band = DISTANCE_BAND_PER_DELTA * delta;
+/// signed distance as a TSDF integrates it: a clamped to the band T = max(
+/// [`DISTANCE_BAND_PER_DELTA`] x delta, `floor`), nothing when the voxel lies more than T
+/// behind the surface.
+pub fn truncated_distance(a: f64, delta: f64, floor: f64) -> Option<f64> {
+    let band = (DISTANCE_BAND_PER_DELTA * delta).max(floor);
     (a >= -band).then_some(a.min(band))
 }
 
@@ -143,16 +156,18 @@ impl Pyramid {
 
     /// Algorithm 1 for one voxel: the bin it votes into, if any.
     pub fn vote(&self, world_to_camera: &glam::DMat4, center: DVec3, radius: f64) -> Option<usize> {
-        self.vote_with_distance(world_to_camera, center, radius)
+        self.vote_with_distance(world_to_camera, center, radius, 0.0)
             .map(|(bin, _)| bin)
     }
 
-    /// [`Pyramid::vote`], with the vote's [`truncated_distance`], if any.
+    /// [`Pyramid::vote`], with the vote's [`truncated_distance`] (band at least `band_floor`),
+    /// if any.
     pub fn vote_with_distance(
         &self,
         world_to_camera: &glam::DMat4,
         center: DVec3,
         radius: f64,
+        band_floor: f64,
     ) -> Option<(usize, Option<f64>)> {
         let local = world_to_camera.transform_point3(center);
         let (u, v, distance) = self.source.project(local)?;
@@ -187,7 +202,10 @@ impl Pyramid {
         if a < -eta {
             return None;
         }
-        Some((bin_of((a / delta).clamp(-1.0, 1.0)), truncated_distance(a, delta)))
+        Some((
+            bin_of((a / delta).clamp(-1.0, 1.0)),
+            truncated_distance(a, delta, band_floor),
+        ))
     }
 
     /// Whether any cube whose centre lies in the ball, and whose voting radius is at most the
@@ -291,6 +309,8 @@ pub struct ChunkedCubes<'a> {
     pub radii: &'a [f64],
     /// The runs, ascending and disjoint.
     pub chunks: &'a [Chunk],
+    /// The least band of the distance sums ([`band_floor`]).
+    pub band_floor: f64,
 }
 
 /// Votes `pyramid` into `hist` (BINS per cube) and `distance` (two per cube: the weighted sum
@@ -330,7 +350,7 @@ pub fn vote_chunks(
         rest_distance = tail_distance;
         consumed = chunk.end;
     }
-    let (centers, radii) = (cubes.centers, cubes.radii);
+    let (centers, radii, band_floor) = (cubes.centers, cubes.radii, cubes.band_floor);
     work.into_par_iter()
         .map(|(chunk, rows, distances)| {
             let cubes = centers.iter().zip(radii).take(chunk.end).skip(chunk.start);
@@ -340,7 +360,7 @@ pub fn vote_chunks(
                 .zip(distances.chunks_exact_mut(2))
                 .zip(cubes)
             {
-                if let Some((bin, distance)) = pyramid.vote_with_distance(world_to_camera, *center, *radius)
+                if let Some((bin, distance)) = pyramid.vote_with_distance(world_to_camera, *center, *radius, band_floor)
                     && let Some(h) = row.get_mut(bin)
                 {
                     *h += weight;

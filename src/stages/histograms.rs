@@ -18,7 +18,9 @@ use super::treetop::Treetop;
 use super::{HISTOGRAMS, OCTREE};
 use crate::format::{Column, ColumnValues, CubeKey, Scene};
 use crate::inputs::DepthMapSource;
-use crate::kernels::votes::{BINS, Chunk, ChunkedCubes, Pyramid, chunks, cube_geometry, quantized_weight, vote_chunks};
+use crate::kernels::votes::{
+    BINS, Chunk, ChunkedCubes, Pyramid, band_floor, chunks, cube_geometry, quantized_weight, vote_chunks,
+};
 use crate::store::catalog::{self, META, UNIT_STATE, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
@@ -471,6 +473,8 @@ struct Voter {
     /// Two per cube: the weighted sum of its votes' truncated distances
     /// ([`crate::kernels::votes::truncated_distance`]) and the sum of their weights.
     distance: Vec<f32>,
+    /// The least band of the distance sums ([`crate::kernels::votes::band_floor`]).
+    band_floor: f64,
     already: Arc<BTreeSet<u64>>,
     voted: BTreeSet<u64>,
     votes: u64,
@@ -491,6 +495,7 @@ impl Voter {
             centers: &self.centers,
             radii: &self.radii,
             chunks: &self.chunks,
+            band_floor: self.band_floor,
         };
         self.votes += vote_chunks(
             &cubes,
@@ -588,7 +593,7 @@ impl HistogramsStage {
                                 v.centers.get(start..end).unwrap_or(&[]),
                                 v.radii.get(start..end).unwrap_or(&[]),
                             );
-                            gpu.upload_unit(v.center, centers, radii, hist, distance)
+                            gpu.upload_unit(v.center, centers, radii, hist, distance, v.band_floor)
                                 .map(|batch| (start, end, batch))
                         })
                         .collect::<std::result::Result<Vec<_>, _>>()
@@ -705,6 +710,7 @@ impl HistogramsStage {
             radii,
             hist,
             distance,
+            band_floor: band_floor(&self.scene),
             voted: (*already).clone(),
             already,
             votes: 0,
