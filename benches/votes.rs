@@ -90,7 +90,10 @@ fn main() {
             let started = Instant::now();
             let hist = vec![0f32; cubes * 8];
             let distance = vec![0f32; 2 * cubes];
-            let unit = gpu.upload_unit(origin, &centers, &radii, &hist, &distance)?;
+            // The band floor of a scene whose finest cubes match the largest voting radius.
+            let band_floor =
+                octstore::kernels::votes::DISTANCE_BAND_FLOOR_SIDES * 2.0 * radii.iter().copied().fold(0.0, f64::max);
+            let unit = gpu.upload_unit(origin, &centers, &radii, &hist, &distance, band_floor)?;
             let map = gpu.upload_pyramid(&pyramid)?;
             for _ in 0..passes {
                 gpu.vote(&unit, &map, &source, &world_to_camera, 1.0)?;
