@@ -66,13 +66,8 @@ impl SpawnCounts<'_> {
 /// as the gap to its neighbours and so spawns a coarse cube, and its subtree would count the
 /// space behind objects as sampled.
 pub fn sampled_nodes(keys: &[CubeKey], counts: &SpawnCounts<'_>) -> Vec<bool> {
-    // spawned_before[i]: how many of keys[..i] samples spawned.
-    let mut spawned_before = Vec::with_capacity(keys.len() + 1);
-    spawned_before.push(0usize);
-    for i in 0..keys.len() {
-        spawned_before.push(spawned_before.last().copied().unwrap_or(0) + usize::from(counts.spawned(i)));
-    }
-    // parents[i]: the index of node i's parent, when the unit holds it.
+    // parents[i]: the index of node i's parent, when the unit holds it (the octree is complete,
+    // so every node but the unit's root has its parent in the unit).
     let mut parents = Vec::with_capacity(keys.len());
     let mut stack: Vec<usize> = Vec::new();
     for (i, key) in keys.iter().enumerate() {
@@ -85,10 +80,17 @@ pub fn sampled_nodes(keys: &[CubeKey], counts: &SpawnCounts<'_>) -> Vec<bool> {
         parents.push(stack.last().copied().filter(|p| keys.get(*p).copied() == key.parent()));
         stack.push(i);
     }
+    // Children sort after their parent, so one pass from the end sees a node's whole subtree
+    // before the node: spawned_below[i] (samples spawned a descendant) and vouched_child[i]
+    // (samples other than spikes spawned a child).
+    let mut spawned_below = vec![false; keys.len()];
     let mut vouched_child = vec![false; keys.len()];
-    for (i, parent) in parents.iter().enumerate() {
-        if let Some(flag) = parent.and_then(|p| vouched_child.get_mut(p)) {
-            *flag |= counts.vouched(i);
+    for (i, parent) in parents.iter().enumerate().rev() {
+        let Some(p) = *parent else { continue };
+        let below = counts.spawned(i) || spawned_below.get(i).copied().unwrap_or(false);
+        if let (Some(flag), Some(child)) = (spawned_below.get_mut(p), vouched_child.get_mut(p)) {
+            *flag |= below;
+            *child |= counts.vouched(i);
         }
     }
     // vouched_from_above[i]: samples other than spikes spawned node i or an ancestor.
@@ -98,14 +100,7 @@ pub fn sampled_nodes(keys: &[CubeKey], counts: &SpawnCounts<'_>) -> Vec<bool> {
         let parent_vouched = parent.and_then(|p| vouched_from_above.get(p).copied()).unwrap_or(false);
         let sibling_vouched = parent.and_then(|p| vouched_child.get(p).copied()).unwrap_or(false);
         vouched_from_above.push(counts.vouched(i) || parent_vouched);
-        let rest = keys.get(i + 1..).unwrap_or_default();
-        let end = i
-            + 1
-            + keys
-                .get(i)
-                .map_or(0, |key| rest.partition_point(|k| key.is_ancestor_or_self_of(*k)));
-        let from_below =
-            spawned_before.get(end).copied().unwrap_or(0) > spawned_before.get(i + 1).copied().unwrap_or(0);
+        let from_below = spawned_below.get(i).copied().unwrap_or(false);
         sampled.push(counts.spawned(i) || parent_vouched || sibling_vouched || from_below);
     }
     sampled
