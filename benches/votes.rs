@@ -67,12 +67,45 @@ fn main() {
     }
     let seconds = started.elapsed().as_secs_f64();
     println!(
-        "votes: {cubes} cubes x {maps} maps in {seconds:.2}s on {} threads: {:.2} million cube-map tests/s ({:.0} % of the cubes vote)",
+        "votes, f64 reference (Pyramid::vote): {cubes} cubes x {maps} maps in {seconds:.2}s on {} threads: {:.2} million cube-map tests/s ({:.0} % of the cubes vote)",
         rayon::current_num_threads(),
         (cubes * maps) as f64 / seconds / 1e6,
         100.0 * voted as f64 / cubes as f64
     );
     let origin = centers.iter().copied().sum::<DVec3>() / cubes as f64;
+    // The histogram stage's loop: f32 offsets from the unit's origin, 4 cubes as lanes, runs
+    // of consecutive cubes in parallel. Its cubes are Morton-ordered, so neighbours in a run
+    // read nearby pixels: here the cubes are ordered by 8 x 8 pixel tiles to match.
+    let mut order: Vec<usize> = (0..cubes).collect();
+    let tile = |c: DVec3| {
+        let p = world_to_camera.transform_point3(c);
+        let (u, v) = (fx * p.x / p.z + cx, fy * p.y / p.z + cy);
+        ((v / 8.0).floor() as i64, (u / 8.0).floor() as i64)
+    };
+    order.sort_by_key(|&i| tile(centers[i]));
+    let (tiled_centers, tiled_radii): (Vec<DVec3>, Vec<f64>) = order.iter().map(|&i| (centers[i], radii[i])).unzip();
+    let runs = octstore::kernels::votes::chunks(&tiled_centers, &tiled_radii);
+    let offsets = octstore::kernels::votes::cube_offsets(origin, &tiled_centers, &tiled_radii);
+    let chunked = octstore::kernels::votes::ChunkedCubes {
+        offsets: &offsets,
+        chunks: &runs,
+    };
+    let view = octstore::kernels::votes::UnitView::new(&source, &world_to_camera, origin, 0.0);
+    let seen: Vec<usize> = (0..runs.len()).collect();
+    let (mut hist, mut distance) = (vec![0f32; 8 * cubes], vec![0f32; 2 * cubes]);
+    let started = Instant::now();
+    let mut cast = 0u64;
+    for _ in 0..maps {
+        cast = octstore::kernels::votes::vote_chunks(&chunked, &mut hist, &mut distance, &pyramid, &view, 1.0, &seen);
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    println!(
+        "votes, the stage's loop (vote_chunks, f32 lanes): {cubes} cubes x {maps} maps in {seconds:.2}s on {} threads: {:.2} million cube-map tests/s, {:.2} million votes/s ({:.0} % of the cubes vote)",
+        rayon::current_num_threads(),
+        (cubes * maps) as f64 / seconds / 1e6,
+        (cast as usize * maps) as f64 / seconds / 1e6,
+        100.0 * cast as f64 / cubes as f64
+    );
     let found = adapters();
     if found.is_empty() {
         println!("votes: no GPU adapter found (WGPU_BACKEND chooses backends)");
@@ -93,7 +126,13 @@ fn main() {
             // The band floor of a scene whose finest cubes match the largest voting radius.
             let band_floor =
                 octstore::kernels::votes::DISTANCE_BAND_FLOOR_SIDES * 2.0 * radii.iter().copied().fold(0.0, f64::max);
-            let unit = gpu.upload_unit(origin, &centers, &radii, &hist, &distance, band_floor)?;
+            let unit = gpu.upload_unit(
+                origin,
+                &octstore::kernels::votes::cube_offsets(origin, &centers, &radii),
+                &hist,
+                &distance,
+                band_floor,
+            )?;
             let map = gpu.upload_pyramid(&pyramid)?;
             for _ in 0..passes {
                 gpu.vote(&unit, &map, &source, &world_to_camera, 1.0)?;

@@ -7,7 +7,7 @@ mod common;
 
 use glam::Vec4;
 use octstore::gpu::{DeviceChoice, Gpu, twins};
-use octstore::kernels::tgv::{self, Kernel, Operator, Packed, Problem, State};
+use octstore::kernels::tgv::{self, Kernel, Operator, Packed, Problem, State, Stopping};
 
 /// A g x g x g grid of cubes with D's terms to the `+` neighbour, frozen neighbours on part of
 /// the boundary, rows of four finer terms here and there (level jumps), random weights,
@@ -226,7 +226,7 @@ fn a_unit_over_one_binding_runs_in_chunks_with_the_same_result() {
     octstore::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut chunked, 30).expect("the chunks fit");
     assert_eq!(whole, chunked, "the same shaders on the same values");
     let mut solved = state.clone();
-    octstore::gpu::solve_on(Some(&gpu), &problem, &mut solved, 30);
+    octstore::gpu::solve_on(Some(&gpu), &problem, &mut solved, Stopping::after(30));
     assert_eq!(gpu.counts(), (1, 0), "the unit ran on the GPU");
 }
 
@@ -238,9 +238,10 @@ fn a_unit_over_the_gpu_limits_runs_on_the_cpu_with_the_same_result() {
     // Bindings of 32 bytes: not even one cube's dual constants (48 bytes) fit.
     let Some(gpu) = open_gpu() else { return };
     let gpu = gpu.with_binding_limit(32);
-    let mut fallback = state.clone();
-    let fallback_energy = octstore::gpu::solve_on(Some(&gpu), &problem, &mut fallback, 30);
-    assert_eq!(cpu, fallback);
+    let mut fallback_state = state.clone();
+    let fallback = octstore::gpu::solve_on(Some(&gpu), &problem, &mut fallback_state, Stopping::after(30));
+    let fallback_energy = (fallback.energy_before, fallback.energy_after);
+    assert_eq!(cpu, fallback_state);
     assert_eq!(cpu_energy, fallback_energy);
     assert_eq!(gpu.counts(), (0, 1), "the unit fell back");
     let too_large = octstore::gpu::tgv_dispatch::iterate(
@@ -262,7 +263,8 @@ fn solve_on_the_gpu_lowers_the_energy_like_the_cpu() {
     let mut cpu = state.clone();
     let (cpu_before, cpu_after) = tgv::solve(&problem, &mut cpu, 60);
     let mut on_gpu = state.clone();
-    let (gpu_before, gpu_after) = octstore::gpu::solve_on(Some(&gpu), &problem, &mut on_gpu, 60);
+    let solved = octstore::gpu::solve_on(Some(&gpu), &problem, &mut on_gpu, Stopping::after(60));
+    let (gpu_before, gpu_after) = (solved.energy_before, solved.energy_after);
     assert_eq!(cpu_before, gpu_before);
     assert!(gpu_after < gpu_before);
     assert!(
@@ -666,8 +668,7 @@ fn votes_shader_matches_the_twin() {
         let unit = gpu
             .upload_unit(
                 case.origin,
-                &case.centers,
-                &case.radii,
+                &octstore::gpu::votes_dispatch::cube_offsets(case.origin, &case.centers, &case.radii),
                 &previous,
                 &previous_distance,
                 case.band_floor,

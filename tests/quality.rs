@@ -117,3 +117,74 @@ fn bunny_with_a_fifth_of_its_pixels_wild_keeps_its_shape() {
     let report = reconstruct_bunny(1.6, &rig, &noise);
     assert!(report.f_score >= 0.9, "{report:?}");
 }
+
+/// The stopping rule (`--tolerance`) against every one of the 200 iterations, on the noisy
+/// bunny of the quality bar: at a tolerance ten times the default the finest level stops
+/// before 200 iterations, and the mesh stays where all 200 put it (F-score >= 0.995 at tau =
+/// 0.5 % of the diagonal, issue 23's bar). (At the default, 1e-4, this bunny's finest level
+/// runs all 200: its one large unit does not settle that far; RedKitchen's small warm-started
+/// units stop after 50 on average.)
+#[test]
+fn stopping_early_leaves_the_bunny_where_every_iteration_puts_it() {
+    let bunny = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/meshes/bunny00.off");
+    let truth = GroundTruth::new(read_mesh(&bunny).unwrap(), Some(1.05)).unwrap();
+    let rig = Rig {
+        views: 24,
+        layout: Layout::Sphere,
+        distance: 0.9,
+        width: 160,
+        height: 120,
+        fov_degrees: 70.0,
+    };
+    let noise = NoiseModel {
+        depth_sigma: 0.005,
+        outliers: 0.1,
+        missing_regions: 0,
+        missing_radius: 0.0,
+        seed: 1,
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = truth.write_dataset(&rig, &noise, &dir.path().join("views")).unwrap();
+    let store = dir.path().join("store");
+    let s = store.to_str().unwrap();
+    let (every, early) = (dir.path().join("every.ply"), dir.path().join("early.ply"));
+    let run = |args: &[&str]| {
+        let out = octstore(&[args, &["--quiet"]].concat(), &[]);
+        assert!(out.status.success(), "{args:?}: {}", stderr(&out));
+        stdout(&out)
+    };
+    run(&["ingest", s, manifest.to_str().unwrap(), "--max-depth", "9"]);
+    let all = run(&["solve", s, "--iterations", "200", "--tolerance", "0"]);
+    assert!(
+        all.contains("level 9: ") && all.contains("(200 iterations per cube"),
+        "{all}"
+    );
+    run(&["extract", s, "-o", every.to_str().unwrap()]);
+    let stopped = run(&["solve", s, "--iterations", "200", "--tolerance", "1e-3"]);
+    let finest = stopped
+        .lines()
+        .find_map(|line| line.split("level 9: ").nth(1))
+        .and_then(|rest| rest.split('(').nth(1))
+        .and_then(|rest| rest.split(' ').next())
+        .and_then(|n| n.parse::<u32>().ok())
+        .unwrap_or_else(|| panic!("no iteration count for level 9 in {stopped}"));
+    eprintln!("level 9: {finest} iterations per cube");
+    assert!(finest < 200, "the finest level ran {finest} iterations per cube");
+    run(&["extract", s, "-o", early.to_str().unwrap()]);
+    let (every, early) = (read_mesh(&every).unwrap(), read_mesh(&early).unwrap());
+    let (lo, hi) = bounds(&every).unwrap();
+    let report = evaluate(
+        &early,
+        &every,
+        &EvaluateOptions {
+            tau: 0.005 * (hi - lo).length(),
+            spacing: None,
+            crop_margin: None,
+            seen_faces: None,
+            seed: 1,
+        },
+    )
+    .unwrap();
+    eprintln!("{report:?}");
+    assert!(report.f_score >= 0.995, "{report:?}");
+}

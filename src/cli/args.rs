@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
-use super::parse::{parse_point, parse_ratio, parse_region, parse_root, parse_size};
+use super::parse::{parse_point, parse_ratio, parse_region, parse_root, parse_size, parse_tolerance};
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
 use crate::stages::octree;
@@ -54,9 +54,13 @@ pub struct SolverArgs {
     /// Weight of the histogram data term.
     #[arg(long, default_value_t = SolveParams::default().lambda)]
     lambda: f32,
-    /// Primal-dual iterations per level.
+    /// The most primal-dual iterations a unit runs at each level.
     #[arg(long, default_value_t = SolveParams::default().iterations)]
     iterations: u32,
+    /// A unit stops iterating at the first check (every 25 iterations) where its energy moved
+    /// by at most this fraction; 0 runs all --iterations.
+    #[arg(long, default_value_t = SolveParams::default().tolerance, value_parser = parse_tolerance)]
+    tolerance: f32,
 }
 
 impl SolverArgs {
@@ -66,6 +70,7 @@ impl SolverArgs {
             alpha0: self.alpha0,
             lambda: self.lambda,
             iterations: self.iterations,
+            tolerance: self.tolerance,
         }
     }
 }

@@ -50,6 +50,16 @@ pub(crate) fn parse_ratio(text: &str) -> Result<f32, ArgumentError> {
     }
 }
 
+/// A finite fraction in [0, 1).
+pub(crate) fn parse_tolerance(text: &str) -> Result<f32, ArgumentError> {
+    match text.trim().parse::<f32>() {
+        Ok(t) if (0.0..1.0).contains(&t) => Ok(t),
+        _ => Err(ArgumentError(format!(
+            "'{text}' is not a tolerance in [0, 1) (0 runs every iteration)"
+        ))),
+    }
+}
+
 /// `minx,miny,minz,side` with side > 0.
 pub(crate) fn parse_root(text: &str) -> Result<([f64; 3], f64), ArgumentError> {
     let v = numbers(text)?;

@@ -16,7 +16,7 @@ use glam::Vec4;
 use wgpu::util::DeviceExt;
 
 use super::{Gpu, GpuError, grid};
-use crate::kernels::tgv::{Gather, Kernel, Packed, Problem, State};
+use crate::kernels::tgv::{Gather, Kernel, Packed, Problem, Solved, State, Stopping};
 
 /// The uniform both shaders read (`Params` in the WGSL).
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
@@ -557,20 +557,26 @@ fn read_back(gpu: &Gpu, buffers: &[&wgpu::Buffer], bytes: u64) -> Result<Vec<Vec
         .collect())
 }
 
-/// [`crate::kernels::tgv::solve`] with the iterations on `gpu` when given. A GPU failure (out of memory, device lost, a
-/// buffer over the adapter's limits) is logged and the same iterations run on the CPU, from the
-/// same starting state; energies before and after.
-pub fn solve_on(gpu: Option<&Gpu>, problem: &Problem, state: &mut State, iterations: usize) -> (f64, f64) {
-    crate::kernels::tgv::solve_accelerated(problem, state, iterations, |kernel, packed| {
+/// [`crate::kernels::tgv::solve_accelerated`] with the iterations on `gpu` when given. A GPU
+/// failure (out of memory, device lost, a buffer over the adapter's limits) is logged and the
+/// failed batch and the rest run on the CPU, from the state the last good batch left.
+pub fn solve_on(gpu: Option<&Gpu>, problem: &Problem, state: &mut State, stopping: Stopping) -> Solved {
+    let mut failed = false;
+    let mut used = false;
+    let solved = crate::kernels::tgv::solve_accelerated(problem, state, stopping, |kernel, packed, iterations| {
         let Some(gpu) = gpu else { return false };
-        let result = iterate(gpu, kernel, packed, iterations);
-        gpu.count(result.is_ok());
-        match result {
+        used = true;
+        match iterate(gpu, kernel, packed, iterations) {
             Ok(()) => true,
             Err(error) => {
                 tracing::warn!("{error}; this unit's {} cubes run on the CPU", kernel.n);
+                failed = true;
                 false
             }
         }
-    })
+    });
+    if let (Some(gpu), true) = (gpu, used) {
+        gpu.count(!failed);
+    }
+    solved
 }

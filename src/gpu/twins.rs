@@ -286,11 +286,8 @@ pub fn iterate_chunks(chunks: &[Chunk], state: &mut Packed, iterations: usize) {
 
 /// Twin of `shaders/votes.wgsl`, invocation `c`: the bin cube `c` votes into for the map
 /// `map`, added to its row (and its truncated distance to its distance sums), in f32 like the
-/// shader.
-#[expect(
-    clippy::neg_cmp_op_on_partial_ord,
-    reason = "the shader's !(x > 0) tests, which also reject NaN"
-)]
+/// shader. The arithmetic is the CPU voting loop's own
+/// ([`crate::kernels::votes::vote_relative`]); this adds the shader's bindings.
 #[expect(clippy::too_many_arguments, reason = "the shader's bindings, one by one")]
 pub fn votes(
     c: usize,
@@ -302,75 +299,33 @@ pub fn votes(
     votes: &mut [u32],
     measured_distance: &mut [f32],
 ) {
-    use std::f32::consts::{PI, TAU};
-    const BINS: usize = crate::kernels::votes::BINS;
+    use crate::kernels::votes::{BINS, FlatPyramid, UnitView, vote_relative};
     if c >= map.n as usize {
         return;
     }
-    let cube = at(cubes, c);
-    let radius = cube.w;
-    let local = (map.unit_to_camera * Vec4::new(cube.x, cube.y, cube.z, 1.0)).truncate();
-    let (u, v, distance, pixels_per_unit);
-    if map.spherical == 1 {
-        distance = local.length();
-        if !(distance > 0.0) {
-            return;
-        }
-        let mut azimuth = local.y.atan2(local.x);
-        if azimuth < 0.0 {
-            azimuth += TAU;
-        }
-        let elevation = (local.z / distance).clamp(-1.0, 1.0).asin();
-        u = azimuth / TAU * map.width as f32;
-        v = (PI * 0.5 - elevation) / PI * map.height as f32 - 0.5;
-        pixels_per_unit = map.width as f32 / TAU / distance;
-    } else {
-        if !(local.z > 0.0) {
-            return;
-        }
-        let k = map.intrinsics;
-        distance = local.z;
-        u = k.x * local.x / local.z + k.z;
-        v = k.y * local.y / local.z + k.w;
-        pixels_per_unit = k.x.max(k.y) / distance;
-    }
-    let footprint = 2.0 * radius * pixels_per_unit;
-    let mut level = 0u32;
-    if footprint > 1.0 {
-        level = 31 - (footprint.min(2_147_483_648.0) as u32).leading_zeros();
-    }
-    let level = level.min(map.levels.saturating_sub(1));
-    let shape = at(levels, level as usize);
-    let scale = (1u32 << level) as f32;
-    let mut i = ((u - (scale - 1.0) * 0.5) / scale + 0.5).floor();
-    let j = ((v - (scale - 1.0) * 0.5) / scale + 0.5).floor();
-    let width = shape[1] as f32;
-    if map.spherical == 1 {
-        i -= (i / width).floor() * width;
-    }
-    if i < 0.0 || j < 0.0 || i >= width || j >= shape[2] as f32 {
+    let view = UnitView {
+        unit_to_camera: map.unit_to_camera,
+        intrinsics: map.intrinsics,
+        spherical: map.spherical == 1,
+        width: map.width,
+        height: map.height,
+        band_per_delta: map.band_per_delta,
+        band_floor: map.band_floor,
+    };
+    let pyramid = FlatPyramid {
+        levels: levels.get(..map.levels as usize).unwrap_or(levels),
+        depths,
+    };
+    let Some((bin, distance)) = vote_relative(&view, at(cubes, c), &pyramid) else {
         return;
-    }
-    let depth = at(depths, (shape[0] + j as u32 * shape[1] + i as u32) as usize);
-    if !(depth > 0.0) {
-        return;
-    }
-    let delta = 6.0 * radius;
-    let eta = 3.0 * delta;
-    let a = depth - distance;
-    if a < -eta {
-        return;
-    }
-    let bin = (((a / delta).clamp(-1.0, 1.0) + 1.0) / 2.0 * 8.0) as usize;
-    let bin = bin.min(BINS - 1);
+    };
     if let Some(h) = hist.get_mut(c * BINS + bin) {
         *h += map.weight;
     }
-    let band = (map.band_per_delta * delta).max(map.band_floor);
-    if a >= -band
+    if let Some(d) = distance
         && let Some([sum, total]) = measured_distance.get_mut(2 * c..2 * c + 2)
     {
-        *sum += map.weight * a.min(band);
+        *sum += map.weight * d;
         *total += map.weight;
     }
     if let Some(count) = votes.get_mut(c) {

@@ -5,8 +5,8 @@ use glam::{DMat4, DVec3, Mat4, Vec4};
 use wgpu::util::DeviceExt;
 
 use super::{Gpu, GpuError, grid};
-use crate::inputs::{DepthMapSource, Projection};
-use crate::kernels::votes::{BINS, Pyramid};
+use crate::inputs::DepthMapSource;
+use crate::kernels::votes::{BINS, Pyramid, UnitView};
 
 /// The uniform `votes.wgsl` reads (`VoteMap` in the WGSL).
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
@@ -29,7 +29,7 @@ pub struct VoteMap {
 
 pub const VOTES_SHADER: &str = include_str!("../../shaders/votes.wgsl");
 
-/// What a map's vote reads, besides its pyramid: composed in f64, rounded to f32 once.
+/// What a map's vote reads, besides its pyramid: [`UnitView`] in the shader's layout.
 pub fn vote_map(
     source: &DepthMapSource,
     world_to_camera: &DMat4,
@@ -38,56 +38,24 @@ pub fn vote_map(
     n: u32,
     band_floor: f64,
 ) -> VoteMap {
-    let unit_to_camera = *world_to_camera * DMat4::from_translation(origin);
-    let (intrinsics, spherical) = match source.projection {
-        Projection::Pinhole { fx, fy, cx, cy } => (Vec4::new(fx as f32, fy as f32, cx as f32, cy as f32), 0),
-        Projection::Spherical => (Vec4::ZERO, 1),
-    };
+    let view = UnitView::new(source, world_to_camera, origin, band_floor);
     VoteMap {
-        unit_to_camera: unit_to_camera.as_mat4(),
-        intrinsics,
-        width: source.width,
-        height: source.height,
+        unit_to_camera: view.unit_to_camera,
+        intrinsics: view.intrinsics,
+        width: view.width,
+        height: view.height,
         levels: 0,
-        spherical,
+        spherical: u32::from(view.spherical),
         weight,
         n,
         row_stride: 0,
-        band_per_delta: crate::kernels::votes::DISTANCE_BAND_PER_DELTA as f32,
-        band_floor: band_floor as f32,
+        band_per_delta: view.band_per_delta,
+        band_floor: view.band_floor,
         padding: [0; 3],
     }
 }
 
-/// The pyramid as the shader reads it: a (first index, width, height) row per level and all
-/// depths in one array, invalid pixels as -1 (the shader tests `depth > 0`, which a GPU
-/// compiler may not fold away the way it may fold a NaN test).
-pub fn pyramid_arrays(pyramid: &Pyramid) -> (Vec<[u32; 4]>, Vec<f32>) {
-    let mut levels = Vec::with_capacity(pyramid.levels.len());
-    let mut depths = Vec::new();
-    for level in &pyramid.levels {
-        levels.push([depths.len() as u32, level.width, level.height, 0]);
-        depths.extend(
-            level
-                .depth
-                .iter()
-                .map(|d| if d.is_finite() && *d > 0.0 { *d } else { -1.0 }),
-        );
-    }
-    (levels, depths)
-}
-
-/// Cube offsets from `origin` and radii, packed as the shader's `cubes`.
-pub fn cube_offsets(origin: DVec3, centers: &[DVec3], radii: &[f64]) -> Vec<Vec4> {
-    centers
-        .iter()
-        .zip(radii)
-        .map(|(c, r)| {
-            let d = *c - origin;
-            Vec4::new(d.x as f32, d.y as f32, d.z as f32, *r as f32)
-        })
-        .collect()
-}
+pub use crate::kernels::votes::{cube_offsets, pyramid_arrays};
 
 pub struct Pipeline {
     pipeline: wgpu::ComputePipeline,
@@ -168,25 +136,23 @@ impl Gpu {
         (self.binding_limit() / (BINS * std::mem::size_of::<f32>()) as u64).max(1) as usize
     }
 
-    /// Uploads a unit (or a batch of one): its cubes as offsets from `origin`, and its
-    /// histogram rows and distance sums so far. Batches of one unit share its `origin`, so they compute what the
+    /// Uploads a unit (or a batch of one): its cubes as offsets from `origin` with their
+    /// voting radii ([`cube_offsets`]), and its histogram rows and distance sums so far. Batches of one unit share its `origin`, so they compute what the
     /// whole unit would.
     pub fn upload_unit(
         &self,
         origin: DVec3,
-        centers: &[DVec3],
-        radii: &[f64],
+        cubes: &[Vec4],
         hist: &[f32],
         distance: &[f32],
         band_floor: f64,
     ) -> Result<UnitOnGpu, GpuError> {
-        let n = u32::try_from(centers.len()).map_err(|_| GpuError::TooLarge {
+        let n = u32::try_from(cubes.len()).map_err(|_| GpuError::TooLarge {
             what: "cube index",
-            needed: centers.len() as u64,
+            needed: cubes.len() as u64,
             limit: u64::from(u32::MAX),
         })?;
-        let cubes = cube_offsets(origin, centers, radii);
-        self.check_binding("cubes", std::mem::size_of_val(cubes.as_slice()) as u64)?;
+        self.check_binding("cubes", std::mem::size_of_val(cubes) as u64)?;
         self.check_binding("histograms", std::mem::size_of_val(hist) as u64)?;
         let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
         let padded = |bytes: &[u8]| -> Vec<u8> {
@@ -205,9 +171,9 @@ impl Gpu {
             origin,
             n,
             band_floor,
-            cubes: buffer("cubes", padded(bytemuck::cast_slice(&cubes))),
+            cubes: buffer("cubes", padded(bytemuck::cast_slice(cubes))),
             hist: buffer("hist", padded(bytemuck::cast_slice(hist))),
-            votes: buffer("votes", padded(&vec![0u8; 4 * centers.len()])),
+            votes: buffer("votes", padded(&vec![0u8; 4 * cubes.len()])),
             measured_distance: buffer("distance", padded(bytemuck::cast_slice(distance))),
         })
     }

@@ -2,7 +2,7 @@
 //! pyramid, the projection of a cube into a depth map, and the chunked voting loop. Pure
 //! functions of cubes and depth maps: no store, no catalog, so the GPU twins test against them.
 
-use glam::DVec3;
+use glam::{DVec3, Mat4, Vec4};
 
 use crate::format::{CubeKey, Scene};
 use crate::inputs::{DepthImage, DepthMapSource, Projection};
@@ -97,6 +97,13 @@ pub struct Pyramid {
 
 /// The median of the finite values among four, NaN when none is finite.
 pub fn median_of_valid(values: [f32; 4]) -> f32 {
+    if values.iter().all(|v| v.is_finite()) {
+        // The common case, without a sort: the middle two of four are the larger of the two
+        // pairs' minima and the smaller of their maxima (the same two values a sort finds).
+        let [a, b, c, d] = values;
+        let (low, high) = (a.min(b).max(c.min(d)), a.max(b).min(c.max(d)));
+        return ((f64::from(low) + f64::from(high)) * 0.5) as f32;
+    }
     let mut valid = [0f32; 4];
     let mut n = 0;
     for v in values {
@@ -246,6 +253,261 @@ impl Pyramid {
     }
 }
 
+/// A depth-map pyramid as the f32 vote reads it: the CPU's [`Pyramid`], or the flat arrays
+/// `shaders/votes.wgsl` binds ([`FlatPyramid`]).
+pub trait DepthLevels {
+    /// The number of levels.
+    fn count(&self) -> u32;
+    /// Width and height of `level` (< `count`).
+    fn shape(&self, level: u32) -> (u32, u32);
+    /// The depth at column `i`, row `j` of `level` (both inside its shape); invalid pixels
+    /// read as NaN or a value <= 0.
+    fn depth(&self, level: u32, i: u32, j: u32) -> f32;
+}
+
+impl DepthLevels for Pyramid {
+    fn count(&self) -> u32 {
+        self.levels.len() as u32
+    }
+
+    fn shape(&self, level: u32) -> (u32, u32) {
+        self.levels.get(level as usize).map_or((0, 0), |l| (l.width, l.height))
+    }
+
+    #[inline]
+    fn depth(&self, level: u32, i: u32, j: u32) -> f32 {
+        self.levels.get(level as usize).map_or(f32::NAN, |l| l.get(i, j))
+    }
+}
+
+/// A pyramid as the shader binds it: a (first index, width, height, 0) row per level and all
+/// depths in one array, invalid pixels as -1 (the shader tests `depth > 0`, which a GPU
+/// compiler may not fold away the way it may fold a NaN test).
+pub fn pyramid_arrays(pyramid: &Pyramid) -> (Vec<[u32; 4]>, Vec<f32>) {
+    let mut levels = Vec::with_capacity(pyramid.levels.len());
+    let mut depths = Vec::new();
+    for level in &pyramid.levels {
+        levels.push([depths.len() as u32, level.width, level.height, 0]);
+        depths.extend(
+            level
+                .depth
+                .iter()
+                .map(|d| if d.is_finite() && *d > 0.0 { *d } else { -1.0 }),
+        );
+    }
+    (levels, depths)
+}
+
+/// [`pyramid_arrays`]' arrays, read as a pyramid.
+pub struct FlatPyramid<'a> {
+    pub levels: &'a [[u32; 4]],
+    pub depths: &'a [f32],
+}
+
+impl DepthLevels for FlatPyramid<'_> {
+    fn count(&self) -> u32 {
+        self.levels.len() as u32
+    }
+
+    fn shape(&self, level: u32) -> (u32, u32) {
+        self.levels.get(level as usize).map_or((0, 0), |l| (l[1], l[2]))
+    }
+
+    fn depth(&self, level: u32, i: u32, j: u32) -> f32 {
+        let first = self.levels.get(level as usize).map_or(0, |l| l[0] as usize);
+        let width = self.levels.get(level as usize).map_or(0, |l| l[1] as usize);
+        self.depths
+            .get(first + j as usize * width + i as usize)
+            .copied()
+            .unwrap_or(-1.0)
+    }
+}
+
+/// One depth map as seen from a unit, for the f32 vote: the world-to-camera transform composed
+/// with the unit's origin in f64 and rounded to f32 once, so cube offsets from the origin stay
+/// small and exact enough (a few metres from the origin, f32 keeps well under a micrometre).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct UnitView {
+    pub unit_to_camera: Mat4,
+    /// fx, fy, cx, cy of a pinhole map (zero for a spherical one).
+    pub intrinsics: Vec4,
+    pub spherical: bool,
+    pub width: u32,
+    pub height: u32,
+    /// [`DISTANCE_BAND_PER_DELTA`].
+    pub band_per_delta: f32,
+    /// The least band, world units ([`band_floor`]).
+    pub band_floor: f32,
+}
+
+impl UnitView {
+    pub fn new(source: &DepthMapSource, world_to_camera: &glam::DMat4, origin: DVec3, band_floor: f64) -> UnitView {
+        let unit_to_camera = *world_to_camera * glam::DMat4::from_translation(origin);
+        let (intrinsics, spherical) = match source.projection {
+            Projection::Pinhole { fx, fy, cx, cy } => (Vec4::new(fx as f32, fy as f32, cx as f32, cy as f32), false),
+            Projection::Spherical => (Vec4::ZERO, true),
+        };
+        UnitView {
+            unit_to_camera: unit_to_camera.as_mat4(),
+            intrinsics,
+            spherical,
+            width: source.width,
+            height: source.height,
+            band_per_delta: DISTANCE_BAND_PER_DELTA as f32,
+            band_floor: band_floor as f32,
+        }
+    }
+}
+
+/// A cube's offset from its unit's origin (xyz) and its voting radius (w), in f32.
+pub fn cube_offsets(origin: DVec3, centers: &[DVec3], radii: &[f64]) -> Vec<Vec4> {
+    centers
+        .iter()
+        .zip(radii)
+        .map(|(c, r)| {
+            let d = *c - origin;
+            Vec4::new(d.x as f32, d.y as f32, d.z as f32, *r as f32)
+        })
+        .collect()
+}
+
+/// Algorithm 1 for one voxel in f32 on unit-relative coordinates: the bin it votes into and
+/// the vote's truncated distance, if any. This is the voting loop's arithmetic and
+/// `shaders/votes.wgsl`'s, step for step (its twin, `gpu::twins::votes`, calls it), so CPU and
+/// GPU votes differ only by the GPU's rounding. Against the f64 [`Pyramid::vote_with_distance`]
+/// it differs only where a value sits on a bin, level or pixel boundary (tests/gpu.rs bounds
+/// how often).
+#[inline]
+#[expect(
+    clippy::neg_cmp_op_on_partial_ord,
+    reason = "the shader's !(x > 0) tests, which also reject NaN"
+)]
+pub fn vote_relative(view: &UnitView, cube: Vec4, levels: &impl DepthLevels) -> Option<(usize, Option<f32>)> {
+    use std::f32::consts::{PI, TAU};
+    let radius = cube.w;
+    let local = (view.unit_to_camera * Vec4::new(cube.x, cube.y, cube.z, 1.0)).truncate();
+    let (u, v, distance, pixels_per_unit);
+    if view.spherical {
+        distance = local.length();
+        if !(distance > 0.0) {
+            return None;
+        }
+        let mut azimuth = local.y.atan2(local.x);
+        if azimuth < 0.0 {
+            azimuth += TAU;
+        }
+        let elevation = (local.z / distance).clamp(-1.0, 1.0).asin();
+        u = azimuth / TAU * view.width as f32;
+        v = (PI * 0.5 - elevation) / PI * view.height as f32 - 0.5;
+        pixels_per_unit = view.width as f32 / TAU / distance;
+    } else {
+        if !(local.z > 0.0) {
+            return None;
+        }
+        let k = view.intrinsics;
+        distance = local.z;
+        u = k.x * local.x / local.z + k.z;
+        v = k.y * local.y / local.z + k.w;
+        pixels_per_unit = k.x.max(k.y) / distance;
+    }
+    let footprint = 2.0 * radius * pixels_per_unit;
+    let mut level = 0u32;
+    if footprint > 1.0 {
+        level = 31 - (footprint.min(2_147_483_648.0) as u32).leading_zeros();
+    }
+    let level = level.min(levels.count().saturating_sub(1));
+    let (width, height) = levels.shape(level);
+    let scale = (1u32 << level) as f32;
+    // floor(x + 0.5) of the pixel coordinates; a floor is non-negative and under the size
+    // exactly when its argument is, so the bounds are tested before truncating (which is the
+    // floor there), without a libm call.
+    let mut x = (u - (scale - 1.0) * 0.5) / scale + 0.5;
+    let y = (v - (scale - 1.0) * 0.5) / scale + 0.5;
+    let width_f = width as f32;
+    if view.spherical {
+        let i = x.floor();
+        x = i - (i / width_f).floor() * width_f;
+    }
+    if !(x >= 0.0 && y >= 0.0 && x < width_f && y < height as f32) {
+        return None;
+    }
+    let depth = levels.depth(level, x as u32, y as u32);
+    if !(depth > 0.0) {
+        return None;
+    }
+    let delta = 6.0 * radius;
+    let eta = 3.0 * delta;
+    let a = depth - distance;
+    if a < -eta {
+        return None;
+    }
+    let bin = ((((a / delta).clamp(-1.0, 1.0) + 1.0) / 2.0 * 8.0) as usize).min(BINS - 1);
+    let band = (view.band_per_delta * delta).max(view.band_floor);
+    Some((bin, (a >= -band).then_some(a.min(band))))
+}
+
+/// [`vote_relative`] for four cubes of a pinhole map at once, cubes as lanes: the projection,
+/// the footprint, the pixel coordinates and the bin are 4-wide operations, only the level's
+/// shape and the depth are read per cube. Every lane sees the same float operations in the
+/// same order as [`vote_relative`] (glam's `Mat4 * Vec4` is x, + y, + z, + w), so the votes are
+/// the same to the bit (tested); without branches on the projection, 4 cubes cost about what
+/// one did.
+#[inline]
+pub fn vote_relative_pinhole_x4(
+    view: &UnitView,
+    cubes: [Vec4; 4],
+    levels: &Pyramid,
+) -> [Option<(usize, Option<f32>)>; 4] {
+    let m = view.unit_to_camera;
+    let t = Mat4::from_cols(cubes[0], cubes[1], cubes[2], cubes[3]).transpose();
+    let (xs, ys, zs, radius) = (t.x_axis, t.y_axis, t.z_axis, t.w_axis);
+    let row = |axis: usize| {
+        let pick = |column: Vec4| Vec4::splat(column[axis]);
+        pick(m.x_axis) * xs + pick(m.y_axis) * ys + pick(m.z_axis) * zs + pick(m.w_axis) * Vec4::ONE
+    };
+    let (lx, ly, lz) = (row(0), row(1), row(2));
+    let k = view.intrinsics;
+    let u = Vec4::splat(k.x) * lx / lz + Vec4::splat(k.z);
+    let v = Vec4::splat(k.y) * ly / lz + Vec4::splat(k.w);
+    let pixels_per_unit = Vec4::splat(k.x.max(k.y)) / lz;
+    let footprint = Vec4::splat(2.0) * radius * pixels_per_unit;
+    let top = levels.levels.len().saturating_sub(1) as u32;
+    let level: [u32; 4] = std::array::from_fn(|lane| {
+        let f = footprint[lane];
+        let level = if f > 1.0 {
+            31 - (f.min(2_147_483_648.0) as u32).leading_zeros()
+        } else {
+            0
+        };
+        level.min(top)
+    });
+    let scale = Vec4::from_array(level.map(|l| (1u32 << l) as f32));
+    let half = Vec4::splat(0.5);
+    let x = (u - (scale - Vec4::ONE) * half) / scale + half;
+    let y = (v - (scale - Vec4::ONE) * half) / scale + half;
+    let depth = Vec4::from_array(std::array::from_fn(|lane| {
+        let (x, y) = (x[lane], y[lane]);
+        match levels.levels.get(level[lane] as usize) {
+            Some(image)
+                if lz[lane] > 0.0 && x >= 0.0 && y >= 0.0 && x < image.width as f32 && y < image.height as f32 =>
+            {
+                image.get(x as u32, y as u32)
+            }
+            _ => f32::NAN,
+        }
+    }));
+    let delta = Vec4::splat(6.0) * radius;
+    let eta = Vec4::splat(3.0) * delta;
+    let a = depth - lz;
+    let bin = ((a / delta).clamp(Vec4::NEG_ONE, Vec4::ONE) + Vec4::ONE) / Vec4::splat(2.0) * Vec4::splat(8.0);
+    let band = (Vec4::splat(view.band_per_delta) * delta).max(Vec4::splat(view.band_floor));
+    std::array::from_fn(|lane| {
+        let (depth, a, eta, band) = (depth[lane], a[lane], eta[lane], band[lane]);
+        // depth > 0 also rejects the NaN of a lane that read no pixel.
+        (depth > 0.0 && a >= -eta).then(|| ((bin[lane] as usize).min(BINS - 1), (a >= -band).then_some(a.min(band))))
+    })
+}
+
 /// Centre and radius of every cube of a unit: r_c (eq. 5) where samples spawned it, else the
 /// cube's natural radius (half its side).
 pub fn cube_geometry(scene: &Scene, keys: &[CubeKey], sums: &[u64], counts: &[u32]) -> (Vec<DVec3>, Vec<f64>) {
@@ -301,30 +563,27 @@ pub fn chunks(centers: &[DVec3], radii: &[f64]) -> Vec<Chunk> {
     chunks
 }
 
-/// The cubes of a unit being voted: centres and voting radii, and their runs of
-/// Morton-consecutive cubes ([`chunks`]).
+/// The cubes of a unit being voted: offsets from the unit's origin with voting radii
+/// ([`cube_offsets`]), and their runs of Morton-consecutive cubes ([`chunks`]).
 pub struct ChunkedCubes<'a> {
-    /// Cube centres in world coordinates.
-    pub centers: &'a [DVec3],
-    /// Voting radii (r_c, or half the cube side).
-    pub radii: &'a [f64],
+    /// Offset from the unit's origin (xyz) and voting radius (w) of every cube.
+    pub offsets: &'a [Vec4],
     /// The runs, ascending and disjoint.
     pub chunks: &'a [Chunk],
-    /// The least band of the distance sums ([`band_floor`]).
-    pub band_floor: f64,
 }
 
-/// Votes `pyramid` into `hist` (BINS per cube) and `distance` (two per cube: the weighted sum
-/// of the votes' [`truncated_distance`]s, in world units, and the sum of their weights) for
-/// the cubes of the chunks listed in `seen` (ascending), and returns the number of votes cast. Chunks own disjoint rows of the
-/// histogram, so they vote in parallel: a group of one large leaf still uses every core, and
-/// each cube still receives the maps in the order they are voted.
+/// Votes `pyramid`, seen from the unit as `view`, into `hist` (BINS per cube) and `distance`
+/// (two per cube: the weighted sum of the votes' truncated distances, in world units, and
+/// the sum of their weights) for the cubes of the chunks listed in `seen` (ascending), and
+/// returns the number of votes cast. Each vote is [`vote_relative`]. Chunks own disjoint rows
+/// of the histogram, so they vote in parallel: a group of one large leaf still uses every
+/// core, and each cube still receives the maps in the order they are voted.
 pub fn vote_chunks(
     cubes: &ChunkedCubes<'_>,
     hist: &mut [f32],
     distance: &mut [f32],
     pyramid: &Pyramid,
-    world_to_camera: &glam::DMat4,
+    view: &UnitView,
     weight: f32,
     seen: &[usize],
 ) -> u64 {
@@ -346,31 +605,50 @@ pub fn vote_chunks(
         let Some((distances, tail_distance)) = tail_distance.split_at_mut_checked((chunk.end - chunk.start) * 2) else {
             break;
         };
-        work.push((chunk, rows, distances));
+        let offsets = cubes.offsets.get(chunk.start..chunk.end).unwrap_or(&[]);
+        work.push((offsets, rows, distances));
         rest = tail;
         rest_distance = tail_distance;
         consumed = chunk.end;
     }
-    let (centers, radii, band_floor) = (cubes.centers, cubes.radii, cubes.band_floor);
     work.into_par_iter()
-        .map(|(chunk, rows, distances)| {
-            let cubes = centers.iter().zip(radii).take(chunk.end).skip(chunk.start);
+        .map(|(offsets, rows, distances)| {
             let mut votes = 0u64;
-            for ((row, sums), (center, radius)) in rows
-                .chunks_exact_mut(BINS)
-                .zip(distances.chunks_exact_mut(2))
-                .zip(cubes)
-            {
-                if let Some((bin, distance)) = pyramid.vote_with_distance(world_to_camera, *center, *radius, band_floor)
+            let mut add = |row: &mut [f32], sums: &mut [f32], vote: Option<(usize, Option<f32>)>| {
+                if let Some((bin, distance)) = vote
                     && let Some(h) = row.get_mut(bin)
                 {
                     *h += weight;
                     if let (Some(d), [sum, total]) = (distance, sums) {
-                        *sum += weight * d as f32;
+                        *sum += weight * d;
                         *total += weight;
                     }
                     votes += 1;
                 }
+            };
+            let (mut rows, mut distances, mut offsets) = (rows, distances, offsets);
+            if !view.spherical {
+                let (groups, rest) = offsets.as_chunks::<4>();
+                let (row_groups, rest_rows) = rows.as_chunks_mut::<{ 4 * BINS }>();
+                let (sum_groups, rest_sums) = distances.as_chunks_mut::<8>();
+                for ((cubes, rows), sums) in groups.iter().zip(row_groups).zip(sum_groups) {
+                    let lanes = vote_relative_pinhole_x4(view, *cubes, pyramid);
+                    for ((vote, row), sums) in lanes
+                        .into_iter()
+                        .zip(rows.chunks_exact_mut(BINS))
+                        .zip(sums.chunks_exact_mut(2))
+                    {
+                        add(row, sums, vote);
+                    }
+                }
+                (rows, distances, offsets) = (rest_rows, rest_sums, rest);
+            }
+            for ((row, sums), cube) in rows
+                .chunks_exact_mut(BINS)
+                .zip(distances.chunks_exact_mut(2))
+                .zip(offsets)
+            {
+                add(row, sums, vote_relative(view, *cube, pyramid));
             }
             votes
         })
@@ -389,6 +667,18 @@ mod tests {
         assert_eq!(median_of_valid([nan, 4.0, nan, 2.0]), 3.0);
         assert_eq!(median_of_valid([nan, nan, 5.0, nan]), 5.0);
         assert!(median_of_valid([nan, nan, nan, nan]).is_nan());
+        // Four valid values take the sort-free path: the same as sorting, ties included.
+        let mut seed = 3u64;
+        for _ in 0..20_000 {
+            let values: [f32; 4] = std::array::from_fn(|_| {
+                seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                ((seed >> 40) % 7) as f32 * 0.37 + 1.0
+            });
+            let mut sorted = values;
+            sorted.sort_unstable_by(f32::total_cmp);
+            let expected = ((f64::from(sorted[1]) + f64::from(sorted[2])) * 0.5) as f32;
+            assert_eq!(median_of_valid(values).to_bits(), expected.to_bits(), "{values:?}");
+        }
 
         // A 4 x 2 wall at depth 1 with one wild pixel per 2 x 2 block: level 1 is the wall
         // (a mean would put the left block at 1.75), level 2 keeps it, and a block without
@@ -475,6 +765,70 @@ mod tests {
         }
         // The draw covers both sides of the border.
         assert!(voted > 10_000 && culled > 10_000, "{voted} voted, {culled} culled");
+    }
+
+    #[test]
+    fn four_cubes_as_lanes_vote_as_one_cube_does_to_the_bit() {
+        // A slanted wall with holes, cubes in front, behind, beside the view and behind the
+        // camera, of radii from a fraction of a pixel's footprint to many pixels.
+        let (width, height) = (53u32, 41u32);
+        let source = crate::inputs::DepthMapSource {
+            path: "wall.pfm".into(),
+            format: crate::inputs::ImageFormat::Pfm,
+            width,
+            height,
+            projection: crate::inputs::Projection::Pinhole {
+                fx: 45.0,
+                fy: 40.0,
+                cx: 26.0,
+                cy: 20.5,
+            },
+            camera_to_world: (glam::DMat4::from_translation(DVec3::new(3.0, -1.0, 2.0))
+                * glam::DMat4::from_rotation_y(0.3))
+            .to_cols_array(),
+            kind: crate::inputs::Kind::Photo,
+            weight: 1.0,
+        };
+        let depth = (0..width * height)
+            .map(|p| {
+                if p % 17 == 0 {
+                    f32::NAN
+                } else {
+                    2.0 + 0.01 * (p % width) as f32
+                }
+            })
+            .collect();
+        let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
+        let world_to_camera = source.pose().inverse();
+        let origin = DVec3::new(3.5, -0.8, 4.0);
+        let view = UnitView::new(&source, &world_to_camera, origin, 0.05);
+        let mut seed = 5u64;
+        let mut uniform = move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 40) as f32) / (1u64 << 24) as f32
+        };
+        let (mut voted, mut refused) = (0, 0);
+        for _ in 0..20_000 {
+            let cubes: [Vec4; 4] = std::array::from_fn(|_| {
+                Vec4::new(
+                    uniform() * 6.0 - 3.0,
+                    uniform() * 4.0 - 2.0,
+                    uniform() * 6.0 - 3.5,
+                    0.002 * 200f32.powf(uniform()),
+                )
+            });
+            let lanes = vote_relative_pinhole_x4(&view, cubes, &pyramid);
+            for (cube, lane) in cubes.iter().zip(lanes) {
+                let one = vote_relative(&view, *cube, &pyramid);
+                assert_eq!(
+                    lane.map(|(bin, d)| (bin, d.map(f32::to_bits))),
+                    one.map(|(bin, d)| (bin, d.map(f32::to_bits))),
+                    "cube {cube}"
+                );
+                if one.is_some() { voted += 1 } else { refused += 1 }
+            }
+        }
+        assert!(voted > 5_000 && refused > 5_000, "{voted} voted, {refused} refused");
     }
 
     #[test]

@@ -9,7 +9,7 @@ use redb::ReadableTable;
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
-use glam::DVec3;
+use glam::{DVec3, Vec4};
 use redb::WriteTransaction;
 use serde::{Deserialize, Serialize};
 
@@ -19,7 +19,8 @@ use super::{HISTOGRAMS, OCTREE};
 use crate::format::{Column, ColumnValues, CubeKey, Scene};
 use crate::inputs::DepthMapSource;
 use crate::kernels::votes::{
-    BINS, Chunk, ChunkedCubes, Pyramid, band_floor, chunks, cube_geometry, quantized_weight, vote_chunks,
+    BINS, Chunk, ChunkedCubes, Pyramid, UnitView, band_floor, chunks, cube_geometry, cube_offsets, quantized_weight,
+    vote_chunks,
 };
 use crate::store::catalog::{self, META, UNIT_STATE, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
@@ -130,10 +131,13 @@ pub struct HistogramsStage {
     gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
 }
 
-/// A histogram group holds at most this many times the largest treetop leaf's cubes: a cube
-/// costs the vote loop under a fifth of what the solver budgets per leaf cube (key, radius,
-/// centre and 8 bins), so a group fits where one solver leaf does.
-pub const GROUP_LEAVES: u64 = 4;
+/// A histogram group holds at most this many times the largest treetop leaf's cubes. A cube
+/// costs the vote loop 72 bytes (key 16, f32 offset and radius 16, 8 bins 32, distance sums
+/// 8), so 7 leaves' cubes take under the 512 bytes the solver budgets per leaf cube
+/// (`stages::octree::BYTES_PER_LEAF_CUBE`): a group fits where one solver leaf does. Larger
+/// groups decode each depth map fewer times (RedKitchen, 1000 frames at 512 MiB: 14 groups at
+/// 4 leaves, each decoding nearly every map).
+pub const GROUP_LEAVES: u64 = 7;
 
 impl HistogramsStage {
     pub fn new(scene: Scene, depth_maps: Vec<(u64, DepthMapRecord)>) -> HistogramsStage {
@@ -467,8 +471,9 @@ impl Stage for HistogramsStage {
 struct Voter {
     key: CubeKey,
     keys: Vec<CubeKey>,
-    centers: Vec<DVec3>,
-    radii: Vec<f64>,
+    /// The cubes as they are voted, on the CPU and the GPU: offsets from `center` and voting
+    /// radii, in f32 ([`cube_offsets`]).
+    offsets: Vec<Vec4>,
     hist: Vec<f32>,
     /// Two per cube: the weighted sum of its votes' truncated distances
     /// ([`crate::kernels::votes::truncated_distance`]) and the sum of their weights.
@@ -479,7 +484,8 @@ struct Voter {
     voted: BTreeSet<u64>,
     votes: u64,
     octree_digest: u64,
-    /// The unit's bounding ball, for the frustum test.
+    /// The unit's bounding ball, for the frustum test; its centre (the unit cube's) is also
+    /// the origin of `offsets` and of the GPU's cube offsets.
     center: DVec3,
     radius: f64,
     /// Runs of Morton-consecutive cubes with their bounding balls, tested against each map's
@@ -492,20 +498,11 @@ impl Voter {
     /// [`vote_chunks`].
     fn vote(&mut self, pyramid: &Pyramid, world_to_camera: &glam::DMat4, weight: f32, seen: &[usize]) {
         let cubes = ChunkedCubes {
-            centers: &self.centers,
-            radii: &self.radii,
+            offsets: &self.offsets,
             chunks: &self.chunks,
-            band_floor: self.band_floor,
         };
-        self.votes += vote_chunks(
-            &cubes,
-            &mut self.hist,
-            &mut self.distance,
-            pyramid,
-            world_to_camera,
-            weight,
-            seen,
-        );
+        let view = UnitView::new(&pyramid.source, world_to_camera, self.center, self.band_floor);
+        self.votes += vote_chunks(&cubes, &mut self.hist, &mut self.distance, pyramid, &view, weight, seen);
     }
 }
 
@@ -583,17 +580,14 @@ impl HistogramsStage {
             let units = voters
                 .iter()
                 .map(|v| {
-                    (0..v.centers.len())
+                    (0..v.offsets.len())
                         .step_by(per_batch)
                         .map(|start| {
-                            let end = (start + per_batch).min(v.centers.len());
+                            let end = (start + per_batch).min(v.offsets.len());
                             let hist = v.hist.get(start * BINS..end * BINS).unwrap_or(&[]);
                             let distance = v.distance.get(2 * start..2 * end).unwrap_or(&[]);
-                            let (centers, radii) = (
-                                v.centers.get(start..end).unwrap_or(&[]),
-                                v.radii.get(start..end).unwrap_or(&[]),
-                            );
-                            gpu.upload_unit(v.center, centers, radii, hist, distance, v.band_floor)
+                            let offsets = v.offsets.get(start..end).unwrap_or(&[]);
+                            gpu.upload_unit(v.center, offsets, hist, distance, v.band_floor)
                                 .map(|batch| (start, end, batch))
                         })
                         .collect::<std::result::Result<Vec<_>, _>>()
@@ -704,10 +698,9 @@ impl HistogramsStage {
         let radius = self.scene.cube_side(plan.key.depth()) * 0.87 + radii.iter().copied().fold(0.0, f64::max);
         Ok(Voter {
             chunks: chunks(&centers, &radii),
+            offsets: cube_offsets(center, &centers, &radii),
             key: plan.key,
             keys,
-            centers,
-            radii,
             hist,
             distance,
             band_floor: band_floor(&self.scene),

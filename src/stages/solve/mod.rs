@@ -26,6 +26,10 @@ use crate::kernels::votes::BINS;
 use crate::store::catalog::{self, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
+mod params;
+
+pub use params::{DEFAULT_TOLERANCE, SolveParams};
+
 /// Stage names of the levels.
 pub const LEVEL_STAGES: [&str; MAX_DEPTH as usize + 1] = [
     "solution-00",
@@ -62,34 +66,6 @@ pub const LEVEL_STAGES: [&str; MAX_DEPTH as usize + 1] = [
     "solution-31",
     "solution-32",
 ];
-
-/// Solver parameters, recorded with every level's run. alpha1 and alpha0 multiply h and h^2
-/// (h the cube side, in units of the root side), which makes the result invariant to the
-/// scene's scale; v is likewise in units of 1 / root side.
-///
-/// lambda is 0.5: at 0.1 the data term of a cube that only a few depth maps see (3 or 4 votes,
-/// the usual count on a floor seen at a slant) was too weak against the regulariser, and u's
-/// zero set sat up to 3.5 finest cubes off the measured surface; extraction, which keeps only
-/// surface near samples, then tore holes there. 0.5 follows such surfaces and is as robust to
-/// outliers (README, "Quality").
-#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
-pub struct SolveParams {
-    pub alpha1: f32,
-    pub alpha0: f32,
-    pub lambda: f32,
-    pub iterations: u32,
-}
-
-impl Default for SolveParams {
-    fn default() -> Self {
-        SolveParams {
-            alpha1: 1.0,
-            alpha0: 2.0,
-            lambda: 0.5,
-            iterations: 200,
-        }
-    }
-}
 
 /// A unit's cut values at one level.
 pub struct LevelValues {
@@ -342,6 +318,8 @@ struct LevelUnitExtra {
     cubes: u64,
     energy_before: f64,
     energy_after: f64,
+    /// Iterations the unit ran (all its members together).
+    iterations: u64,
 }
 
 impl LevelStage {
@@ -652,12 +630,7 @@ impl Stage for LevelStage {
         if problem.start.len() != 3 * problem.n + 1 {
             return Err(self.stage_error(unit, "internal: malformed neighbour lists".into()));
         }
-        let (energy_before, energy_after) = crate::gpu::solve_on(
-            self.gpu.as_deref(),
-            &problem,
-            &mut state,
-            self.params.iterations as usize,
-        );
+        let solved = crate::gpu::solve_on(self.gpu.as_deref(), &problem, &mut state, self.params.stopping());
         let seen = problem.hist.iter().map(seen_weight).collect();
         let measured = problem.hist.iter().map(measured_weight).collect();
         let treetop = self
@@ -684,8 +657,9 @@ impl Stage for LevelStage {
             )],
             extra: catalog::encode(&LevelUnitExtra {
                 cubes: values.keys.len() as u64,
-                energy_before,
-                energy_after,
+                energy_before: solved.energy_before,
+                energy_after: solved.energy_after,
+                iterations: solved.iterations as u64,
             }),
             block_rows: 0,
         })
@@ -693,19 +667,32 @@ impl Stage for LevelStage {
 
     fn finish(&self, _txn: &WriteTransaction, _base: &Snapshot<'_>, units: &[(u64, UnitRecord)]) -> Result<String> {
         let mut total = LevelUnitExtra::default();
+        let (mut fewest, mut most, mut cube_iterations) = (u64::MAX, 0u64, 0u128);
         for (_, record) in units {
             let e: LevelUnitExtra = catalog::decode("units_done", &record.extra)?;
             total.cubes += e.cubes;
             total.energy_before += e.energy_before;
             total.energy_after += e.energy_after;
+            if e.cubes > 0 {
+                fewest = fewest.min(e.iterations);
+                most = most.max(e.iterations);
+                cube_iterations += u128::from(e.cubes) * u128::from(e.iterations);
+            }
         }
+        let mean = cube_iterations as f64 / total.cubes.max(1) as f64;
+        let iterations = if fewest >= most {
+            format!("{mean:.0} iterations per cube")
+        } else {
+            format!("{mean:.0} iterations per cube, {fewest} to {most} per unit")
+        };
         let line = format!(
-            "level {}: {} cubes, energy {:.6e} -> {:.6e} ({} iterations; alpha1 {}, alpha0 {}, lambda {})",
+            "level {}: {} cubes, energy {:.6e} -> {:.6e} ({iterations}, at most {}, tolerance {}; alpha1 {}, alpha0 {}, lambda {})",
             self.level,
             total.cubes,
             total.energy_before,
             total.energy_after,
             self.params.iterations,
+            self.params.tolerance,
             self.params.alpha1,
             self.params.alpha0,
             self.params.lambda

@@ -1,0 +1,50 @@
+//! The solver's parameters: the TGV weights, the data term's weight and when a unit's
+//! iterations stop.
+
+use serde::{Deserialize, Serialize};
+
+/// Solver parameters, recorded with every level's run. alpha1 and alpha0 multiply h and h^2
+/// (h the cube side, in units of the root side), which makes the result invariant to the
+/// scene's scale; v is likewise in units of 1 / root side.
+///
+/// lambda is 0.5: at 0.1 the data term of a cube that only a few depth maps see (3 or 4 votes,
+/// the usual count on a floor seen at a slant) was too weak against the regulariser, and u's
+/// zero set sat up to 3.5 finest cubes off the measured surface; extraction, which keeps only
+/// surface near samples, then tore holes there. 0.5 follows such surfaces and is as robust to
+/// outliers (README, "Quality").
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
+pub struct SolveParams {
+    pub alpha1: f32,
+    pub alpha0: f32,
+    pub lambda: f32,
+    /// The most primal-dual iterations a unit runs at each level.
+    pub iterations: u32,
+    /// A unit stops early at the first check where its energy moved by at most this fraction
+    /// since the check before ([`crate::kernels::tgv::Stopping`]); 0 runs every iteration.
+    pub tolerance: f32,
+}
+
+/// The default stopping tolerance; README, "Speed", gives what it was measured to cost.
+pub const DEFAULT_TOLERANCE: f32 = 1e-4;
+
+impl Default for SolveParams {
+    fn default() -> Self {
+        SolveParams {
+            alpha1: 1.0,
+            alpha0: 2.0,
+            lambda: 0.5,
+            iterations: 200,
+            tolerance: DEFAULT_TOLERANCE,
+        }
+    }
+}
+
+impl SolveParams {
+    /// When each unit's iterations stop.
+    pub fn stopping(&self) -> crate::kernels::tgv::Stopping {
+        crate::kernels::tgv::Stopping {
+            max_iterations: self.iterations as usize,
+            tolerance: f64::from(self.tolerance),
+        }
+    }
+}
