@@ -154,4 +154,13 @@ fn simplify(mesh: &mut UnitMesh, locks: &[bool], ratio: f32) {
     for t in &mut mesh.triangles {
         *t = t.map(|v| remap.get(v as usize).copied().unwrap_or(u32::MAX));
     }
+    // Seam vertices are locked, so every one with a share survives; only its index changes.
+    mesh.seam_moves
+        .retain_mut(|share| match remap.get(share.vertex as usize) {
+            Some(&index) if index != u32::MAX => {
+                share.vertex = index;
+                true
+            }
+            _ => false,
+        });
 }

@@ -35,6 +35,83 @@ pub struct UnitMesh {
     pub vertices: Vec<(VertexId, DVec3, DVec3)>,
     /// Triangles as indices into `vertices`.
     pub triangles: Vec<[u32; 3]>,
+    /// Where this piece's cells would move vertices other pieces may also produce (seam
+    /// vertices), which only the weld, holding every piece's share, can place.
+    pub seam_moves: Vec<VertexMove>,
+}
+
+/// A piece's share in placing a vertex: the planes that the piece's cells around the vertex
+/// measured the surface on, summed so that the mean of a point's projections onto them can be
+/// computed (the projection onto the plane `n . x = d`, n a unit normal, is `x - n n^T x + d n`,
+/// affine in x). Every piece that produces the vertex adds its planes; the vertex goes to the
+/// mean of its projections, at most `reach` from where extraction put it.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct VertexMove {
+    /// Index into the piece's `vertices`.
+    pub vertex: u32,
+    /// Sum of the planes' `n n^T`, as xx, xy, xz, yy, yz, zz.
+    pub normals: [f64; 6],
+    /// Sum of the planes' `d n`.
+    pub shifts: DVec3,
+    /// How many planes.
+    pub count: u32,
+    /// How far the vertex may move from where extraction put it.
+    pub reach: f64,
+}
+
+impl VertexMove {
+    /// No planes yet, for vertex `vertex`.
+    pub fn empty(vertex: u32, reach: f64) -> Self {
+        VertexMove {
+            vertex,
+            normals: [0.0; 6],
+            shifts: DVec3::ZERO,
+            count: 0,
+            reach,
+        }
+    }
+
+    /// Adds the plane of points x with `normal . x = distance` (`normal` of unit length).
+    pub fn add_plane(&mut self, normal: DVec3, distance: f64) {
+        let n = normal;
+        for (sum, term) in
+            self.normals
+                .iter_mut()
+                .zip([n.x * n.x, n.x * n.y, n.x * n.z, n.y * n.y, n.y * n.z, n.z * n.z])
+        {
+            *sum += term;
+        }
+        self.shifts += n * distance;
+        self.count += 1;
+    }
+
+    /// Adds another piece's share of the same vertex (an empty share may not know its reach).
+    pub fn add(&mut self, other: &VertexMove) {
+        for (sum, term) in self.normals.iter_mut().zip(other.normals) {
+            *sum += term;
+        }
+        self.shifts += other.shifts;
+        self.count += other.count;
+        self.reach = self.reach.max(other.reach);
+    }
+
+    /// Where the vertex goes from `position`, `origin` being where extraction put it: the mean of
+    /// `position`'s projections onto the planes, held within `reach` of `origin`.
+    pub fn place(&self, position: DVec3, origin: DVec3) -> DVec3 {
+        if self.count == 0 {
+            return position;
+        }
+        let [xx, xy, xz, yy, yz, zz] = self.normals;
+        let outer = glam::DMat3::from_cols(DVec3::new(xx, xy, xz), DVec3::new(xy, yy, yz), DVec3::new(xz, yz, zz));
+        let target = position + (self.shifts - outer * position) / f64::from(self.count);
+        let moved = target - origin;
+        let length = moved.length();
+        if length > self.reach {
+            origin + moved * (self.reach / length)
+        } else {
+            target
+        }
+    }
 }
 
 /// A triangle mesh: welded vertices with normals, and triangles.

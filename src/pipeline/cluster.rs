@@ -179,7 +179,7 @@ pub fn slurm_jobs(store: &Path, levels: u8, options: &SlurmOptions) -> Vec<Slurm
 
 /// Cluster name of the extraction: its units are treetop leaves, its result a mesh file.
 pub const EXTRACT: &str = "extract";
-const UNIT_MESH_MAGIC: &[u8; 8] = b"OCTMESH1";
+const UNIT_MESH_MAGIC: &[u8; 8] = b"OCTMESH2";
 
 /// What an extraction plan records: how to extract, and where the mesh goes.
 #[derive(serde::Serialize, serde::Deserialize, Clone, Debug, PartialEq)]

@@ -6,7 +6,7 @@ use glam::DVec3;
 
 use super::weld::NameIndex;
 use crate::format::{CubeKey, MAX_DEPTH, Scene};
-use crate::mesh::{CornerId, UnitMesh};
+use crate::mesh::{CornerId, UnitMesh, VertexMove};
 use crate::stages::solve::{CutValue, LevelCut, cut_cube_ending_at};
 use crate::store::Result;
 
@@ -127,17 +127,79 @@ fn partition_point_near(keys: &[CubeKey], near: usize, probe: CubeKey) -> usize 
         .map_or(0, |range| range.partition_point(|k| *k <= probe))
 }
 
+/// What the dual cells say about each vertex of a unit's piece, besides its position.
+#[derive(Default)]
+pub(super) struct VertexGuides {
+    /// The centres of the two cells of the vertex's edge.
+    pub ends: Vec<(DVec3, DVec3)>,
+    /// The offset planes of the cells around the vertex that have one ([`OffsetPlane`]), and
+    /// how far they may move it: half its edge's length (smoothing may move it another half).
+    pub moves: Vec<VertexMove>,
+}
+
+/// The surface offsets of a dual cell's corners fitted by a linear function, `value` at
+/// `point` plus `gradient` times the displacement: the TSDF's plane through the cell. Its zero
+/// set is where the measured distances put the surface inside the cell, off the cell's edges
+/// as well as on them.
+#[derive(Clone, Copy)]
+struct OffsetPlane {
+    point: DVec3,
+    value: f64,
+    gradient: DVec3,
+}
+
+/// The least length of a cell's offset gradient for its plane to be used: the offsets of a
+/// cell near one surface grow by one unit of length per unit of length along the normal (more
+/// for a map that looks at it obliquely, since they are measured along rays); much less means
+/// the corners measured different surfaces (both sides of a thin part) or mostly noise.
+const LEAST_OFFSET_GRADIENT: f64 = 0.5;
+
+impl OffsetPlane {
+    /// The least-squares fit to the corners' offsets, if every corner is a real cell with a
+    /// measured offset, the centres span space, and the gradient is steep enough.
+    fn fit(corners: &[Corner; 8]) -> Option<Self> {
+        if corners.iter().any(|c| c.id & VIRTUAL != 0 || !c.offset.is_finite()) {
+            return None;
+        }
+        let point = corners.iter().map(|c| c.center).sum::<DVec3>() / 8.0;
+        let value = corners.iter().map(|c| c.offset).sum::<f64>() / 8.0;
+        let mut normal_matrix = glam::DMat3::ZERO;
+        let mut right = DVec3::ZERO;
+        for c in corners {
+            let d = c.center - point;
+            normal_matrix += glam::DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+            right += d * (c.offset - value);
+        }
+        // Corners that coincide (a coarse leaf in several octants) or lie in a plane leave
+        // the fit without a gradient across them. (Centres and offsets are finite here, so the
+        // determinant is too.)
+        let scale = normal_matrix.x_axis.x + normal_matrix.y_axis.y + normal_matrix.z_axis.z;
+        if normal_matrix.determinant() <= 1e-6 * scale * scale * scale {
+            return None;
+        }
+        let gradient = normal_matrix.inverse() * right;
+        (gradient.length() >= LEAST_OFFSET_GRADIENT).then_some(Self { point, value, gradient })
+    }
+
+    /// The zero set as `normal . x = distance`, `normal` of unit length.
+    fn normal_form(&self) -> (DVec3, f64) {
+        let length = self.gradient.length();
+        let normal = self.gradient / length;
+        (normal, normal.dot(self.point) - self.value / length)
+    }
+}
+
 /// The surface pieces of a unit's dual cells; unless `closed`, only the observed surface
-/// ([`mesh_cell`]). Also returns, per vertex, the centres of the two cells of its edge.
+/// ([`mesh_cell`]); and what the cells say about each vertex ([`VertexGuides`]).
 pub(super) fn dual_cells_of_unit(
     scene: &Scene,
     level: &mut LevelCut<'_, '_>,
     keys: &[CubeKey],
     values: &[CutValue],
     closed: bool,
-) -> Result<(UnitMesh, Vec<(DVec3, DVec3)>)> {
+) -> Result<(UnitMesh, VertexGuides)> {
     let mut mesh = UnitMesh::default();
-    let mut ends = Vec::new();
+    let mut guides = VertexGuides::default();
     // The unit's vertices by name, as indices into `mesh.vertices`.
     let mut vertex_index = NameIndex::default();
     let limit = 1u64 << 32;
@@ -266,10 +328,10 @@ pub(super) fn dual_cells_of_unit(
                 continue;
             }
             let gradient = cell_gradient(&corners);
-            mesh_cell(&corners, gradient, closed, &mut mesh, &mut ends, &mut vertex_index);
+            mesh_cell(&corners, gradient, closed, &mut mesh, &mut guides, &mut vertex_index);
         }
     }
-    Ok((mesh, ends))
+    Ok((mesh, guides))
 }
 
 /// Gradient of u over a dual cell (mean difference between opposite faces of the 8 corners,
@@ -308,9 +370,11 @@ fn mesh_cell(
     gradient: DVec3,
     closed: bool,
     mesh: &mut UnitMesh,
-    ends: &mut Vec<(DVec3, DVec3)>,
+    guides: &mut VertexGuides,
     vertex_index: &mut NameIndex,
 ) {
+    let plane = OffsetPlane::fit(corners);
+    let mut cell_vertices: Vec<u32> = Vec::new();
     let votes: f32 = corners.iter().map(|c| c.votes).sum();
     let measured: f32 = corners.iter().map(|c| c.measured).sum();
     let cell_observed = corners.iter().any(|c| c.sampled) && measured >= MEASURED_SHARE * votes;
@@ -336,7 +400,10 @@ fn mesh_cell(
                     let position = lo.center + (hi.center - lo.center) * crossing(&lo, &hi);
                     let index = mesh.vertices.len() as u32;
                     mesh.vertices.push((edge, position, DVec3::ZERO));
-                    ends.push((lo.center, hi.center));
+                    guides.ends.push((lo.center, hi.center));
+                    guides
+                        .moves
+                        .push(VertexMove::empty(index, 0.5 * (hi.center - lo.center).length()));
                     *slot.insert(index).get()
                 }
             }
@@ -363,6 +430,7 @@ fn mesh_cell(
                 v.2 += gradient;
             }
         }
+        cell_vertices.extend_from_slice(&polygon);
         // Orient towards positive u (outside).
         let to_outside = outside.iter().map(|&i| t[i].center).sum::<DVec3>() / outside.len() as f64
             - inside.iter().map(|&i| t[i].center).sum::<DVec3>() / inside.len() as f64;
@@ -379,7 +447,17 @@ fn mesh_cell(
             mesh.triangles.push(tri);
         }
     }
+    let Some(plane) = plane else { return };
+    let (normal, distance) = plane.normal_form();
+    cell_vertices.sort_unstable();
+    cell_vertices.dedup();
+    for vi in cell_vertices {
+        if let Some(share) = guides.moves.get_mut(vi as usize) {
+            share.add_plane(normal, distance);
+        }
+    }
 }
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -421,5 +499,86 @@ mod tests {
                 }
             }
         }
+    }
+
+    fn cell(offset_at: impl Fn(DVec3) -> f64, side: f64) -> [Corner; 8] {
+        std::array::from_fn(|i| {
+            let center = DVec3::new((i & 1) as f64, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64) * side;
+            Corner {
+                id: i as u128,
+                center,
+                u: 0.0,
+                offset: offset_at(center),
+                votes: 1.0,
+                measured: 1.0,
+                sampled: true,
+                depth: 10,
+            }
+        })
+    }
+
+    #[test]
+    fn offset_planes_put_vertices_on_the_measured_surface() {
+        // A tilted plane through a cell 5.7 mm wide, its offsets measured along rays that meet
+        // it obliquely (distances scaled by 1.4): the fit recovers the plane, and a vertex
+        // anywhere near the cell projects onto it.
+        let normal = DVec3::new(0.2, -0.3, 0.93).normalize();
+        let origin = DVec3::new(0.002, 0.003, 0.0031);
+        let plane = OffsetPlane::fit(&cell(|p| 1.4 * normal.dot(p - origin), 0.0057)).expect("a plane");
+        let mut share = VertexMove::empty(0, 1.0);
+        let (n, d) = plane.normal_form();
+        share.add_plane(n, d);
+        for p in [DVec3::ZERO, DVec3::splat(0.0057), DVec3::new(0.001, 0.004, 0.0057)] {
+            let on = share.place(p, p);
+            assert!(normal.dot(on - origin).abs() < 1e-12, "{p} -> {on}");
+            assert!(
+                (p - on).normalize().dot(normal).abs() > 1.0 - 1e-9,
+                "moves along the normal"
+            );
+        }
+        // No plane where the corners measured nothing, mixed surfaces (a flat gradient),
+        // coincident centres or a virtual corner.
+        let mut unmeasured = cell(|p| normal.dot(p - origin), 0.0057);
+        unmeasured[3].offset = f64::NAN;
+        assert!(OffsetPlane::fit(&unmeasured).is_none());
+        assert!(OffsetPlane::fit(&cell(|p| 0.3 * normal.dot(p - origin), 0.0057)).is_none());
+        let mut flat = cell(|p| normal.dot(p - origin), 0.0057);
+        for c in flat.iter_mut() {
+            c.center.z = 0.0;
+        }
+        assert!(OffsetPlane::fit(&flat).is_none());
+        let mut virtual_corner = cell(|p| normal.dot(p - origin), 0.0057);
+        virtual_corner[5].id |= VIRTUAL;
+        assert!(OffsetPlane::fit(&virtual_corner).is_none());
+    }
+
+    #[test]
+    fn a_vertex_goes_to_the_mean_of_its_projections_within_its_reach() {
+        let z = DVec3::Z;
+        let start = DVec3::new(1.0, 1.0, 1.0);
+        // Units' shares add up; an empty first share (a unit whose cells had no plane) does not
+        // know the reach. Planes z = 1.2 and twice z = 1.3: the mean of the projections.
+        let mut total = VertexMove::empty(0, 0.0);
+        let mut first = VertexMove::empty(0, 0.5);
+        first.add_plane(z, 1.2);
+        let mut second = VertexMove::empty(0, 0.5);
+        second.add_plane(z, 1.3);
+        second.add_plane(-z, -1.3);
+        total.add(&first);
+        total.add(&second);
+        assert!((total.place(start, start) - DVec3::new(1.0, 1.0, 1.2666666666666666)).length() < 1e-12);
+        // Two crossing planes: the mean of the two projections, not their intersection.
+        let mut crossing = VertexMove::empty(0, 5.0);
+        crossing.add_plane(DVec3::X, 2.0);
+        crossing.add_plane(DVec3::Y, 3.0);
+        assert!((crossing.place(start, start) - DVec3::new(1.5, 2.0, 1.0)).length() < 1e-12);
+        // Held within its reach of where extraction put it, along the way to the target.
+        let mut far = VertexMove::empty(0, 0.5);
+        far.add_plane(z, 3.0);
+        assert!((far.place(start, start) - DVec3::new(1.0, 1.0, 1.5)).length() < 1e-12);
+        let moved = DVec3::new(1.3, 1.0, 1.0);
+        let held = start + (DVec3::new(1.3, 1.0, 3.0) - start).normalize() * 0.5;
+        assert!((far.place(moved, start) - held).length() < 1e-12);
+        assert_eq!(VertexMove::empty(0, 0.5).place(moved, start), moved);
     }
 }

@@ -118,17 +118,22 @@ impl MeshWriter for MeshFile {
         Ok(())
     }
 
-    fn fix_normals(&mut self, fixes: &[(u32, DVec3)]) -> std::io::Result<()> {
+    fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()> {
         use std::io::{Seek, SeekFrom};
         if fixes.is_empty() {
             return Ok(());
         }
         self.vertices.flush()?;
         let file = self.vertices.get_mut();
-        for (index, normal) in fixes {
-            file.seek(SeekFrom::Start(u64::from(*index) * VERTEX_RECORD + VERTEX_RECORD / 2))?;
-            let mut bytes = [0u8; VERTEX_RECORD as usize / 2];
-            for (slot, v) in bytes.chunks_exact_mut(4).zip(normal.as_vec3().to_array()) {
+        for (index, position, normal) in fixes {
+            file.seek(SeekFrom::Start(u64::from(*index) * VERTEX_RECORD))?;
+            let mut bytes = [0u8; VERTEX_RECORD as usize];
+            let values = position
+                .as_vec3()
+                .to_array()
+                .into_iter()
+                .chain(normal.as_vec3().to_array());
+            for (slot, v) in bytes.chunks_exact_mut(4).zip(values) {
                 slot.copy_from_slice(&v.to_le_bytes());
             }
             file.write_all(&bytes)?;

@@ -32,9 +32,17 @@
 //! (the level segment's `surface_offset`, the mean truncated signed distance of the cube's
 //! votes: a TSDF value at its centre), the vertex sits where those offsets cross zero, held
 //! inside the edge u chose; u alone decides which edges are cut, so outliers cannot move the
-//! surface by more than an edge. Then `relax` smooths the vertices only their unit produces
-//! (Taubin's steps, each vertex within half its edge of where it was; seam vertices stay, so
-//! the pieces still weld).
+//! surface by more than an edge. That still pins vertices to their edges: where u's choice of
+//! edges and the offsets disagree by a cube (a plane passing near a layer of cell centres),
+//! vertices sit at edge ends and the surface shows ridges along the grid. So each vertex then
+//! moves to the mean of its projections onto the offset planes of the dual cells around it
+//! (the offsets of a cell's 8 corners fitted by a linear function: the TSDF's surface inside
+//! the cell, off the edges as well as on them), at most half its edge from where it was. A
+//! vertex only its unit produces gets every share at once; a seam vertex gets each unit's
+//! share through the weld, which places it when the last unit that can produce it is done, so
+//! the pieces weld and the streamed mesh equals the one welded in memory. Then `relax` smooths
+//! the vertices only their unit produces (Taubin's steps, each vertex within half its edge of
+//! where it was; seam vertices stay).
 //!
 //! Files: `dual_cells` (a unit's piece), `weld` (streaming weld in unit order), `mesh_file`
 //! (the temporary vertex and face files and the final PLY), `in_order` (workers compute
@@ -61,7 +69,7 @@ use super::solve::{LEVEL_STAGES, LevelCut};
 use super::treetop::Treetop;
 use crate::format::{BoundingBox, CubeKey, Scene};
 pub use crate::mesh::MeshSummary;
-use crate::mesh::{Mesh, UnitMesh, VertexId, clip, decimate_units, edge_defects, write_mesh};
+use crate::mesh::{Mesh, UnitMesh, VertexId, VertexMove, clip, decimate_units, edge_defects, write_mesh};
 use crate::store::{Result, Snapshot, StoreError};
 
 /// Hash tables keyed by surface-vertex and edge names: nothing depends on their iteration
@@ -147,10 +155,19 @@ pub fn unit_mesh(
     let Some(values) = level.unit(unit)? else {
         return Ok(UnitMesh::default());
     };
-    let (mut mesh, ends) = dual_cells_of_unit(scene, &mut level, &values.0, &values.1, closed)?;
+    let (mut mesh, guides) = dual_cells_of_unit(scene, &mut level, &values.0, &values.1, closed)?;
     let private = private_to(key);
     let movable: Vec<bool> = mesh.vertices.iter().map(|v| private(&v.0)).collect();
-    smooth_private_vertices(&mut mesh, &ends, &movable);
+    // A private vertex has all its cells here, so its planes are all there are; other units add
+    // theirs to a seam vertex's in the weld.
+    for (share, (vertex, &private)) in guides.moves.iter().zip(mesh.vertices.iter_mut().zip(&movable)) {
+        if private {
+            vertex.1 = share.place(vertex.1, vertex.1);
+        } else if share.count > 0 {
+            mesh.seam_moves.push(*share);
+        }
+    }
+    smooth_private_vertices(&mut mesh, &guides.ends, &movable);
     Ok(mesh)
 }
 
@@ -163,6 +180,7 @@ pub fn assemble(mut meshes: Vec<UnitMesh>, options: &ExtractOptions) -> Mesh {
     let mut index: HashMap<VertexId, u32> = HashMap::new();
     let mut positions: Vec<DVec3> = Vec::new();
     let mut normals: Vec<DVec3> = Vec::new();
+    let mut moves: std::collections::BTreeMap<u32, VertexMove> = Default::default();
     let mut triangles = Vec::new();
     for mesh in meshes {
         let map: Vec<u32> = mesh
@@ -183,6 +201,20 @@ pub fn assemble(mut meshes: Vec<UnitMesh>, options: &ExtractOptions) -> Mesh {
             })
             .collect();
         triangles.extend(mesh.triangles.iter().map(|t| t.map(|v| map[v as usize])));
+        for share in &mesh.seam_moves {
+            let Some(&global) = map.get(share.vertex as usize) else {
+                continue;
+            };
+            moves.entry(global).and_modify(|m| m.add(share)).or_insert(VertexMove {
+                vertex: global,
+                ..*share
+            });
+        }
+    }
+    for (global, share) in moves {
+        if let Some(p) = positions.get_mut(global as usize) {
+            *p = share.place(*p, *p);
+        }
     }
     let mut mesh = Mesh {
         positions: positions.iter().map(|p| p.as_vec3().to_array()).collect(),

@@ -3,8 +3,8 @@
 //! placement leaves without shrinking curved parts. Marching tetrahedra cut every dual cell
 //! into six thin tetrahedra split the same way, so that noise comes out as small triangles with
 //! scattered normals in a regular pattern, ridges under raking light. Each vertex stays within
-//! half its edge's length of where extraction put it, so the surface moves by less than a cube
-//! and its topology does not change.
+//! half its edge's length of where the offset planes put it (`dual_cells::VertexGuides`), so
+//! the surface moves by less than a cube from u's edges and its topology does not change.
 //!
 //! Vertices another unit may also produce (seam vertices) stay where they are: both units then
 //! agree on them, and the mesh stays seamless and independent of how it is split into units.

@@ -8,7 +8,7 @@ use glam::DVec3;
 use super::dual_cells::full_side;
 use super::{FastMap, MeshSummary};
 use crate::format::{CubeKey, MAX_DEPTH};
-use crate::mesh::{CornerId, UnitMesh, VertexId};
+use crate::mesh::{CornerId, UnitMesh, VertexId, VertexMove};
 use crate::stages::treetop::Treetop;
 
 /// The low 124 bits of a corner id: the leaf key, or for a virtual cell the key it mirrors.
@@ -91,6 +91,10 @@ struct SeamVertex {
     name: VertexId,
     /// Normal summed over the units that produced it so far.
     normal: DVec3,
+    /// Where extraction put it (every unit puts it there).
+    position: DVec3,
+    /// The units' shares in moving it so far (`vertex` unused).
+    shares: VertexMove,
     /// Global index in the mesh file.
     index: u32,
     /// The last unit that can produce it.
@@ -146,7 +150,7 @@ impl NameIndex {
     }
 }
 
-/// Open seam vertices: a slab of 64-byte records, whose closed slots are reused, indexed by
+/// Open seam vertices: a slab of records, whose closed slots are reused, indexed by
 /// name (on the 135 M-cube city the seams reach 884,244 vertices).
 #[derive(Default)]
 struct OpenSeam {
@@ -200,13 +204,13 @@ impl OpenSeam {
     }
 }
 
-/// Where a streamed mesh goes: vertices in order (normals of seam vertices are fixed later,
-/// when every unit sharing them is done), then triangles by global index.
+/// Where a streamed mesh goes: vertices in order (positions and normals of seam vertices are
+/// fixed later, when every unit sharing them is done), then triangles by global index.
 pub(super) trait MeshWriter {
     fn vertex(&mut self, position: DVec3, normal: DVec3) -> std::io::Result<()>;
     fn triangle(&mut self, triangle: [u32; 3]) -> std::io::Result<()>;
-    /// Sets final normals of earlier vertices, given in increasing index order.
-    fn fix_normals(&mut self, fixes: &[(u32, DVec3)]) -> std::io::Result<()>;
+    /// Sets final positions and normals of earlier vertices, given in increasing index order.
+    fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()>;
 }
 
 impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
@@ -231,7 +235,12 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
         // for the others): 8 bytes per vertex of the largest piece, not 24 with an Option.
         const PRIVATE: u32 = u32::MAX;
         let mut map: Vec<(u32, u32)> = Vec::with_capacity(mesh.vertices.len());
-        for (edge, p, n) in &mesh.vertices {
+        let mut shares = mesh.seam_moves.iter().peekable();
+        for (local, (edge, p, n)) in mesh.vertices.iter().enumerate() {
+            let share = shares
+                .next_if(|s| s.vertex as usize == local)
+                .copied()
+                .unwrap_or(VertexMove::empty(0, 0.0));
             if private(edge) {
                 let index = self.next_index()?;
                 self.writer.vertex(*p, n.normalize_or_zero())?;
@@ -241,6 +250,7 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
             let (index, last) = match self.seam.get_mut(edge) {
                 Some(open) => {
                     open.normal += *n;
+                    open.shares.add(&share);
                     (open.index, open.last)
                 }
                 None => {
@@ -256,6 +266,8 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                     let slot = self.seam.insert(SeamVertex {
                         name: *edge,
                         normal: *n,
+                        position: *p,
+                        shares: share,
                         index,
                         last,
                     });
@@ -298,14 +310,20 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
     fn retire_through(&mut self, unit: usize) -> std::io::Result<()> {
         let later = self.vertex_retirements.split_off(&(unit + 1));
         let due = std::mem::replace(&mut self.vertex_retirements, later);
-        let mut fixes: Vec<(u32, DVec3)> = due
+        let mut fixes: Vec<(u32, DVec3, DVec3)> = due
             .into_values()
             .flatten()
             .filter_map(|slot| self.seam.remove(slot))
-            .map(|open| (open.index, open.normal.normalize_or_zero()))
+            .map(|open| {
+                (
+                    open.index,
+                    open.shares.place(open.position, open.position),
+                    open.normal.normalize_or_zero(),
+                )
+            })
             .collect();
-        fixes.sort_by_key(|(index, _)| *index);
-        self.writer.fix_normals(&fixes)?;
+        fixes.sort_by_key(|(index, _, _)| *index);
+        self.writer.fix_vertices(&fixes)?;
         let later = self.edge_retirements.split_off(&(unit + 1));
         let due = std::mem::replace(&mut self.edge_retirements, later);
         let uses: Vec<u32> = due
@@ -352,6 +370,8 @@ mod tests {
         let vertex = |i: u128| SeamVertex {
             name: name(i),
             normal: DVec3::splat(i as f64),
+            position: DVec3::ZERO,
+            shares: VertexMove::empty(0, 0.0),
             index: i as u32,
             last: 0,
         };
