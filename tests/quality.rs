@@ -12,11 +12,42 @@ use octstore::mesh::read_mesh;
 use octstore::quality::evaluate::{EvaluateOptions, evaluate};
 use octstore::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig, bounds};
 
+fn bunny() -> octstore::Mesh {
+    read_mesh(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/meshes/bunny00.off")).unwrap()
+}
+
+/// The quality bar's capture: 24 views of 160x120 on a sphere 0.9 from the bunny, 0.5 % depth
+/// noise and 10 % outlier pixels.
+fn quality_bar_capture() -> (Rig, NoiseModel) {
+    let rig = Rig {
+        views: 24,
+        layout: Layout::Sphere,
+        distance: 0.9,
+        width: 160,
+        height: 120,
+        fov_degrees: 70.0,
+    };
+    let noise = NoiseModel {
+        depth_sigma: 0.005,
+        outliers: 0.1,
+        missing_regions: 0,
+        missing_radius: 0.0,
+        seed: 1,
+    };
+    (rig, noise)
+}
+
+/// Runs the CLI quietly; its standard output.
+fn run_quietly(args: &[&str]) -> String {
+    let out = octstore(&[args, &["--quiet"]].concat(), &[]);
+    assert!(out.status.success(), "{args:?}: {}", stderr(&out));
+    stdout(&out)
+}
+
 /// Renders the bunny inside a room of half-size `room` diagonals with `noise`, reconstructs it
 /// through the CLI (max depth 9, 100 iterations) and measures it at tau = 1 % of its diagonal.
 fn reconstruct_bunny(room: f64, rig: &Rig, noise: &NoiseModel) -> octstore::quality::evaluate::Report {
-    let bunny = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/meshes/bunny00.off");
-    let truth_mesh = read_mesh(&bunny).unwrap();
+    let truth_mesh = bunny();
     // A room around the bunny, so that every ray ends on a surface and all space is observed.
     let truth = GroundTruth::new(truth_mesh.clone(), Some(room)).unwrap();
     let dir = tempfile::tempdir().unwrap();
@@ -24,14 +55,9 @@ fn reconstruct_bunny(room: f64, rig: &Rig, noise: &NoiseModel) -> octstore::qual
     let store = dir.path().join("store");
     let s = store.to_str().unwrap();
     let mesh_path = dir.path().join("bunny.ply");
-    for args in [
-        vec!["ingest", s, manifest.to_str().unwrap(), "--max-depth", "9"],
-        vec!["solve", s, "--iterations", "100"],
-        vec!["extract", s, "-o", mesh_path.to_str().unwrap()],
-    ] {
-        let out = octstore(&[&args[..], &["--quiet"]].concat(), &[]);
-        assert!(out.status.success(), "{args:?}: {}", stderr(&out));
-    }
+    run_quietly(&["ingest", s, manifest.to_str().unwrap(), "--max-depth", "9"]);
+    run_quietly(&["solve", s, "--iterations", "100"]);
+    run_quietly(&["extract", s, "-o", mesh_path.to_str().unwrap()]);
     let reconstruction = read_mesh(&mesh_path).unwrap();
     let (lo, hi) = bounds(&truth_mesh).unwrap();
     let report = evaluate(
@@ -72,21 +98,7 @@ fn reconstruct_bunny(room: f64, rig: &Rig, noise: &NoiseModel) -> octstore::qual
 
 #[test]
 fn noisy_bunny_reaches_f_score_0_9_at_one_percent() {
-    let rig = Rig {
-        views: 24,
-        layout: Layout::Sphere,
-        distance: 0.9,
-        width: 160,
-        height: 120,
-        fov_degrees: 70.0,
-    };
-    let noise = NoiseModel {
-        depth_sigma: 0.005,
-        outliers: 0.1,
-        missing_regions: 0,
-        missing_radius: 0.0,
-        seed: 1,
-    };
+    let (rig, noise) = quality_bar_capture();
     let report = reconstruct_bunny(1.05, &rig, &noise);
     assert!(report.f_score >= 0.9, "{report:?}");
     // Measured (2-core dev box): precision 0.965, recall 0.954, F-score 0.960.
@@ -126,33 +138,14 @@ fn bunny_with_a_fifth_of_its_pixels_wild_keeps_its_shape() {
 /// units stop after 50 on average.)
 #[test]
 fn stopping_early_leaves_the_bunny_where_every_iteration_puts_it() {
-    let bunny = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/meshes/bunny00.off");
-    let truth = GroundTruth::new(read_mesh(&bunny).unwrap(), Some(1.05)).unwrap();
-    let rig = Rig {
-        views: 24,
-        layout: Layout::Sphere,
-        distance: 0.9,
-        width: 160,
-        height: 120,
-        fov_degrees: 70.0,
-    };
-    let noise = NoiseModel {
-        depth_sigma: 0.005,
-        outliers: 0.1,
-        missing_regions: 0,
-        missing_radius: 0.0,
-        seed: 1,
-    };
+    let truth = GroundTruth::new(bunny(), Some(1.05)).unwrap();
+    let (rig, noise) = quality_bar_capture();
     let dir = tempfile::tempdir().unwrap();
     let manifest = truth.write_dataset(&rig, &noise, &dir.path().join("views")).unwrap();
     let store = dir.path().join("store");
     let s = store.to_str().unwrap();
     let (every, early) = (dir.path().join("every.ply"), dir.path().join("early.ply"));
-    let run = |args: &[&str]| {
-        let out = octstore(&[args, &["--quiet"]].concat(), &[]);
-        assert!(out.status.success(), "{args:?}: {}", stderr(&out));
-        stdout(&out)
-    };
+    let run = run_quietly;
     run(&["ingest", s, manifest.to_str().unwrap(), "--max-depth", "9"]);
     let all = run(&["solve", s, "--iterations", "200", "--tolerance", "0"]);
     assert!(

@@ -1,8 +1,9 @@
 //! CPU reference kernels that need no store: the TGV solver on one unit ([`tgv`]), the
-//! histogram vote math ([`votes`]), and the deterministic random numbers of the synthetic
+//! histogram vote math ([`votes`]) and its occlusion culling ([`occlusion`]), and the deterministic random numbers of the synthetic
 //! inputs ([`random`]). The GPU engine (`gpu`) runs twins of `tgv` and `votes` and tests
 //! against them; stages call them on what they read from the store.
 
+pub mod occlusion;
 pub mod random;
 pub mod tgv;
 pub mod votes;

@@ -4,6 +4,8 @@
 
 use glam::{DVec3, Mat4, Vec4};
 
+use super::occlusion::FarthestDepths;
+
 use crate::format::{CubeKey, Scene};
 use crate::inputs::{DepthImage, DepthMapSource, Projection};
 
@@ -93,6 +95,8 @@ pub fn quantized_weight(weight: f32) -> f32 {
 pub struct Pyramid {
     pub source: DepthMapSource,
     pub levels: Vec<DepthImage>,
+    /// Block maxima of the full-resolution depths, for occlusion culling.
+    pub farthest: FarthestDepths,
 }
 
 /// The median of the finite values among four, NaN when none is finite.
@@ -128,6 +132,7 @@ pub fn median_of_valid(values: [f32; 4]) -> f32 {
 
 impl Pyramid {
     pub fn new(source: DepthMapSource, image: DepthImage) -> Pyramid {
+        let farthest = FarthestDepths::new(&image);
         let mut levels = vec![image];
         while let Some(last) = levels.last() {
             if last.width <= 1 && last.height <= 1 {
@@ -151,7 +156,11 @@ impl Pyramid {
                 depth,
             });
         }
-        Pyramid { source, levels }
+        Pyramid {
+            source,
+            levels,
+            farthest,
+        }
     }
 
     /// Bytes the decoded levels take.
@@ -159,7 +168,8 @@ impl Pyramid {
         self.levels
             .iter()
             .map(|level| (level.depth.len() * std::mem::size_of::<f32>()) as u64)
-            .sum()
+            .sum::<u64>()
+            + self.farthest.bytes()
     }
 
     /// Algorithm 1 for one voxel: the bin it votes into, if any.
@@ -540,6 +550,8 @@ pub struct Chunk {
     pub center: DVec3,
     /// Radius of that ball.
     pub radius: f64,
+    /// The largest voting radius of the run's cubes.
+    pub max_radius: f64,
 }
 
 pub fn chunks(centers: &[DVec3], radii: &[f64]) -> Vec<Chunk> {
@@ -548,15 +560,18 @@ pub fn chunks(centers: &[DVec3], radii: &[f64]) -> Vec<Chunk> {
     while start < centers.len() {
         let end = (start + CHUNK_CUBES).min(centers.len());
         let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+        let mut max_radius = 0f64;
         for (center, radius) in centers.iter().zip(radii).take(end).skip(start) {
             lo = lo.min(*center - DVec3::splat(*radius));
             hi = hi.max(*center + DVec3::splat(*radius));
+            max_radius = max_radius.max(*radius);
         }
         chunks.push(Chunk {
             start,
             end,
             center: (lo + hi) * 0.5,
             radius: (hi - lo).length() * 0.5,
+            max_radius,
         });
         start = end;
     }
@@ -659,6 +674,26 @@ pub fn vote_chunks(
 mod tests {
     use super::*;
 
+    /// A pinhole PFM map of `size`, intrinsics fx, fy, cx, cy, at `camera_to_world`.
+    fn pinhole_source(
+        path: &str,
+        size: (u32, u32),
+        k: [f64; 4],
+        camera_to_world: glam::DMat4,
+    ) -> crate::inputs::DepthMapSource {
+        let [fx, fy, cx, cy] = k;
+        crate::inputs::DepthMapSource {
+            path: path.into(),
+            format: crate::inputs::ImageFormat::Pfm,
+            width: size.0,
+            height: size.1,
+            projection: crate::inputs::Projection::Pinhole { fx, fy, cx, cy },
+            camera_to_world: camera_to_world.to_cols_array(),
+            kind: crate::inputs::Kind::Photo,
+            weight: 1.0,
+        }
+    }
+
     #[test]
     fn pyramid_levels_take_the_median_of_valid_depths() {
         let nan = f32::NAN;
@@ -683,21 +718,7 @@ mod tests {
         // A 4 x 2 wall at depth 1 with one wild pixel per 2 x 2 block: level 1 is the wall
         // (a mean would put the left block at 1.75), level 2 keeps it, and a block without
         // valid pixels stays invalid.
-        let source = crate::inputs::DepthMapSource {
-            path: "wall.pfm".into(),
-            format: crate::inputs::ImageFormat::Pfm,
-            width: 6,
-            height: 2,
-            projection: crate::inputs::Projection::Pinhole {
-                fx: 10.0,
-                fy: 10.0,
-                cx: 3.0,
-                cy: 1.0,
-            },
-            camera_to_world: glam::DMat4::IDENTITY.to_cols_array(),
-            kind: crate::inputs::Kind::Photo,
-            weight: 1.0,
-        };
+        let source = pinhole_source("wall.pfm", (6, 2), [10.0, 10.0, 3.0, 1.0], glam::DMat4::IDENTITY);
         let depth = vec![4.0, 1.0, 1.0, 0.1, nan, nan, 1.0, 1.0, 1.0, 1.0, nan, nan];
         let pyramid = Pyramid::new(
             source,
@@ -720,21 +741,12 @@ mod tests {
         // unequal focal lengths; depth everywhere far behind the cubes, so every cube that
         // projects into a level votes.
         let (width, height) = (37u32, 33u32);
-        let source = crate::inputs::DepthMapSource {
-            path: "far.pfm".into(),
-            format: crate::inputs::ImageFormat::Pfm,
-            width,
-            height,
-            projection: crate::inputs::Projection::Pinhole {
-                fx: 30.0,
-                fy: 24.0,
-                cx: 17.0,
-                cy: 12.5,
-            },
-            camera_to_world: glam::DMat4::IDENTITY.to_cols_array(),
-            kind: crate::inputs::Kind::Photo,
-            weight: 1.0,
-        };
+        let source = pinhole_source(
+            "far.pfm",
+            (width, height),
+            [30.0, 24.0, 17.0, 12.5],
+            glam::DMat4::IDENTITY,
+        );
         let depth = vec![1000.0; (width * height) as usize];
         let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
         let world_to_camera = glam::DMat4::IDENTITY;
@@ -772,23 +784,12 @@ mod tests {
         // A slanted wall with holes, cubes in front, behind, beside the view and behind the
         // camera, of radii from a fraction of a pixel's footprint to many pixels.
         let (width, height) = (53u32, 41u32);
-        let source = crate::inputs::DepthMapSource {
-            path: "wall.pfm".into(),
-            format: crate::inputs::ImageFormat::Pfm,
-            width,
-            height,
-            projection: crate::inputs::Projection::Pinhole {
-                fx: 45.0,
-                fy: 40.0,
-                cx: 26.0,
-                cy: 20.5,
-            },
-            camera_to_world: (glam::DMat4::from_translation(DVec3::new(3.0, -1.0, 2.0))
-                * glam::DMat4::from_rotation_y(0.3))
-            .to_cols_array(),
-            kind: crate::inputs::Kind::Photo,
-            weight: 1.0,
-        };
+        let source = pinhole_source(
+            "wall.pfm",
+            (width, height),
+            [45.0, 40.0, 26.0, 20.5],
+            glam::DMat4::from_translation(DVec3::new(3.0, -1.0, 2.0)) * glam::DMat4::from_rotation_y(0.3),
+        );
         let depth = (0..width * height)
             .map(|p| {
                 if p % 17 == 0 {

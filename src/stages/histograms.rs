@@ -555,6 +555,25 @@ impl HistogramsStage {
                 })?;
                 Ok(Pyramid::new(source.clone(), image))
             })?;
+            // Chunks the map sees only from far behind its surfaces cast no vote.
+            let needed: Needed = needed
+                .into_iter()
+                .filter_map(|(index, seen)| {
+                    let chunks = &voters.get(index)?.chunks;
+                    let seen: Vec<usize> = seen
+                        .into_iter()
+                        .filter(|&c| {
+                            chunks
+                                .get(c)
+                                .is_some_and(|chunk| !pyramid.farthest.hides(source, &world_to_camera, chunk))
+                        })
+                        .collect();
+                    (!seen.is_empty()).then_some((index, seen))
+                })
+                .collect();
+            if needed.is_empty() {
+                continue;
+            }
             let weight = quantized_weight(source.weight);
             if !vote(voters, &pyramid, source, &world_to_camera, weight, needed)? {
                 break;
