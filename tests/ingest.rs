@@ -444,3 +444,69 @@ fn merging_more_runs_than_the_fan_in_keeps_every_radius_sum() {
         "merge rounds leave no scratch files"
     );
 }
+
+/// RGB-D frames whose intrinsics file lies elsewhere (as many published captures ship it, one
+/// level up): `--intrinsics` names it, as a 3x3 matrix or as fx fy cx cy; without it the
+/// error says what to pass; a malformed file is named.
+#[test]
+fn frames_without_their_own_intrinsics_take_them_from_intrinsics_file() {
+    let root = tempfile::tempdir().unwrap();
+    let frames = root.path().join("capture").join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    for n in [0u32, 10] {
+        for suffix in ["depth.png", "pose.txt"] {
+            std::fs::copy(
+                kitchen().join(format!("frame-{n:06}.{suffix}")),
+                frames.join(format!("frame-{n:06}.{suffix}")),
+            )
+            .unwrap();
+        }
+    }
+    let matrix = root.path().join("capture").join("camera-intrinsics.txt");
+    std::fs::copy(kitchen().join("camera-intrinsics.txt"), &matrix).unwrap();
+    let four = root.path().join("intrinsics-4.txt");
+    std::fs::write(&four, "585 585 320 240\n").unwrap();
+    let seven = root.path().join("intrinsics-7.txt");
+    std::fs::write(&seven, "585 0 320 0 585 240 0\n").unwrap();
+    let (f, m, s) = (
+        frames.to_str().unwrap(),
+        matrix.to_str().unwrap(),
+        seven.to_str().unwrap(),
+    );
+    let ingest = |store: &str, extra: &[&str]| {
+        let store = root.path().join(store);
+        octstore(
+            &[&["ingest", store.to_str().unwrap(), f, "--quiet"][..], extra].concat(),
+            &[],
+        )
+    };
+    let out = ingest("without", &[]);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(
+        err.contains("--intrinsics FILE") && err.matches(f).count() == 1,
+        "{err}"
+    );
+    for (store, file) in [("matrix", m), ("four", four.to_str().unwrap())] {
+        let out = ingest(store, &["--intrinsics", file]);
+        assert!(out.status.success(), "{store}: {}", stderr(&out));
+    }
+    // Both forms give the same store: the same intrinsics, the same samples.
+    let info = |store: &str| {
+        let path = root.path().join(store);
+        stdout(&octstore(&["info", path.to_str().unwrap(), "--json"], &[]))
+    };
+    let (a, b): (serde_json::Value, serde_json::Value) = (
+        serde_json::from_str(&info("matrix")).unwrap(),
+        serde_json::from_str(&info("four")).unwrap(),
+    );
+    assert_eq!(a["digest"], b["digest"]);
+    assert_eq!(a["depth_maps"], 2, "{a}");
+    let out = ingest("seven", &["--intrinsics", s]);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(
+        err.contains("intrinsics-7.txt") && err.contains("found 7 values"),
+        "{err}"
+    );
+}

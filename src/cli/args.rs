@@ -128,6 +128,10 @@ pub struct IngestArgs {
     /// Take at most this many frames of a folder.
     #[arg(long)]
     pub limit: Option<usize>,
+    /// Intrinsics of RGB-D frames (a 3x3 matrix, or fx fy cx cy) for folders and frames
+    /// without a camera-intrinsics.txt beside them; it replaces theirs where they have one.
+    #[arg(long, value_name = "FILE")]
+    pub intrinsics: Option<PathBuf>,
     /// Root cube as minx,miny,minz,side (first ingest only; default: the samples' bounding
     /// box grown by --root-margin).
     #[arg(long, value_parser = parse_root)]

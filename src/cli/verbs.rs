@@ -25,6 +25,7 @@ pub(super) fn ingest(global: &GlobalOptions, args: IngestArgs) -> Result<()> {
         format: args.format,
         stride: args.stride,
         limit: args.limit,
+        intrinsics: args.intrinsics.clone(),
     };
     let store = open_or_create(&args.store)?;
     let options = IngestOptions {

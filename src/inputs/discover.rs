@@ -36,6 +36,9 @@ pub struct DiscoverOptions {
     pub stride: usize,
     /// Take at most this many frames of a folder.
     pub limit: Option<usize>,
+    /// Intrinsics of 7-Scenes / RGB-D frames (a 3x3 matrix, or fx fy cx cy), for folders and
+    /// frames without a camera-intrinsics.txt beside them; replaces theirs where they have one.
+    pub intrinsics: Option<PathBuf>,
 }
 
 impl Default for DiscoverOptions {
@@ -44,11 +47,21 @@ impl Default for DiscoverOptions {
             format: InputFormat::Auto,
             stride: 1,
             limit: None,
+            intrinsics: None,
         }
     }
 }
 
-fn detect(path: &Path) -> Result<InputFormat, InputError> {
+/// Whether `dir` holds depth frames named like 7-Scenes' (`*.depth.png`).
+fn has_depth_frames(dir: &Path) -> bool {
+    std::fs::read_dir(dir).is_ok_and(|entries| {
+        entries
+            .filter_map(|e| e.ok())
+            .any(|e| e.file_name().to_string_lossy().ends_with(".depth.png"))
+    })
+}
+
+fn detect(path: &Path, intrinsics_given: bool) -> Result<InputFormat, InputError> {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().to_lowercase())
@@ -59,6 +72,15 @@ fn detect(path: &Path) -> Result<InputFormat, InputError> {
         }
         if path.join("sparse").is_dir() && path.join("stereo").is_dir() {
             return Ok(InputFormat::Colmap);
+        }
+        if has_depth_frames(path) {
+            if intrinsics_given {
+                return Ok(InputFormat::SevenScenes);
+            }
+            return Err(bad(
+                path,
+                "RGB-D frames (*.depth.png) without camera-intrinsics.txt beside them: name the intrinsics file with --intrinsics FILE",
+            ));
         }
         return Err(bad(
             path,
@@ -88,12 +110,12 @@ pub fn discover(paths: &[PathBuf], options: &DiscoverOptions) -> Result<Vec<Dept
     let mut sources = Vec::new();
     for path in paths {
         let format = match options.format {
-            InputFormat::Auto => detect(path)?,
+            InputFormat::Auto => detect(path, options.intrinsics.is_some())?,
             other => other,
         };
         match format {
             InputFormat::SevenScenes if path.is_dir() => sources.extend(seven_scenes_folder(path, options)?),
-            InputFormat::SevenScenes => sources.push(seven_scenes_frame(path)?),
+            InputFormat::SevenScenes => sources.push(seven_scenes_frame(path, options)?),
             InputFormat::Manifest => sources.extend(manifest(path)?),
             InputFormat::Colmap => sources.extend(colmap::workspace(path)?),
             InputFormat::Lidar => sources.extend(lidar_file(path)?),
@@ -151,15 +173,49 @@ fn row_major_4x4(values: &[f64]) -> DMat4 {
     DMat4::from_cols(row(0), row(1), row(2), row(3)).transpose()
 }
 
-fn seven_scenes_intrinsics(dir: &Path) -> Result<Projection, InputError> {
-    let path = dir.join("camera-intrinsics.txt");
-    let k = numbers(&path, &read_text(&path)?, 9, "3x3 intrinsics matrix")?;
-    Ok(Projection::Pinhole {
-        fx: k[0],
-        fy: k[4],
-        cx: k[2],
-        cy: k[5],
-    })
+/// The intrinsics of the frames in `dir`: `--intrinsics` if given (a 3x3 matrix, or fx fy cx
+/// cy), else the folder's camera-intrinsics.txt (a 3x3 matrix).
+fn seven_scenes_intrinsics(dir: &Path, options: &DiscoverOptions) -> Result<Projection, InputError> {
+    let Some(path) = &options.intrinsics else {
+        let path = dir.join("camera-intrinsics.txt");
+        if !path.is_file() {
+            return Err(bad(
+                &path,
+                "no such file: RGB-D frames need camera-intrinsics.txt beside them or --intrinsics FILE",
+            ));
+        }
+        let k = numbers(&path, &read_text(&path)?, 9, "3x3 intrinsics matrix")?;
+        return Ok(pinhole_of_matrix(&k));
+    };
+    let text = read_text(path)?;
+    let count = text.split_whitespace().count();
+    if count == 4 {
+        let k = numbers(path, &text, 4, "intrinsics fx fy cx cy")?;
+        return Ok(Projection::Pinhole {
+            fx: k[0],
+            fy: k[1],
+            cx: k[2],
+            cy: k[3],
+        });
+    }
+    if count != 9 {
+        return Err(bad(
+            path,
+            format!("intrinsics: expected a 3x3 matrix (9 numbers) or fx fy cx cy (4 numbers), found {count} values"),
+        ));
+    }
+    Ok(pinhole_of_matrix(&numbers(path, &text, 9, "3x3 intrinsics matrix")?))
+}
+
+/// A pinhole from a row-major 3x3 camera matrix.
+fn pinhole_of_matrix(k: &[f64]) -> Projection {
+    let at = |i: usize| k.get(i).copied().unwrap_or(f64::NAN);
+    Projection::Pinhole {
+        fx: at(0),
+        fy: at(4),
+        cx: at(2),
+        cy: at(5),
+    }
 }
 
 fn seven_scenes_source(depth: &Path, projection: Projection) -> Result<DepthMapSource, InputError> {
@@ -195,16 +251,16 @@ fn seven_scenes_source(depth: &Path, projection: Projection) -> Result<DepthMapS
     Ok(source)
 }
 
-fn seven_scenes_frame(depth: &Path) -> Result<DepthMapSource, InputError> {
+fn seven_scenes_frame(depth: &Path, options: &DiscoverOptions) -> Result<DepthMapSource, InputError> {
     let dir = depth
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
-    seven_scenes_source(depth, seven_scenes_intrinsics(dir)?)
+    seven_scenes_source(depth, seven_scenes_intrinsics(dir, options)?)
 }
 
 fn seven_scenes_folder(dir: &Path, options: &DiscoverOptions) -> Result<Vec<DepthMapSource>, InputError> {
-    let projection = seven_scenes_intrinsics(dir)?;
+    let projection = seven_scenes_intrinsics(dir, options)?;
     let mut frames: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|source| InputError::Io {
             file: dir.to_path_buf(),
