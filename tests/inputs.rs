@@ -420,3 +420,137 @@ fn auto_detection_names_each_format_and_never_guesses() {
         .to_string();
     assert!(err.contains("cannot tell the input format"), "{err}");
 }
+
+/// Writes RedKitchen frames `frames` as a TUM RGB-D sequence under `dir`: depth PNGs at 5000
+/// units per metre in depth/, depth.txt with one timestamp per frame, groundtruth.txt with
+/// quaternion poses 5 ms off the frames' times (and none near the frame at `orphan`).
+fn write_tum_copy(dir: &Path, frames: &[u32], orphan: Option<u32>) {
+    let kitchen = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/7scenes-redkitchen");
+    std::fs::create_dir_all(dir.join("depth")).unwrap();
+    let (mut depth_list, mut truth) = (
+        String::from("# depth maps\n"),
+        String::from("# timestamp tx ty tz qx qy qz qw\n"),
+    );
+    for &n in frames {
+        let time = 1305031102.0 + f64::from(n) / 30.0;
+        let png = image::open(kitchen.join(format!("frame-{n:06}.depth.png")))
+            .unwrap()
+            .into_luma16();
+        let scaled = image::ImageBuffer::from_fn(png.width(), png.height(), |x, y| {
+            let mm = png.get_pixel(x, y).0[0];
+            image::Luma([if mm == u16::MAX { mm } else { mm * 5 }])
+        });
+        let name = format!("depth/{time:.6}.png");
+        scaled.save(dir.join(&name)).unwrap();
+        depth_list += &format!("{time:.6} {name}\n");
+        if Some(n) == orphan {
+            continue;
+        }
+        let text = std::fs::read_to_string(kitchen.join(format!("frame-{n:06}.pose.txt"))).unwrap();
+        let v: Vec<f64> = text.split_whitespace().map(|t| t.parse().unwrap()).collect();
+        let pose = DMat4::from_cols_array(&v.try_into().unwrap()).transpose();
+        let (_, rotation, translation) = pose.to_scale_rotation_translation();
+        truth += &format!(
+            "{:.6} {} {} {} {} {} {} {}\n",
+            time + 0.005,
+            translation.x,
+            translation.y,
+            translation.z,
+            rotation.x,
+            rotation.y,
+            rotation.z,
+            rotation.w
+        );
+    }
+    std::fs::write(dir.join("depth.txt"), depth_list).unwrap();
+    std::fs::write(dir.join("groundtruth.txt"), truth).unwrap();
+}
+
+/// A TUM RGB-D sequence is found by `--format auto`, its frames take the poses nearest in time
+/// (within 0.02 s; a frame without one is left out), and it reads as the same frames in the
+/// 7-Scenes layout do: same depths, same poses. Bad lists name the file and the line.
+#[test]
+fn tum_sequences_read_as_the_same_frames_in_seven_scenes_layout() {
+    let dir = tempfile::tempdir().unwrap();
+    let kitchen = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/7scenes-redkitchen");
+    let sequence = dir.path().join("capture");
+    write_tum_copy(&sequence, &[0, 10, 20], Some(20));
+    let intrinsics = kitchen.join("camera-intrinsics.txt");
+    let options = DiscoverOptions {
+        intrinsics: Some(intrinsics.clone()),
+        ..DiscoverOptions::default()
+    };
+    let tum = discover(std::slice::from_ref(&sequence), &options).unwrap();
+    assert_eq!(tum.len(), 2, "the frame without a pose is left out");
+    let seven: Vec<_> = [0, 10]
+        .iter()
+        .map(|n| {
+            discover(
+                &[kitchen.join(format!("frame-{n:06}.depth.png"))],
+                &DiscoverOptions::default(),
+            )
+            .unwrap()
+        })
+        .map(|mut s| s.remove(0))
+        .collect();
+    for (t, s) in tum.iter().zip(&seven) {
+        assert_eq!(t.projection, s.projection);
+        assert_eq!(t.kind, Kind::Rgbd);
+        // 7-Scenes rotations carry a scale of about 1 + 5e-5; a quaternion has none.
+        for (a, b) in t.camera_to_world.iter().zip(&s.camera_to_world) {
+            assert!(
+                (a - b).abs() < 1e-4,
+                "{:?} vs {:?}",
+                t.camera_to_world,
+                s.camera_to_world
+            );
+        }
+        let (a, b) = (t.load().unwrap(), s.load().unwrap());
+        assert_eq!((a.width, a.height), (b.width, b.height));
+        for (x, y) in a.depth.iter().zip(&b.depth) {
+            assert!(
+                x.is_nan() && y.is_nan() || (x - y).abs() <= 1e-6 * y.abs(),
+                "{x} vs {y}"
+            );
+        }
+    }
+    // Without --intrinsics, a folder not named after its Freiburg sensor is refused; one that
+    // is takes the sensor's published intrinsics.
+    let err = discover(std::slice::from_ref(&sequence), &DiscoverOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("--intrinsics FILE"), "{err}");
+    let freiburg = dir.path().join("rgbd_dataset_freiburg1_xyz");
+    write_tum_copy(&freiburg, &[0], None);
+    let named = discover(std::slice::from_ref(&freiburg), &DiscoverOptions::default()).unwrap();
+    assert!(matches!(named[0].projection, Projection::Pinhole { fx, .. } if fx == 517.3));
+    // One command ingests it.
+    let store = dir.path().join("store");
+    let out = octstore(
+        &[
+            "ingest",
+            store.to_str().unwrap(),
+            sequence.to_str().unwrap(),
+            "--intrinsics",
+            intrinsics.to_str().unwrap(),
+            "--quiet",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    // A malformed line is named by file and line.
+    std::fs::write(
+        sequence.join("groundtruth.txt"),
+        "# poses\n1305031102.005 0 0 0 0 0 0\n",
+    )
+    .unwrap();
+    let err = discover(std::slice::from_ref(&sequence), &options)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("groundtruth.txt") && err.contains("line 2"), "{err}");
+    std::fs::write(sequence.join("groundtruth.txt"), "1305031102.005 0 0 0 0 0 0 0\n").unwrap();
+    let err = discover(std::slice::from_ref(&sequence), &options)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("quaternion has length 0"), "{err}");
+}

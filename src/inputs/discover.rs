@@ -10,6 +10,7 @@ use super::colmap;
 use super::depth_map::{DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
 use super::image_files::{read_npy, read_pfm};
 use super::lidar;
+use super::tum;
 
 /// How to interpret an input path.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -19,6 +20,8 @@ pub enum InputFormat {
     /// A folder with camera-intrinsics.txt, frame-XXXXXX.depth.png and frame-XXXXXX.pose.txt,
     /// or single frame-XXXXXX.depth.png files of such a folder.
     SevenScenes,
+    /// A TUM RGB-D benchmark sequence: depth.txt, groundtruth.txt and depth/*.png.
+    Tum,
     /// A JSON scene manifest.
     Manifest,
     /// A COLMAP dense workspace.
@@ -67,6 +70,10 @@ fn detect(path: &Path, intrinsics_given: bool) -> Result<InputFormat, InputError
         .map(|n| n.to_string_lossy().to_lowercase())
         .unwrap_or_default();
     if path.is_dir() {
+        // TUM first: its lists name the frames, whatever other files lie beside them.
+        if tum::is_tum_folder(path) {
+            return Ok(InputFormat::Tum);
+        }
         if path.join("camera-intrinsics.txt").is_file() {
             return Ok(InputFormat::SevenScenes);
         }
@@ -84,7 +91,7 @@ fn detect(path: &Path, intrinsics_given: bool) -> Result<InputFormat, InputError
         }
         return Err(bad(
             path,
-            "cannot tell the input format: a folder needs camera-intrinsics.txt (7-Scenes/RGB-D) or sparse/ and stereo/ (COLMAP); pass --format",
+            "cannot tell the input format: a folder needs camera-intrinsics.txt (7-Scenes/RGB-D), depth.txt and groundtruth.txt (TUM RGB-D) or sparse/ and stereo/ (COLMAP); pass --format",
         ));
     }
     if !path.exists() {
@@ -116,6 +123,7 @@ pub fn discover(paths: &[PathBuf], options: &DiscoverOptions) -> Result<Vec<Dept
         match format {
             InputFormat::SevenScenes if path.is_dir() => sources.extend(seven_scenes_folder(path, options)?),
             InputFormat::SevenScenes => sources.push(seven_scenes_frame(path, options)?),
+            InputFormat::Tum => sources.extend(tum_folder(path, options)?),
             InputFormat::Manifest => sources.extend(manifest(path)?),
             InputFormat::Colmap => sources.extend(colmap::workspace(path)?),
             InputFormat::Lidar => sources.extend(lidar_file(path)?),
@@ -187,6 +195,40 @@ fn seven_scenes_intrinsics(dir: &Path, options: &DiscoverOptions) -> Result<Proj
         let k = numbers(&path, &read_text(&path)?, 9, "3x3 intrinsics matrix")?;
         return Ok(pinhole_of_matrix(&k));
     };
+    intrinsics_file(path)
+}
+
+/// A TUM RGB-D sequence's frames, with `--intrinsics` or the published intrinsics of the
+/// Freiburg sensor its folder is named after.
+fn tum_folder(dir: &Path, options: &DiscoverOptions) -> Result<Vec<DepthMapSource>, InputError> {
+    if !tum::is_tum_folder(dir) {
+        return Err(bad(dir, "a TUM RGB-D folder needs depth.txt and groundtruth.txt"));
+    }
+    let projection = match &options.intrinsics {
+        Some(file) => intrinsics_file(file)?,
+        None => tum::freiburg_intrinsics(dir).ok_or_else(|| {
+            bad(
+                dir,
+                "a TUM RGB-D folder not named after its sensor (freiburg1, 2 or 3) needs --intrinsics FILE",
+            )
+        })?,
+    };
+    let (sources, without_pose) = tum::tum_frames(dir, projection, options.stride, options.limit)?;
+    if without_pose > 0 {
+        tracing::warn!(
+            "{}: {without_pose} depth frame(s) have no ground-truth pose within {} s and are left out",
+            dir.display(),
+            tum::MAX_TIME_DIFFERENCE
+        );
+    }
+    if sources.is_empty() {
+        return Err(bad(dir, "no depth frame has a ground-truth pose"));
+    }
+    Ok(sources)
+}
+
+/// Intrinsics from a file: a 3x3 matrix (9 numbers) or fx fy cx cy (4 numbers).
+fn intrinsics_file(path: &Path) -> Result<Projection, InputError> {
     let text = read_text(path)?;
     let count = text.split_whitespace().count();
     if count == 4 {

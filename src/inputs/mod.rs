@@ -1,24 +1,27 @@
-//! Inputs: discovering depth maps (7-Scenes / RGB-D folders, JSON manifests, COLMAP dense
-//! workspaces, PTX / E57 LIDAR scans) and reading them into [`DepthImage`]s.
+//! Inputs: discovering depth maps (7-Scenes / RGB-D folders, TUM RGB-D sequences, JSON
+//! manifests, COLMAP dense workspaces, PTX / E57 LIDAR scans) and reading them into
+//! [`DepthImage`]s.
 //!
 //! Conventions (README, "Inputs"): poses are camera-to-world with OpenCV camera axes (x right,
 //! y down, z forward); pinhole depth is the z coordinate in the camera frame, pixel (i, j) has
 //! its centre at image coordinates (i, j); spherical (LIDAR) depth is the range along the ray.
 //!
 //! `depth_map` holds the types every reader shares and imports no reader; the readers
-//! (`image_files`, `colmap`, `lidar`) import only `depth_map`; this file dispatches to them.
+//! (`image_files`, `colmap`, `lidar`, `tum`) import only `depth_map`; this file dispatches to them.
 
 mod colmap;
 mod depth_map;
 mod discover;
 mod image_files;
 mod lidar;
+mod tum;
 
 pub use colmap::{WorkspaceWriter, write_colmap_depth};
 pub use depth_map::{DepthImage, DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
 pub use discover::{DiscoverOptions, InputFormat, discover};
 pub use image_files::{read_npy, read_pfm, read_png16, write_pfm};
 pub use lidar::write_ptx_scan;
+pub use tum::{MAX_TIME_DIFFERENCE, TUM_DEPTH_SCALE};
 
 impl DepthMapSource {
     /// Reads the depth image, and checks that its size is the registered one.
