@@ -182,6 +182,29 @@ pub fn check_pose(file: &Path, m: &DMat4) -> Result<(), InputError> {
 }
 
 impl DepthMapSource {
+    /// An RGB-D frame: a 16-bit depth PNG of `size` at `scale` metres per unit, its
+    /// intrinsics checked against the size.
+    pub fn rgbd_png(
+        path: &Path,
+        scale: f64,
+        size: (u32, u32),
+        projection: Projection,
+        camera_to_world: &DMat4,
+    ) -> Result<Self, InputError> {
+        let source = DepthMapSource {
+            path: std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf()),
+            format: ImageFormat::Png16 { scale },
+            width: size.0,
+            height: size.1,
+            projection,
+            camera_to_world: camera_to_world.to_cols_array(),
+            kind: Kind::Rgbd,
+            weight: Kind::Rgbd.default_weight(),
+        };
+        source.check_intrinsics()?;
+        Ok(source)
+    }
+
     /// The camera-to-world pose.
     pub fn pose(&self) -> DMat4 {
         DMat4::from_cols_array(&self.camera_to_world)

@@ -277,20 +277,9 @@ fn seven_scenes_source(depth: &Path, projection: Projection) -> Result<DepthMapS
     }
     let pose = row_major_4x4(&numbers(&pose_path, &read_text(&pose_path)?, 16, "4x4 pose matrix")?);
     check_pose(&pose_path, &pose)?;
-    let format = ImageFormat::Png16 { scale: 0.001 };
-    let (width, height) = image_size(depth, &format)?;
-    let source = DepthMapSource {
-        path: std::path::absolute(depth).unwrap_or_else(|_| depth.to_path_buf()),
-        format,
-        width,
-        height,
-        projection,
-        camera_to_world: pose.to_cols_array(),
-        kind: Kind::Rgbd,
-        weight: Kind::Rgbd.default_weight(),
-    };
-    source.check_intrinsics()?;
-    Ok(source)
+    let scale = 0.001;
+    let size = image_size(depth, &ImageFormat::Png16 { scale })?;
+    DepthMapSource::rgbd_png(depth, scale, size, projection, &pose)
 }
 
 fn seven_scenes_frame(depth: &Path, options: &DiscoverOptions) -> Result<DepthMapSource, InputError> {

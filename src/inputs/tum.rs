@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use glam::{DMat4, DQuat, DVec3};
 
-use super::depth_map::{DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
+use super::depth_map::{DepthMapSource, InputError, Projection, bad, check_pose};
 
 /// Metres per unit of a TUM depth PNG.
 pub const TUM_DEPTH_SCALE: f64 = 1.0 / 5000.0;
@@ -137,20 +137,8 @@ pub fn tum_frames(
         .step_by(stride.max(1))
         .take(limit.unwrap_or(usize::MAX))
         .map(|(path, pose)| {
-            let (width, height) =
-                image::image_dimensions(&path).map_err(|e| bad(&path, format!("unreadable PNG: {e}")))?;
-            let source = DepthMapSource {
-                path: std::path::absolute(&path).unwrap_or(path),
-                format: ImageFormat::Png16 { scale: TUM_DEPTH_SCALE },
-                width,
-                height,
-                projection,
-                camera_to_world: pose.to_cols_array(),
-                kind: Kind::Rgbd,
-                weight: Kind::Rgbd.default_weight(),
-            };
-            source.check_intrinsics()?;
-            Ok(source)
+            let size = image::image_dimensions(&path).map_err(|e| bad(&path, format!("unreadable PNG: {e}")))?;
+            DepthMapSource::rgbd_png(&path, TUM_DEPTH_SCALE, size, projection, &pose)
         })
         .collect::<Result<Vec<_>, InputError>>()?;
     Ok((sources, without_pose))

@@ -11,7 +11,7 @@
 //! takes a few reads; a chunk is culled only when its nearest point is farther than the
 //! largest depth under its whole footprint plus its largest cube's eta.
 
-use super::votes::Chunk;
+use super::votes::{Chunk, halve};
 use crate::inputs::{DepthImage, DepthMapSource, Projection};
 
 /// The finest level [`FarthestDepths`] keeps: blocks of 2^3 = 8 pixels a side (1/64 of the
@@ -36,40 +36,19 @@ fn largest_valid(values: [f32; 4]) -> f32 {
         .fold(f32::NAN, |largest, v| if largest >= v { largest } else { v })
 }
 
-/// Blocks of 2 x 2 pixels of `last`, each its largest valid depth.
-fn halve(last: &DepthImage) -> DepthImage {
-    let (w, h) = (last.width.div_ceil(2), last.height.div_ceil(2));
-    let mut depth = Vec::with_capacity((w * h) as usize);
-    for j in 0..h {
-        for i in 0..w {
-            depth.push(largest_valid([
-                last.get(2 * i, 2 * j),
-                last.get(2 * i + 1, 2 * j),
-                last.get(2 * i, 2 * j + 1),
-                last.get(2 * i + 1, 2 * j + 1),
-            ]));
-        }
-    }
-    DepthImage {
-        width: w,
-        height: h,
-        depth,
-    }
-}
-
 impl FarthestDepths {
     /// The maxima of `image`'s blocks.
     pub fn new(image: &DepthImage) -> Self {
-        let mut first = halve(image);
+        let mut first = halve(image, largest_valid);
         for _ in 1..FIRST_LEVEL {
-            first = halve(&first);
+            first = halve(&first, largest_valid);
         }
         let mut levels = vec![first];
         while let Some(last) = levels.last() {
             if last.width <= 1 && last.height <= 1 {
                 break;
             }
-            let next = halve(last);
+            let next = halve(last, largest_valid);
             levels.push(next);
         }
         FarthestDepths { levels }

@@ -99,6 +99,28 @@ pub struct Pyramid {
     pub farthest: FarthestDepths,
 }
 
+/// The next coarser level of `last`: each block of 2 x 2 pixels (fewer at an odd edge, the
+/// missing ones NaN) reduced to one by `reduce`.
+pub fn halve(last: &DepthImage, reduce: impl Fn([f32; 4]) -> f32) -> DepthImage {
+    let (w, h) = (last.width.div_ceil(2), last.height.div_ceil(2));
+    let mut depth = Vec::with_capacity((w * h) as usize);
+    for j in 0..h {
+        for i in 0..w {
+            depth.push(reduce([
+                last.get(2 * i, 2 * j),
+                last.get(2 * i + 1, 2 * j),
+                last.get(2 * i, 2 * j + 1),
+                last.get(2 * i + 1, 2 * j + 1),
+            ]));
+        }
+    }
+    DepthImage {
+        width: w,
+        height: h,
+        depth,
+    }
+}
+
 /// The median of the finite values among four, NaN when none is finite.
 pub fn median_of_valid(values: [f32; 4]) -> f32 {
     if values.iter().all(|v| v.is_finite()) {
@@ -138,23 +160,8 @@ impl Pyramid {
             if last.width <= 1 && last.height <= 1 {
                 break;
             }
-            let (w, h) = (last.width.div_ceil(2), last.height.div_ceil(2));
-            let mut depth = Vec::with_capacity((w * h) as usize);
-            for j in 0..h {
-                for i in 0..w {
-                    depth.push(median_of_valid([
-                        last.get(2 * i, 2 * j),
-                        last.get(2 * i + 1, 2 * j),
-                        last.get(2 * i, 2 * j + 1),
-                        last.get(2 * i + 1, 2 * j + 1),
-                    ]));
-                }
-            }
-            levels.push(DepthImage {
-                width: w,
-                height: h,
-                depth,
-            });
+            let next = halve(last, median_of_valid);
+            levels.push(next);
         }
         Pyramid {
             source,
