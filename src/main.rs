@@ -24,13 +24,15 @@ fn main() -> ExitCode {
             unsafe { std::env::set_var(name, value) };
         }
     }
+    let cli = octstore::cli::Cli::parse();
+    // `--quiet` keeps warnings and errors; OCTSTORE_LOG, when set, decides instead.
+    let level = if cli.global.quiet { "warn" } else { "info" };
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_target(false)
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("OCTSTORE_LOG").unwrap_or_else(|_| "info".into()))
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("OCTSTORE_LOG").unwrap_or_else(|_| level.into()))
         .without_time()
         .init();
-    let cli = octstore::cli::Cli::parse();
     match octstore::cli::run(cli) {
         Ok(code) => code,
         Err(e) => {

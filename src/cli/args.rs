@@ -35,7 +35,8 @@ pub struct GlobalOptions {
     /// Worker threads (default: all cores).
     #[arg(long, global = true)]
     pub threads: Option<usize>,
-    /// No progress bars.
+    /// No progress bars and no informational log lines on stderr (warnings and errors still
+    /// print; the OCTSTORE_LOG variable, when set, decides instead).
     #[arg(long, global = true)]
     pub quiet: bool,
 }
