@@ -37,14 +37,12 @@ fn main() {
         camera_to_world: camera_to_world.to_cols_array(),
         kind: Kind::Photo,
         weight: 1.0,
+        noise: octstore::inputs::DepthNoise::Footprint,
     };
     let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
     let world_to_camera = camera_to_world.inverse();
     let mut seed = 7u64;
-    let mut uniform = move || {
-        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        (seed >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut uniform = move || octstore::kernels::random::uniform(&mut seed);
     let (mut centers, mut radii) = (Vec::with_capacity(cubes), Vec::with_capacity(cubes));
     for _ in 0..cubes {
         let (u, v) = (

@@ -47,6 +47,11 @@ fn golden_v2_decodes_to_known_values() {
     decodes_to_known_values(2);
 }
 
+#[test]
+fn golden_v3_decodes_to_known_values() {
+    decodes_to_known_values(3);
+}
+
 fn decodes_to_known_values(version: u32) {
     let dir = tempfile::tempdir().unwrap();
     copy_dir(&golden(version), dir.path());
@@ -129,15 +134,72 @@ fn encoding_the_same_content_again_gives_the_same_bytes() {
 }
 
 #[test]
-fn a_writable_open_migrates_golden_v1_to_golden_v2() {
-    let (old, new) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
-    copy_dir(&golden(1), old.path());
-    copy_dir(&golden(2), new.path());
-    let v1_dump = Store::open_read_only(old.path()).unwrap().canonical_dump().unwrap();
-    let v2_dump = Store::open_read_only(new.path()).unwrap().canonical_dump().unwrap();
-    assert_ne!(v1_dump, v2_dump, "the golden stores differ in their format version");
-    let migrated = Store::open(old.path()).unwrap().canonical_dump().unwrap();
-    assert_eq!(migrated, v2_dump);
+fn a_writable_open_migrates_older_golden_stores_to_the_newest() {
+    let newest = tempfile::tempdir().unwrap();
+    copy_dir(&golden(CATALOG_FORMAT_VERSION), newest.path());
+    let newest_dump = Store::open_read_only(newest.path()).unwrap().canonical_dump().unwrap();
+    for version in 1..CATALOG_FORMAT_VERSION {
+        let old = tempfile::tempdir().unwrap();
+        copy_dir(&golden(version), old.path());
+        let old_dump = Store::open_read_only(old.path()).unwrap().canonical_dump().unwrap();
+        assert_ne!(old_dump, newest_dump, "golden-v{version} differs in its format version");
+        let migrated = Store::open(old.path()).unwrap().canonical_dump().unwrap();
+        assert_eq!(migrated, newest_dump, "golden-v{version} migrated");
+    }
+}
+
+/// A version-2 store holding one RGB-D depth map (`tests/data/golden-v2-ingest`, written by
+/// the version-2 build from `input/scene.json`): its map reads with the pixel-footprint rule
+/// it was ingested with, read-only and after migration alike, keeps its id although this
+/// build's default noise model for RGB-D differs, and a repeated ingest adds nothing.
+#[test]
+fn version_2_depth_maps_keep_their_ids_and_the_footprint_rule() {
+    let golden = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/golden-v2-ingest");
+    let dir = tempfile::tempdir().unwrap();
+    copy_dir(&golden, dir.path());
+    let input = golden.join("input/scene.json");
+    let sources = octstore::inputs::discover(std::slice::from_ref(&input), &Default::default()).unwrap();
+    assert_eq!(sources[0].noise, octstore::inputs::DepthNoise::STRUCTURED_LIGHT);
+    let id = octstore::stages::ingest::depth_map_id(&sources[0]).unwrap();
+
+    let read_only = {
+        let store = Store::open_read_only(dir.path()).unwrap();
+        assert_eq!(store.catalog_format_version().unwrap(), 2);
+        octstore::stages::ingest::registered_depth_maps(&store).unwrap()
+    };
+    assert_eq!(read_only.len(), 1);
+    let (old_id, record) = &read_only[0];
+    assert_eq!(*old_id, id);
+    assert_eq!(record.source.noise, octstore::inputs::DepthNoise::Footprint);
+    assert_eq!(record.source.kind, octstore::inputs::Kind::Rgbd);
+    assert_eq!(
+        (record.stats.samples, record.stats.cubes, record.added_in),
+        (192, 144, 1)
+    );
+
+    let store = Store::open(dir.path()).unwrap();
+    assert_eq!(store.catalog_format_version().unwrap(), CATALOG_FORMAT_VERSION);
+    assert_eq!(
+        octstore::stages::ingest::registered_depth_maps(&store).unwrap(),
+        read_only
+    );
+    drop(store);
+    let out = octstore(
+        &[
+            "ingest",
+            dir.path().to_str().unwrap(),
+            input.to_str().unwrap(),
+            "--quiet",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let store = Store::open_read_only(dir.path()).unwrap();
+    assert_eq!(store.current_version().unwrap(), 1, "{}", stdout(&out));
+    assert_eq!(
+        octstore::stages::ingest::registered_depth_maps(&store).unwrap(),
+        read_only
+    );
 }
 
 #[test]

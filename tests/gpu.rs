@@ -505,6 +505,7 @@ fn vote_case(spherical: bool, seed: u64) -> VoteCase {
         camera_to_world: camera_to_world.to_cols_array(),
         kind: if spherical { Kind::Lidar } else { Kind::Photo },
         weight: 1.0,
+        noise: octstore::inputs::DepthNoise::Footprint,
     };
     let depth_at = |i: u32, j: u32| 3.0 + 0.02 * f64::from(i) + 0.5 * (f64::from(j) * 0.1).sin();
     let mut depth = Vec::new();

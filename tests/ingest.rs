@@ -273,6 +273,7 @@ fn invalid_depths_are_skipped_and_counted() {
         camera_to_world: pose.to_cols_array(),
         kind: octstore::inputs::Kind::Photo,
         weight: 1.0,
+        noise: octstore::inputs::DepthNoise::Footprint,
     };
     let loaded = source.load().unwrap();
     let samples = back_project(&source, &loaded);
@@ -509,4 +510,79 @@ fn frames_without_their_own_intrinsics_take_them_from_intrinsics_file() {
         err.contains("intrinsics-7.txt") && err.contains("found 7 values"),
         "{err}"
     );
+}
+
+/// RGB-D frames take the structured-light noise model by default: their samples' cubes are
+/// never smaller than one sigma of the sensor's depth noise, so two RedKitchen frames make
+/// fewer cubes than with the pixel footprint alone (`--depth-noise none`), and fewer still at
+/// two sigmas. The model is recorded with each map; the CLI's numbers equal to the default give
+/// the same store; malformed models are refused with what is expected.
+#[test]
+fn rgbd_frames_take_the_sensor_noise_model_unless_told_otherwise() {
+    let root = tempfile::tempdir().unwrap();
+    let (a, b) = (frame(0), frame(500));
+    let ingest = |store: &str, extra: &[&str]| {
+        let path = root.path().join(store);
+        let out = octstore(
+            &[&["ingest", path.to_str().unwrap(), &a, &b, "--quiet"][..], extra].concat(),
+            &[],
+        );
+        (path, out)
+    };
+    let recorded = |path: &Path| {
+        let store = Store::open_read_only(path).unwrap();
+        let maps = octstore::stages::ingest::registered_depth_maps(&store).unwrap();
+        assert_eq!(maps.len(), 2);
+        let cubes: u64 = maps.iter().map(|(_, r)| r.stats.cubes).sum();
+        (maps[0].1.source.noise, cubes)
+    };
+    let digest = |path: &Path| {
+        let info: serde_json::Value =
+            serde_json::from_str(&stdout(&octstore(&["info", path.to_str().unwrap(), "--json"], &[]))).unwrap();
+        info["digest"].clone()
+    };
+    let mut cubes = Vec::new();
+    let mut paths = Vec::new();
+    for (store, extra, noise) in [
+        (
+            "none",
+            &["--depth-noise", "none"][..],
+            octstore::inputs::DepthNoise::Footprint,
+        ),
+        ("default", &[][..], octstore::inputs::DepthNoise::STRUCTURED_LIGHT),
+        (
+            "two",
+            &["--noise-sigmas", "2"][..],
+            octstore::inputs::DepthNoise::STRUCTURED_LIGHT.with_sigmas(2.0),
+        ),
+        (
+            "explicit",
+            &["--depth-noise", "0.0012,0.0019,0.4", "--noise-sigmas", "1"][..],
+            octstore::inputs::DepthNoise::STRUCTURED_LIGHT,
+        ),
+    ] {
+        let (path, out) = ingest(store, extra);
+        assert!(out.status.success(), "{store}: {}", stderr(&out));
+        let (recorded_noise, count) = recorded(&path);
+        assert_eq!(recorded_noise, noise, "{store}");
+        cubes.push(count);
+        paths.push(path);
+    }
+    assert!(
+        cubes[0] > cubes[1] * 3 / 2 && cubes[1] > cubes[2] * 3 / 2,
+        "cubes with none, 1 and 2 sigmas: {cubes:?}"
+    );
+    assert_eq!(cubes[1], cubes[3]);
+    assert_eq!(digest(&paths[1]), digest(&paths[3]));
+
+    for (extra, expected) in [
+        (&["--depth-noise", "1,2"][..], "1 number (sigma) or 3"),
+        (&["--depth-noise=-0.001"][..], "not negative"),
+        (&["--noise-sigmas", "nan"][..], "standard deviations in [0, 100]"),
+    ] {
+        let (path, out) = ingest("bad", extra);
+        assert!(!out.status.success(), "{extra:?}");
+        assert!(stderr(&out).contains(expected), "{extra:?}: {}", stderr(&out));
+        assert!(!path.exists(), "{extra:?} created a store");
+    }
 }

@@ -554,3 +554,65 @@ fn tum_sequences_read_as_the_same_frames_in_seven_scenes_layout() {
         .to_string();
     assert!(err.contains("quaternion has length 0"), "{err}");
 }
+
+/// A manifest entry may name its depth noise: "none", a sigma, or [constant, quadratic,
+/// offset], with `noise_sigmas`; without one it takes its kind's; a malformed one is refused
+/// with the entry named.
+#[test]
+fn manifest_entries_name_their_depth_noise() {
+    use octstore::inputs::DepthNoise;
+    let golden = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/golden-v2-ingest/input");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(golden.join("plane.pfm"), dir.path().join("plane.pfm")).unwrap();
+    let template: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(golden.join("scene.json")).unwrap()).unwrap();
+    let read = |fields: serde_json::Value| {
+        let mut manifest = template.clone();
+        for (key, value) in fields.as_object().unwrap() {
+            manifest["depth_maps"][0][key] = value.clone();
+        }
+        let path = dir.path().join("scene.json");
+        std::fs::write(&path, manifest.to_string()).unwrap();
+        discover(&[path], &DiscoverOptions::default()).map(|sources| sources[0].noise)
+    };
+    let axial = |constant, quadratic, offset, sigmas| DepthNoise::Axial {
+        constant,
+        quadratic,
+        offset,
+        sigmas,
+    };
+    assert_eq!(read(serde_json::json!({})).unwrap(), DepthNoise::STRUCTURED_LIGHT);
+    assert_eq!(
+        read(serde_json::json!({"kind": "photo"})).unwrap(),
+        DepthNoise::Footprint
+    );
+    assert_eq!(
+        read(serde_json::json!({"depth_noise": "none"})).unwrap(),
+        DepthNoise::Footprint
+    );
+    assert_eq!(
+        read(serde_json::json!({"depth_noise": 0.003})).unwrap(),
+        axial(0.003, 0.0, 0.0, 1.0)
+    );
+    assert_eq!(
+        read(serde_json::json!({"depth_noise": [0.001, 0.002, 0.5], "noise_sigmas": 2.0})).unwrap(),
+        axial(0.001, 0.002, 0.5, 2.0)
+    );
+    assert_eq!(
+        read(serde_json::json!({"noise_sigmas": 3.0})).unwrap(),
+        DepthNoise::STRUCTURED_LIGHT.with_sigmas(3.0)
+    );
+    for (bad, expected) in [
+        (serde_json::json!({"depth_noise": "loud"}), "unknown depth_noise 'loud'"),
+        (serde_json::json!({"depth_noise": [1.0, 2.0]}), "1 number (sigma) or 3"),
+        (serde_json::json!({"depth_noise": -1.0}), "not negative"),
+    ] {
+        let error = read(bad.clone())
+            .expect_err("a malformed depth_noise was accepted")
+            .to_string();
+        assert!(
+            error.contains("scene.json") && error.contains("depth_maps[0]") && error.contains(expected),
+            "{bad}: {error}"
+        );
+    }
+}

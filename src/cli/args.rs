@@ -4,7 +4,10 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
-use super::parse::{parse_point, parse_ratio, parse_region, parse_root, parse_size, parse_tolerance};
+use super::parse::{
+    parse_depth_noise, parse_noise_sigmas, parse_point, parse_ratio, parse_region, parse_root, parse_size,
+    parse_tolerance,
+};
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
 use crate::stages::octree;
@@ -133,6 +136,16 @@ pub struct IngestArgs {
     /// without a camera-intrinsics.txt beside them; it replaces theirs where they have one.
     #[arg(long, value_name = "FILE")]
     pub intrinsics: Option<PathBuf>,
+    /// Depth noise of every map given, in place of its sensor's default (README, "Cube
+    /// sizes"): `none` (cubes follow the pixel footprint alone, as for photogrammetry), a
+    /// sigma, or `constant,quadratic,offset` for sigma(d) = constant + quadratic (d - offset)^2,
+    /// in scene units. Default: RGB-D 0.0012,0.0019,0.4 (metres), LIDAR 0.002, photo none.
+    #[arg(long, value_name = "MODEL", value_parser = parse_depth_noise)]
+    pub depth_noise: Option<crate::inputs::DepthNoise>,
+    /// A sample's radius spans at least this many standard deviations of its depth noise
+    /// [default: 1, or a manifest entry's noise_sigmas].
+    #[arg(long, value_name = "K", value_parser = parse_noise_sigmas)]
+    pub noise_sigmas: Option<f64>,
     /// Root cube as minx,miny,minz,side (first ingest only; default: the samples' bounding
     /// box grown by --root-margin).
     #[arg(long, value_parser = parse_root)]

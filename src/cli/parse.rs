@@ -19,6 +19,26 @@ fn numbers(text: &str) -> Result<Vec<f64>, ArgumentError> {
         .collect()
 }
 
+/// `none`, a sigma, or `constant,quadratic,offset` (`DepthNoise::from_numbers`), spanning
+/// the default number of standard deviations.
+pub(crate) fn parse_depth_noise(text: &str) -> Result<crate::inputs::DepthNoise, ArgumentError> {
+    let numbers = match text.trim() {
+        "none" => Vec::new(),
+        other => numbers(other)?,
+    };
+    crate::inputs::DepthNoise::from_numbers(&numbers, crate::inputs::DEFAULT_NOISE_SIGMAS).map_err(ArgumentError)
+}
+
+/// A finite number of standard deviations in [0, 100].
+pub(crate) fn parse_noise_sigmas(text: &str) -> Result<f64, ArgumentError> {
+    match text.trim().parse::<f64>() {
+        Ok(k) if (0.0..=100.0).contains(&k) => Ok(k),
+        _ => Err(ArgumentError(format!(
+            "'{text}' is not a number of standard deviations in [0, 100] (0: cubes follow the pixel footprint alone)"
+        ))),
+    }
+}
+
 /// `x,y,z`.
 pub(crate) fn parse_point(text: &str) -> Result<[f64; 3], ArgumentError> {
     let v = numbers(text)?;

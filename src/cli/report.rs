@@ -18,6 +18,8 @@ pub struct InfoJson {
     pub version: u64,
     /// Depth maps registered up to that version.
     pub depth_maps: u64,
+    /// Those depth maps by the noise model that sized their samples' cubes.
+    pub depth_noise: std::collections::BTreeMap<String, u64>,
     /// Cubes of the octree.
     pub cubes: u64,
     /// Treetop leaves.
@@ -49,16 +51,22 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
         .collect();
     let scene = stages::ingest::read_scene(store)?;
     let finest_level = snapshot.finest_level();
+    let maps: Vec<_> = stages::ingest::registered_depth_maps(store)?
+        .into_iter()
+        .map(|(_, record)| record)
+        .filter(|record| record.added_in <= snapshot.version())
+        .collect();
     Ok(InfoJson {
         root_side: scene.map(|s| s.root_side),
         finest_level,
         finest_cube_side: scene.zip(finest_level).map(|(s, level)| s.cube_side(level)),
         store: store.root().display().to_string(),
         version: snapshot.version(),
-        depth_maps: stages::ingest::registered_depth_maps(store)?
-            .iter()
-            .filter(|(_, r)| r.added_in <= snapshot.version())
-            .count() as u64,
+        depth_maps: maps.len() as u64,
+        depth_noise: maps.iter().fold(Default::default(), |mut counts, record| {
+            *counts.entry(record.source.noise.to_string()).or_default() += 1;
+            counts
+        }),
         cubes: snapshot.rows(stages::OCTREE),
         treetop_leaves: {
             // One segment per treetop leaf, plus one for the treetop's internal nodes when the

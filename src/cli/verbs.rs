@@ -26,6 +26,8 @@ pub(super) fn ingest(global: &GlobalOptions, args: IngestArgs) -> Result<()> {
         stride: args.stride,
         limit: args.limit,
         intrinsics: args.intrinsics.clone(),
+        depth_noise: args.depth_noise,
+        noise_sigmas: args.noise_sigmas,
     };
     let store = open_or_create(&args.store)?;
     let options = IngestOptions {
@@ -233,6 +235,9 @@ pub(super) fn info_verb(args: InfoArgs) -> Result<()> {
     println!("store          {}", info.store);
     println!("version        {}", info.version);
     println!("depth maps     {}", info.depth_maps);
+    for (noise, maps) in &info.depth_noise {
+        println!("  depth noise  {noise}: {maps}");
+    }
     println!("cubes          {}", info.cubes);
     println!("treetop leaves {}", info.treetop_leaves);
     println!("segments       {} ({} bytes)", info.segments, info.bytes);

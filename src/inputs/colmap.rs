@@ -460,6 +460,7 @@ pub fn workspace(dir: &Path) -> Result<Vec<DepthMapSource>, InputError> {
             camera_to_world: camera_to_world.to_cols_array(),
             kind: Kind::Photo,
             weight: Kind::Photo.default_weight(),
+            noise: Kind::Photo.default_noise(),
         };
         source.check_intrinsics()?;
         sources.push(source);

@@ -78,6 +78,164 @@ impl Kind {
             Kind::Photo | Kind::Rgbd => 1.0,
         }
     }
+
+    /// Default depth noise: photogrammetry's depth error follows the pixel footprint already;
+    /// an RGB-D sensor's grows with the square of depth; a LIDAR's range noise is constant.
+    pub fn default_noise(self) -> DepthNoise {
+        match self {
+            Kind::Photo => DepthNoise::Footprint,
+            Kind::Rgbd => DepthNoise::STRUCTURED_LIGHT,
+            Kind::Lidar => DepthNoise::TERRESTRIAL_LIDAR,
+        }
+    }
+}
+
+/// How many standard deviations of depth noise a sample's radius spans at least, by default
+/// (README, "Cube sizes": measured on RedKitchen).
+pub const DEFAULT_NOISE_SIGMAS: f64 = 1.0;
+
+/// A depth map's noise model, which bounds how small its samples' cubes may be.
+///
+/// Eq. 4 sizes a sample's cube by its pixel footprint alone. An RGB-D sensor's depth noise is
+/// several footprints (a Kinect's is about 2 mm at 1 m and 6 mm at 2 m, where a pixel spans
+/// 1.7 and 3.4 mm), so cubes at the footprint resolve the noise, not the surface, and cost
+/// time. A sample's radius is therefore at least `sigmas` standard deviations of its depth's
+/// noise. The model is recorded with each depth map (format-spec.md, "Catalog"), so a store
+/// keeps the rule its maps were ingested with.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
+pub enum DepthNoise {
+    /// No noise model: a sample's radius is half the distance to its nearest neighbour (eq. 4).
+    /// Photogrammetry's default, and the rule of every map of a catalog before version 3.
+    Footprint,
+    /// sigma(d) = constant + quadratic (d - offset)^2 at depth d (scene units, the depth map's
+    /// own sense of depth: z for pinhole maps, range for spherical ones).
+    Axial {
+        /// sigma at `offset`.
+        constant: f64,
+        /// Growth with the squared depth beyond `offset`.
+        quadratic: f64,
+        /// Depth of the least noise.
+        offset: f64,
+        /// A sample's radius is at least this many sigma(d).
+        sigmas: f64,
+    },
+}
+
+impl std::fmt::Display for DepthNoise {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            DepthNoise::Footprint => write!(f, "none (pixel footprint)"),
+            DepthNoise::Axial {
+                constant,
+                quadratic: 0.0,
+                sigmas,
+                ..
+            } => write!(f, "radius >= {sigmas} x {constant}"),
+            DepthNoise::Axial {
+                constant,
+                quadratic,
+                offset,
+                sigmas,
+            } => write!(f, "radius >= {sigmas} x ({constant} + {quadratic} (d - {offset})^2)"),
+        }
+    }
+}
+
+impl DepthNoise {
+    /// Structured-light and time-of-flight RGB-D sensors (Kinect class): sigma(z) = 0.0012 +
+    /// 0.0019 (z - 0.4)^2 metres (Nguyen, Izadi and Lovell 2012, axial noise).
+    pub const STRUCTURED_LIGHT: DepthNoise = DepthNoise::Axial {
+        constant: 0.0012,
+        quadratic: 0.0019,
+        offset: 0.4,
+        sigmas: DEFAULT_NOISE_SIGMAS,
+    };
+
+    /// Terrestrial laser scanners: about 2 mm of range noise, whatever the range.
+    pub const TERRESTRIAL_LIDAR: DepthNoise = DepthNoise::Axial {
+        constant: 0.002,
+        quadratic: 0.0,
+        offset: 0.0,
+        sigmas: DEFAULT_NOISE_SIGMAS,
+    };
+
+    /// The least radius of a sample at `depth`: 0 without a model.
+    pub fn least_radius(&self, depth: f64) -> f64 {
+        match *self {
+            DepthNoise::Footprint => 0.0,
+            DepthNoise::Axial {
+                constant,
+                quadratic,
+                offset,
+                sigmas,
+            } => sigmas * (constant + quadratic * (depth - offset).powi(2)),
+        }
+    }
+
+    /// The same model spanning `sigmas` standard deviations (no change to [`Footprint`](Self::Footprint)).
+    pub fn with_sigmas(self, sigmas: f64) -> DepthNoise {
+        match self {
+            DepthNoise::Footprint => DepthNoise::Footprint,
+            DepthNoise::Axial {
+                constant,
+                quadratic,
+                offset,
+                ..
+            } => DepthNoise::Axial {
+                constant,
+                quadratic,
+                offset,
+                sigmas,
+            },
+        }
+    }
+
+    /// A model from its numbers: none (no model), sigma (constant), or constant, quadratic and
+    /// offset; `sigmas` per radius.
+    pub fn from_numbers(numbers: &[f64], sigmas: f64) -> Result<DepthNoise, String> {
+        let noise = match *numbers {
+            [] => DepthNoise::Footprint,
+            [constant] => DepthNoise::Axial {
+                constant,
+                quadratic: 0.0,
+                offset: 0.0,
+                sigmas,
+            },
+            [constant, quadratic, offset] => DepthNoise::Axial {
+                constant,
+                quadratic,
+                offset,
+                sigmas,
+            },
+            _ => {
+                return Err(format!(
+                    "a depth noise model has 1 number (sigma) or 3 (constant, quadratic, offset: sigma(d) = constant + quadratic (d - offset)^2), not {}",
+                    numbers.len()
+                ));
+            }
+        };
+        if !noise.is_valid() {
+            return Err(format!(
+                "depth noise numbers must be finite and not negative: {numbers:?}, sigmas {sigmas}"
+            ));
+        }
+        Ok(noise)
+    }
+
+    /// Whether every number is finite and none negative.
+    pub fn is_valid(&self) -> bool {
+        match *self {
+            DepthNoise::Footprint => true,
+            DepthNoise::Axial {
+                constant,
+                quadratic,
+                offset,
+                sigmas,
+            } => [constant, quadratic, offset, sigmas]
+                .iter()
+                .all(|v| v.is_finite() && *v >= 0.0),
+        }
+    }
 }
 
 /// The file format of a depth map.
@@ -125,6 +283,9 @@ pub struct DepthMapSource {
     pub kind: Kind,
     /// Weight of each of its votes.
     pub weight: f32,
+    /// Its depth noise, which bounds its samples' cube sizes. Not part of its identity
+    /// (`stages::ingest::depth_map_id`): a depth map is ingested once, with the model it came with.
+    pub noise: DepthNoise,
 }
 
 /// Depth values, row-major; NaN marks an invalid pixel.
@@ -200,9 +361,28 @@ impl DepthMapSource {
             camera_to_world: camera_to_world.to_cols_array(),
             kind: Kind::Rgbd,
             weight: Kind::Rgbd.default_weight(),
+            noise: Kind::Rgbd.default_noise(),
         };
         source.check_intrinsics()?;
         Ok(source)
+    }
+
+    /// A photo-kind pinhole PFM map of `size` with intrinsics fx, fy, cx, cy at
+    /// `camera_to_world`: the unit tests' camera.
+    #[cfg(test)]
+    pub(crate) fn test_pinhole(path: &str, size: (u32, u32), k: [f64; 4], camera_to_world: DMat4) -> DepthMapSource {
+        let [fx, fy, cx, cy] = k;
+        DepthMapSource {
+            path: path.into(),
+            format: ImageFormat::Pfm,
+            width: size.0,
+            height: size.1,
+            projection: Projection::Pinhole { fx, fy, cx, cy },
+            camera_to_world: camera_to_world.to_cols_array(),
+            kind: Kind::Photo,
+            weight: 1.0,
+            noise: DepthNoise::Footprint,
+        }
     }
 
     /// The camera-to-world pose.

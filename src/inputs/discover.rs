@@ -7,7 +7,9 @@ use glam::{DMat4, DVec4};
 use serde::Deserialize;
 
 use super::colmap;
-use super::depth_map::{DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
+use super::depth_map::{
+    DEFAULT_NOISE_SIGMAS, DepthMapSource, DepthNoise, ImageFormat, InputError, Kind, Projection, bad, check_pose,
+};
 use super::image_files::{read_npy, read_pfm};
 use super::lidar;
 use super::tum;
@@ -42,6 +44,12 @@ pub struct DiscoverOptions {
     /// Intrinsics of 7-Scenes / RGB-D frames (a 3x3 matrix, or fx fy cx cy), for folders and
     /// frames without a camera-intrinsics.txt beside them; replaces theirs where they have one.
     pub intrinsics: Option<PathBuf>,
+    /// A depth noise model for every depth map found, in place of its kind's (or its
+    /// manifest entry's).
+    pub depth_noise: Option<DepthNoise>,
+    /// Standard deviations of noise a sample's radius spans at least, for every depth map
+    /// found, in place of [`DEFAULT_NOISE_SIGMAS`] (or its manifest entry's).
+    pub noise_sigmas: Option<f64>,
 }
 
 impl Default for DiscoverOptions {
@@ -51,6 +59,8 @@ impl Default for DiscoverOptions {
             stride: 1,
             limit: None,
             intrinsics: None,
+            depth_noise: None,
+            noise_sigmas: None,
         }
     }
 }
@@ -135,6 +145,14 @@ pub fn discover(paths: &[PathBuf], options: &DiscoverOptions) -> Result<Vec<Dept
             file: paths.first().cloned().unwrap_or_default(),
             problem: "no depth maps found".into(),
         });
+    }
+    for source in &mut sources {
+        if let Some(noise) = options.depth_noise {
+            source.noise = noise;
+        }
+        if let Some(sigmas) = options.noise_sigmas {
+            source.noise = source.noise.with_sigmas(sigmas);
+        }
     }
     Ok(sources)
 }
@@ -331,6 +349,19 @@ struct ManifestEntry {
     pose: ManifestPose,
     kind: String,
     weight: Option<f32>,
+    /// "none" (the pixel footprint alone), sigma, or [constant, quadratic, offset]; default:
+    /// the kind's model.
+    depth_noise: Option<ManifestNoise>,
+    /// Standard deviations a sample's radius spans at least (default `DEFAULT_NOISE_SIGMAS`).
+    noise_sigmas: Option<f64>,
+}
+
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum ManifestNoise {
+    Named(String),
+    Sigma(f64),
+    Numbers(Vec<f64>),
 }
 
 #[derive(Deserialize)]
@@ -427,6 +458,17 @@ fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
                     ),
                 ));
             }
+            let sigmas = entry.noise_sigmas.unwrap_or(DEFAULT_NOISE_SIGMAS);
+            let noise = match &entry.depth_noise {
+                None => Ok(kind.default_noise().with_sigmas(sigmas)),
+                Some(ManifestNoise::Named(name)) if name == "none" => Ok(DepthNoise::Footprint),
+                Some(ManifestNoise::Named(other)) => {
+                    Err(format!("unknown depth_noise '{other}' (\"none\", a number, or three)"))
+                }
+                Some(ManifestNoise::Sigma(sigma)) => DepthNoise::from_numbers(&[*sigma], sigmas),
+                Some(ManifestNoise::Numbers(numbers)) => DepthNoise::from_numbers(numbers, sigmas),
+            }
+            .map_err(at)?;
             let source = DepthMapSource {
                 path: std::path::absolute(&image).unwrap_or(image),
                 format,
@@ -436,6 +478,7 @@ fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
                 camera_to_world: matrix.to_cols_array(),
                 kind,
                 weight: entry.weight.unwrap_or(kind.default_weight()),
+                noise,
             };
             source.check_intrinsics()?;
             Ok(source)

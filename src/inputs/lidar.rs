@@ -129,6 +129,7 @@ fn lidar_source(path: &Path, format: ImageFormat, width: u32, camera_to_world: D
         camera_to_world: camera_to_world.to_cols_array(),
         kind: Kind::Lidar,
         weight: Kind::Lidar.default_weight(),
+        noise: Kind::Lidar.default_noise(),
     }
 }
 

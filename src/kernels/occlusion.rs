@@ -184,21 +184,8 @@ mod tests {
         let (width, height) = (64u32, 48u32);
         let camera_to_world =
             glam::DMat4::from_translation(DVec3::new(0.3, -0.2, 0.1)) * glam::DMat4::from_rotation_y(0.2);
-        let source = DepthMapSource {
-            path: "wall.pfm".into(),
-            format: crate::inputs::ImageFormat::Pfm,
-            width,
-            height,
-            projection: Projection::Pinhole {
-                fx: 50.0,
-                fy: 45.0,
-                cx: 31.5,
-                cy: 23.5,
-            },
-            camera_to_world: camera_to_world.to_cols_array(),
-            kind: crate::inputs::Kind::Photo,
-            weight: 1.0,
-        };
+        let source =
+            DepthMapSource::test_pinhole("wall.pfm", (width, height), [50.0, 45.0, 31.5, 23.5], camera_to_world);
         let depth = (0..width * height)
             .map(|p| {
                 if p % 11 == 0 || (p % width < 9 && p / width < 7) {
@@ -215,10 +202,7 @@ mod tests {
         let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
         let world_to_camera = camera_to_world.inverse();
         let mut seed = 17u64;
-        let mut uniform = move || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut uniform = move || crate::kernels::random::uniform(&mut seed);
         let (mut hidden, mut shown) = (0, 0);
         for _ in 0..3000 {
             let z = 0.5 + uniform() * 8.0;

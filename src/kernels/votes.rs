@@ -681,24 +681,13 @@ pub fn vote_chunks(
 mod tests {
     use super::*;
 
-    /// A pinhole PFM map of `size`, intrinsics fx, fy, cx, cy, at `camera_to_world`.
     fn pinhole_source(
         path: &str,
         size: (u32, u32),
         k: [f64; 4],
         camera_to_world: glam::DMat4,
     ) -> crate::inputs::DepthMapSource {
-        let [fx, fy, cx, cy] = k;
-        crate::inputs::DepthMapSource {
-            path: path.into(),
-            format: crate::inputs::ImageFormat::Pfm,
-            width: size.0,
-            height: size.1,
-            projection: crate::inputs::Projection::Pinhole { fx, fy, cx, cy },
-            camera_to_world: camera_to_world.to_cols_array(),
-            kind: crate::inputs::Kind::Photo,
-            weight: 1.0,
-        }
+        crate::inputs::DepthMapSource::test_pinhole(path, size, k, camera_to_world)
     }
 
     #[test]
@@ -713,7 +702,7 @@ mod tests {
         let mut seed = 3u64;
         for _ in 0..20_000 {
             let values: [f32; 4] = std::array::from_fn(|_| {
-                seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                let seed = crate::kernels::random::splitmix(&mut seed);
                 ((seed >> 40) % 7) as f32 * 0.37 + 1.0
             });
             let mut sorted = values;
@@ -758,10 +747,7 @@ mod tests {
         let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
         let world_to_camera = glam::DMat4::IDENTITY;
         let mut seed = 11u64;
-        let mut uniform = move || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut uniform = move || crate::kernels::random::uniform(&mut seed);
         let (mut voted, mut culled) = (0, 0);
         for _ in 0..200_000 {
             let z = 0.05 + uniform() * 10.0;
@@ -811,10 +797,7 @@ mod tests {
         let origin = DVec3::new(3.5, -0.8, 4.0);
         let view = UnitView::new(&source, &world_to_camera, origin, 0.05);
         let mut seed = 5u64;
-        let mut uniform = move || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((seed >> 40) as f32) / (1u64 << 24) as f32
-        };
+        let mut uniform = move || crate::kernels::random::uniform(&mut seed) as f32;
         let (mut voted, mut refused) = (0, 0);
         for _ in 0..20_000 {
             let cubes: [Vec4; 4] = std::array::from_fn(|_| {
@@ -843,8 +826,7 @@ mod tests {
     fn bit_level_helpers_match_libm() {
         let mut seed = 7u64;
         for _ in 0..100_000 {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            let unit = (seed >> 11) as f64 / (1u64 << 53) as f64;
+            let unit = crate::kernels::random::uniform(&mut seed);
             let x = 1.0 + unit * 5000.0;
             assert_eq!(floor_log2(x), x.log2().floor() as usize, "floor_log2({x})");
             let y = unit * 4000.0 - 2000.0;

@@ -15,7 +15,7 @@ use xxhash_rust::xxh3::Xxh3;
 
 use super::INGEST;
 use crate::format::{Column, ColumnValues, CubeKey, META_SCENE, Scene};
-use crate::inputs::{DepthImage, DepthMapSource, InputError};
+use crate::inputs::{DepthImage, DepthMapSource, DepthNoise, InputError, Projection};
 use crate::store::catalog::{self, META, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, Store, StoreError, UnitOutput, UnitSpec};
 
@@ -69,7 +69,8 @@ impl SampleStats {
 
 /// Back-projected samples of one depth map: world positions and radii r_x (paper 4.1: half
 /// the 3D distance to the neighbouring samples; the nearest valid 4-neighbour here, which is
-/// robust at depth discontinuities).
+/// robust at depth discontinuities), at least the map's noise model's least radius at the
+/// sample's depth (`DepthNoise`).
 pub struct Samples {
     pub points: Vec<DVec3>,
     pub radii: Vec<f64>,
@@ -104,8 +105,12 @@ pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
                 stats.isolated += 1;
                 continue;
             }
+            let depth = match source.projection {
+                Projection::Pinhole { .. } => p.z,
+                Projection::Spherical => p.length(),
+            };
             points.push(pose.transform_point3(p));
-            radii.push(nearest * 0.5);
+            radii.push((nearest * 0.5).max(source.noise.least_radius(depth)));
             spikes.push(close < 2);
         }
     }
@@ -243,6 +248,33 @@ pub fn robust_bounds(points: &[DVec3]) -> Option<(DVec3, DVec3)> {
 
 /// Content id of a depth map: xxh3 of its file bytes and its registration (path excluded).
 /// The file is streamed: a LIDAR file can be far larger than the memory budget.
+/// What of a registration makes a depth map's identity: every field of its source but the path
+/// and the noise model, in the order (and so the bytes) of the source's encoding before
+/// catalog version 3, so ids stay what they were.
+fn identity(
+    source: &DepthMapSource,
+) -> (
+    &str,
+    &crate::inputs::ImageFormat,
+    u32,
+    u32,
+    &Projection,
+    &[f64; 16],
+    &crate::inputs::Kind,
+    f32,
+) {
+    (
+        "",
+        &source.format,
+        source.width,
+        source.height,
+        &source.projection,
+        &source.camera_to_world,
+        &source.kind,
+        source.weight,
+    )
+}
+
 pub fn depth_map_id(source: &DepthMapSource) -> std::result::Result<u64, InputError> {
     use std::io::Read;
     let io = |e| InputError::Io {
@@ -259,9 +291,7 @@ pub fn depth_map_id(source: &DepthMapSource) -> std::result::Result<u64, InputEr
         }
         hasher.update(buffer.get(..n).unwrap_or_default());
     }
-    let mut without_path = source.clone();
-    without_path.path = Default::default();
-    hasher.update(&catalog::encode(&without_path));
+    hasher.update(&catalog::encode(&identity(source)));
     Ok(hasher.digest())
 }
 
@@ -291,14 +321,16 @@ pub struct IngestStage {
     maps: Vec<(u64, DepthMapSource)>,
 }
 
+/// The error as the stage's, with the file as its unit (named once).
 fn input_error(e: InputError) -> StoreError {
-    let unit = match &e {
-        InputError::Bad { file, .. } | InputError::Io { file, .. } => file.display().to_string(),
+    let (unit, message) = match &e {
+        InputError::Bad { file, problem } => (file.display().to_string(), problem.clone()),
+        InputError::Io { file, source } => (file.display().to_string(), source.to_string()),
     };
     StoreError::Stage {
         stage: INGEST.into(),
         unit,
-        message: e.to_string(),
+        message,
     }
 }
 
@@ -313,6 +345,7 @@ pub fn read_scene(store: &Store) -> Result<Option<Scene>> {
 
 /// All registered depth maps, by id.
 pub fn registered_depth_maps(store: &Store) -> Result<Vec<(u64, DepthMapRecord)>> {
+    let version = store.catalog_format_version()?;
     let txn = store.catalog().begin_read()?;
     let table = match txn.open_table(DEPTH_MAPS) {
         Ok(t) => t,
@@ -323,7 +356,12 @@ pub fn registered_depth_maps(store: &Store) -> Result<Vec<(u64, DepthMapRecord)>
         .iter()?
         .map(|e| {
             let (k, v) = e?;
-            Ok((k.value(), catalog::decode("depth_maps", v.value())?))
+            let record = if version < 3 {
+                catalog::decode("depth_maps", &catalog::depth_map_record_v2_to_v3(v.value())?)?
+            } else {
+                catalog::decode("depth_maps", v.value())?
+            };
+            Ok((k.value(), record))
         })
         .collect()
 }
@@ -331,12 +369,27 @@ pub fn registered_depth_maps(store: &Store) -> Result<Vec<(u64, DepthMapRecord)>
 impl IngestStage {
     /// Identifies the new depth maps and fixes the scene (the root cube) if the store has none.
     pub fn prepare(store: &Store, sources: Vec<DepthMapSource>, options: &IngestOptions) -> Result<IngestStage> {
-        let known: BTreeSet<u64> = registered_depth_maps(store)?.into_iter().map(|(id, _)| id).collect();
+        let registered = registered_depth_maps(store)?;
+        let known: BTreeSet<u64> = registered.iter().map(|(id, _)| *id).collect();
         let ids: Vec<u64> = sources
             .par_iter()
             .map(depth_map_id)
             .collect::<std::result::Result<_, _>>()
             .map_err(input_error)?;
+        let recorded: std::collections::BTreeMap<u64, DepthNoise> = registered
+            .iter()
+            .map(|(id, record)| (*id, record.source.noise))
+            .collect();
+        let other_noise = ids
+            .iter()
+            .zip(&sources)
+            .filter(|(id, source)| recorded.get(id).is_some_and(|noise| *noise != source.noise))
+            .count();
+        if other_noise > 0 {
+            tracing::warn!(
+                "{other_noise} depth map(s) are already in the store with another depth noise model; they keep theirs (a depth map is ingested once)"
+            );
+        }
         let mut maps: Vec<(u64, DepthMapSource)> = ids
             .into_iter()
             .zip(sources)
@@ -465,8 +518,8 @@ impl Stage for IngestStage {
     }
 
     fn params(&self) -> Vec<u8> {
-        let ids: Vec<u64> = self.maps.iter().map(|(id, _)| *id).collect();
-        catalog::encode(&(ids, self.scene))
+        let maps: Vec<(u64, DepthNoise)> = self.maps.iter().map(|(id, source)| (*id, source.noise)).collect();
+        catalog::encode(&(maps, self.scene))
     }
 
     fn plan(&self, _base: &Snapshot<'_>) -> Result<Plan> {
@@ -549,24 +602,15 @@ impl Stage for IngestStage {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::inputs::{ImageFormat, Kind, Projection};
 
     fn camera(width: u32, height: u32) -> DepthMapSource {
-        DepthMapSource {
-            path: "plane.pfm".into(),
-            format: ImageFormat::Pfm,
-            width,
-            height,
-            projection: Projection::Pinhole {
-                fx: 100.0,
-                fy: 100.0,
-                cx: f64::from(width) / 2.0,
-                cy: f64::from(height) / 2.0,
-            },
-            camera_to_world: glam::DMat4::IDENTITY.to_cols_array(),
-            kind: Kind::Photo,
-            weight: 1.0,
-        }
+        let (cx, cy) = (f64::from(width) / 2.0, f64::from(height) / 2.0);
+        DepthMapSource::test_pinhole(
+            "plane.pfm",
+            (width, height),
+            [100.0, 100.0, cx, cy],
+            glam::DMat4::IDENTITY,
+        )
     }
 
     /// A wall at depth 1 seen head-on, with one pixel in ten replaced by a depth between 0.2 and
@@ -639,5 +683,67 @@ mod tests {
             depth: noise,
         };
         assert!(!bounds_sample(&back_project(&source, &image), 100).is_empty());
+    }
+
+    /// A wall at depths 1 to 3 (f = 100: samples 1 to 3 cm apart, radii 5 to 15 mm): the
+    /// footprint rule keeps the half spacing; a noise model raises every radius to its least
+    /// radius where that is larger, and leaves the rest.
+    #[test]
+    fn noise_models_raise_radii_to_their_least_radius() {
+        let (w, h) = (64u32, 48u32);
+        let depth: Vec<f32> = (0..w * h)
+            .map(|index| 1.0 + 2.0 * (index / w) as f32 / h as f32)
+            .collect();
+        let image = DepthImage {
+            width: w,
+            height: h,
+            depth,
+        };
+        let footprint = back_project(&camera(w, h), &image);
+        let noise = DepthNoise::Axial {
+            constant: 0.001,
+            quadratic: 0.004,
+            offset: 0.5,
+            sigmas: 2.0,
+        };
+        let noisy = back_project(&DepthMapSource { noise, ..camera(w, h) }, &image);
+        assert_eq!(footprint.points, noisy.points);
+        let (mut raised, mut kept) = (0, 0);
+        for ((p, before), after) in footprint.points.iter().zip(&footprint.radii).zip(&noisy.radii) {
+            let least = 2.0 * (0.001 + 0.004 * (p.z - 0.5).powi(2));
+            assert!((after - before.max(least)).abs() < 1e-12, "z {} {before} {after}", p.z);
+            if least > *before {
+                raised += 1;
+            } else {
+                kept += 1;
+            }
+        }
+        // Noise dominates far away (sigma grows with the square of depth), the footprint near.
+        assert!(raised > 100 && kept > 100, "raised {raised}, kept {kept}");
+    }
+
+    /// The noise model is recorded with a depth map but is not part of its identity.
+    #[test]
+    fn the_noise_model_is_not_part_of_a_depth_maps_identity() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("plane.pfm");
+        let image = DepthImage {
+            width: 4,
+            height: 3,
+            depth: vec![1.0; 12],
+        };
+        crate::inputs::write_pfm(&path, &image).unwrap();
+        let source = DepthMapSource { path, ..camera(4, 3) };
+        let noisy = DepthMapSource {
+            noise: DepthNoise::STRUCTURED_LIGHT,
+            ..source.clone()
+        };
+        let heavier = DepthMapSource {
+            weight: 2.0,
+            ..source.clone()
+        };
+        let id = depth_map_id(&source).unwrap();
+        assert_eq!(depth_map_id(&noisy).unwrap(), id);
+        assert_ne!(depth_map_id(&heavier).unwrap(), id);
     }
 }

@@ -10,7 +10,7 @@ use super::StoreError;
 use crate::format::key::CubeKeyColumn;
 
 /// Version of the catalog schema written by this build.
-pub const CATALOG_FORMAT_VERSION: u32 = 2;
+pub const CATALOG_FORMAT_VERSION: u32 = 3;
 /// The oldest catalog version this build opens; a writable open migrates it (`migrate`).
 pub const OLDEST_CATALOG_FORMAT_VERSION: u32 = 1;
 
@@ -100,7 +100,44 @@ pub(crate) fn migrate_v1(txn: &redb::WriteTransaction) -> Result<(), StoreError>
         }
         states.insert((HISTOGRAMS, key), encode(&(octree_digest, digest)).as_slice())?;
     }
-    meta.insert(META_FORMAT_VERSION, CATALOG_FORMAT_VERSION.to_le_bytes().as_slice())?;
+    Ok(())
+}
+
+/// Bytes at the end of a depth map record after its source: `SampleStats` (7 x u64) and
+/// `added_in` (u64).
+const DEPTH_MAP_RECORD_TAIL: usize = 64;
+
+/// A version-2 `depth_maps` value in version 3's encoding. Version 3 appended `noise:
+/// DepthNoise` to the record's source, that is before the record's last
+/// [`DEPTH_MAP_RECORD_TAIL`] bytes; version-2 maps were sized by their pixel footprint alone,
+/// `DepthNoise::Footprint`, whose encoding is its tag, u32 0.
+pub(crate) fn depth_map_record_v2_to_v3(value: &[u8]) -> Result<Vec<u8>, StoreError> {
+    let Some(split) = value.len().checked_sub(DEPTH_MAP_RECORD_TAIL) else {
+        return Err(StoreError::CatalogCorruption {
+            table: "depth_maps",
+            reason: format!("a version-2 record of {} bytes is shorter than its stats", value.len()),
+        });
+    };
+    let (source, tail) = value.split_at(split);
+    let mut upgraded = Vec::with_capacity(value.len() + 4);
+    upgraded.extend_from_slice(source);
+    upgraded.extend_from_slice(&0u32.to_le_bytes());
+    upgraded.extend_from_slice(tail);
+    Ok(upgraded)
+}
+
+/// Catalog version 2 -> 3, in `txn`: every depth map record gains its noise model
+/// ([`depth_map_record_v2_to_v3`]).
+pub(crate) fn migrate_v2(txn: &redb::WriteTransaction) -> Result<(), StoreError> {
+    let mut table = txn.open_table(DEPTH_MAPS)?;
+    let mut upgraded = Vec::new();
+    for entry in table.iter()? {
+        let (id, value) = entry?;
+        upgraded.push((id.value(), depth_map_record_v2_to_v3(value.value())?));
+    }
+    for (id, value) in upgraded {
+        table.insert(id, value.as_slice())?;
+    }
     Ok(())
 }
 

@@ -343,8 +343,9 @@ impl Store {
             faults,
             poisoned: AtomicBool::new(false),
         };
-        if store.check_format()? < CATALOG_FORMAT_VERSION {
-            store.migrate()?;
+        let found = store.check_format()?;
+        if found < CATALOG_FORMAT_VERSION {
+            store.migrate(found)?;
         }
         store.remove_debris()?;
         let scratch = store.root.join(SCRATCH_DIR);
@@ -393,16 +394,28 @@ impl Store {
 
     /// Brings an older catalog to this build's version in one transaction (format-spec.md,
     /// "Version changes"); a crash before its commit leaves the older catalog as it was.
-    fn migrate(&self) -> Result<()> {
+    fn migrate(&self, found: u32) -> Result<()> {
         let db = self.writable()?;
         let txn = db.begin_write()?;
-        if txn.open_table(STAGE_RUNS)?.get(catalog::HISTOGRAMS)?.is_some() {
-            runner::discard_run(&txn, catalog::HISTOGRAMS)?;
-            txn.open_table(STAGE_RUNS)?.remove(catalog::HISTOGRAMS)?;
+        if found < 2 {
+            if txn.open_table(STAGE_RUNS)?.get(catalog::HISTOGRAMS)?.is_some() {
+                runner::discard_run(&txn, catalog::HISTOGRAMS)?;
+                txn.open_table(STAGE_RUNS)?.remove(catalog::HISTOGRAMS)?;
+            }
+            catalog::migrate_v1(&txn)?;
         }
-        catalog::migrate_v1(&txn)?;
+        if found < 3 {
+            catalog::migrate_v2(&txn)?;
+        }
+        txn.open_table(META)?
+            .insert(META_FORMAT_VERSION, CATALOG_FORMAT_VERSION.to_le_bytes().as_slice())?;
         txn.commit()?;
         Ok(())
+    }
+
+    /// The version of the catalog's encoding (read-only opens read older ones as they are).
+    pub fn catalog_format_version(&self) -> Result<u32> {
+        self.check_format()
     }
 
     /// The catalog's format version, if this build reads it.

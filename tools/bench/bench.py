@@ -466,9 +466,10 @@ def close_pictures(mesh, prefix, out_dir):
     return names
 
 
-def redkitchen(work, frames_list, max_depth, out_dir, budget="512MiB"):
+def redkitchen(work, frames_list, max_depth, out_dir, budget="512MiB", tsdf_voxel=None):
     """octstore and TSDF on evenly strided RedKitchen frames. `max_depth` (None: ingest's
-    default, 1.4 mm cubes) sets octstore's finest cube; TSDF uses the same voxel."""
+    default, cubes sized by the sensor's noise) caps octstore's finest cube; TSDF uses
+    `tsdf_voxel`, else the same voxel as octstore's finest cube."""
     rows = []
     pose = picture_pose(out_dir)
     depth_args = ["--max-depth", str(max_depth)] if max_depth else []
@@ -489,11 +490,11 @@ def redkitchen(work, frames_list, max_depth, out_dir, budget="512MiB"):
         info = json.loads(subprocess.run(
             [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
         ).stdout)
-        voxel = info["finest_cube_side"]
+        voxel = tsdf_voxel or info["finest_cube_side"]
         png = out_dir / f"redkitchen-{frames}{tag}-octstore.png"
         picture(mesh, pose, png)
         rows.append({"frames": frames, "max_depth": max_depth, "method": "octstore", "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
-                     "budget": budget, "voxel_m": voxel, "mesh_mb": mesh.stat().st_size / 1e6, "cubes": info["cubes"],
+                     "budget": budget, "voxel_m": info["finest_cube_side"], "mesh_mb": mesh.stat().st_size / 1e6, "cubes": info["cubes"],
                      "stages": stages, "picture": png.name, "invented_area": invented_area(mesh, frames, voxel),
                      "table_normal_deviation_deg": flat_normal_deviation(mesh),
                      "close_pictures": close_pictures(mesh, f"redkitchen-{frames}{tag}-octstore", out_dir)})
@@ -515,6 +516,58 @@ def redkitchen(work, frames_list, max_depth, out_dir, budget="512MiB"):
                      "table_normal_deviation_deg": flat_normal_deviation(tsdf_mesh),
                      "close_pictures": close_pictures(tsdf_mesh, f"redkitchen-{frames}{tag}-tsdf", out_dir)})
         print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+# Cube-size rules of RGB-D frames (README, "Cube sizes"): the footprint capped at --max-depth 10
+# (the rule before noise models), and k sigma of the sensor's noise for three k.
+CUBE_SIZE_RULES = (
+    ("footprint, `--max-depth 10`", ["--depth-noise", "none", "--max-depth", "10"]),
+    ("k = 0.5", ["--noise-sigmas", "0.5"]),
+    ("k = 1 (default)", []),
+    ("k = 2", ["--noise-sigmas", "2"]),
+)
+
+
+def cube_sizes(work, frames, budget):
+    """octstore alone on evenly strided RedKitchen frames under each rule of CUBE_SIZE_RULES:
+    time, cubes, finest cube, invented area farther than 15 mm and 3 cm, the table's normal
+    deviation."""
+    rows = []
+    for index, (rule, args) in enumerate(CUBE_SIZE_RULES):
+        case = work / f"cube-sizes-{frames}-{index}"
+        case.mkdir(parents=True, exist_ok=True)
+        mesh = case / "octstore.ply"
+        wall, cpu, peak, _ = octstore(
+            case / "store", SHARED / "7scenes-redkitchen",
+            ["--stride", str(1000 // frames), "--limit", str(frames), *args], [], mesh, budget=budget)
+        info = json.loads(subprocess.run(
+            [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
+        ).stdout)
+        rows.append({"frames": frames, "rule": rule, "args": args, "wall_s": wall, "cpu_s": cpu, "peak_mb": peak,
+                     "budget": budget, "cubes": info["cubes"], "finest_m": info["finest_cube_side"],
+                     "invented_area": invented_area(mesh, frames, 0.005),
+                     "invented_area_3cm": invented_area(mesh, frames, 0.01),
+                     "table_normal_deviation_deg": flat_normal_deviation(mesh)})
+        print(json.dumps(rows[-1]), flush=True)
+    # The same frames in the TUM RGB-D layout (tools/tum-layout.py: depth at 5000 units per metre,
+    # quaternion poses), ingested with one command at the default rule.
+    case = work / f"cube-sizes-{frames}-tum"
+    sequence = case / "sequence"
+    subprocess.run([sys.executable, str(ROOT / "tools" / "tum-layout.py"), str(SHARED / "7scenes-redkitchen"),
+                    str(sequence), "--stride", str(1000 // frames), "--limit", str(frames)], check=True)
+    mesh = case / "octstore.ply"
+    args = ["--intrinsics", str(sequence / "intrinsics.txt")]
+    wall, cpu, peak, _ = octstore(case / "store", sequence, args, [], mesh, budget=budget)
+    info = json.loads(subprocess.run(
+        [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
+    ).stdout)
+    rows.append({"frames": frames, "rule": "k = 1, TUM-layout copy", "args": ["--intrinsics", "intrinsics.txt"],
+                 "wall_s": wall, "cpu_s": cpu, "peak_mb": peak, "budget": budget, "cubes": info["cubes"],
+                 "finest_m": info["finest_cube_side"], "invented_area": invented_area(mesh, frames, 0.005),
+                 "invented_area_3cm": invented_area(mesh, frames, 0.01),
+                 "table_normal_deviation_deg": flat_normal_deviation(mesh)})
+    print(json.dumps(rows[-1]), flush=True)
     return rows
 
 
@@ -862,9 +915,10 @@ def write_markdown(results, out_dir, path):
         lines += ["## RedKitchen (7-Scenes), real RGB-D frames", "",
                   "Evenly strided subsets of the 1000 frames. octstore runs ingest, solve (at most 200 iterations "
                   "per level, stopping at `--tolerance`) and extract with the `--memory-budget` given; TSDF (Open3D VoxelBlockGrid, CPU) integrates the same "
-                  "frames at octstore's finest cube size, truncation 4 voxels, depth cut at 4 m. The cube size "
-                  "is set by octstore's `--max-depth` (default: ingest's own choice, 1.4 mm, where Open3D's "
-                  "block hash map overflows). Peak is each "
+                  "frames, truncation 4 voxels, depth cut at 4 m, at octstore's finest cube size where `--max-depth` "
+                  "caps it (10: 5.7 mm) and at 5 mm for octstore's default (`tools/bench/run.sh --sections redkitchen "
+                  "--redkitchen-max-depth 0 --tsdf-voxel 0.005`), whose cubes follow the sensor's noise (README, "
+                  "\"Cube sizes\": 2.9 mm near the camera, coarser farther away). Peak is each "
                   f"process's own peak RSS; for octstore the largest over its three commands. octstore commit "
                   f"{commits(rk_rows)}.", "",
                   "The last column is octstore's wall time over TSDF's on the same frames, measured one after "
@@ -917,6 +971,21 @@ def write_markdown(results, out_dir, path):
             lines += table_one(largest["stages"], f"{largest['frames']} frames, `--max-depth` "
                                f"{largest.get('max_depth') or 'default'}", largest, "###")
         lines.append("")
+    size_rows = results.get("cube-sizes", [])
+    if size_rows:
+        lines += ["## Cube sizes of RGB-D frames", "",
+                  "`tools/bench/run.sh --sections cube-sizes --frames 100`: octstore alone on every 10th RedKitchen "
+                  "frame under each cube-size rule (README, \"Cube sizes\"), `--memory-budget "
+                  f"{size_rows[0]['budget']}`. Invented area: the mesh's area farther than 15 mm (3 cm) from every "
+                  "input sample; table: the mean normal deviation on the table top. octstore commit "
+                  f"{commits(size_rows)}.", "",
+                  "| frames | rule | cubes | finest cube (mm) | wall s | CPU s | peak MB | invented > 15 mm | > 3 cm | table |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in size_rows:
+            lines.append(f"| {r['frames']} | {r['rule']} | {r['cubes']:,} | {1000 * r['finest_m']:.1f} | {r['wall_s']:.1f} | "
+                         f"{r['cpu_s']:.1f} | {r['peak_mb']:.0f} | {100 * r['invented_area']:.2f} % | "
+                         f"{100 * r['invented_area_3cm']:.2f} % | {r['table_normal_deviation_deg']:.1f} deg |")
+        lines.append("")
     budgets = sorted({r["budget"] for r in scale_rows}, key=parse_budget, reverse=True)
     for budget in budgets:
         rows = [r for r in scale_rows if r["budget"] == budget]
@@ -968,7 +1037,7 @@ def main():
     if len(sys.argv) > 1 and sys.argv[1] == "worker":
         return worker(sys.argv[2:])
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sections", nargs="*", default=["groundtruth", "interior", "redkitchen", "scale"],
+    parser.add_argument("--sections", nargs="*", default=["groundtruth", "interior", "redkitchen", "scale", "cube-sizes"],
                         help="sections to run; none (a bare --sections) only rewrites BENCHMARKS.md")
     parser.add_argument("--frames", nargs="+", type=int, default=[100, 300, 1000])
     parser.add_argument("--redkitchen-max-depth", type=int, default=10,
@@ -979,6 +1048,8 @@ def main():
     parser.add_argument("--gt-outliers", nargs="+", type=float, default=GT_OUTLIERS, help="outlier levels of groundtruth")
     parser.add_argument("--scale-budget", default="1GiB", help="--memory-budget of the scale section")
     parser.add_argument("--redkitchen-budget", default="512MiB", help="--memory-budget of the redkitchen section")
+    parser.add_argument("--tsdf-voxel", type=float, default=None,
+                        help="TSDF voxel (m) of the redkitchen section (default: octstore's finest cube side)")
     parser.add_argument("--scale-sizes", nargs="+", type=int, default=[4, 8, 16, 22],
                         help="city sizes (blocks per side, squared) of the scale section")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks", help="plots and raw results")
@@ -995,9 +1066,12 @@ def main():
             elif section == "interior":
                 rows = interior(work, args.out)
             elif section == "redkitchen":
-                rows = redkitchen(work, args.frames, args.redkitchen_max_depth or None, args.out, args.redkitchen_budget)
+                rows = redkitchen(work, args.frames, args.redkitchen_max_depth or None, args.out, args.redkitchen_budget,
+                                  args.tsdf_voxel)
             elif section == "scale":
                 rows = scale(work, args.scale_sizes, args.scale_budget)
+            elif section == "cube-sizes":
+                rows = [row for frames in args.frames for row in cube_sizes(work, frames, args.redkitchen_budget)]
             else:
                 raise SystemExit(f"unknown section {section}")
             for row in rows:
@@ -1020,7 +1094,7 @@ def main():
                 rows.sort(key=lambda r: (r.get("max_depth") or 99, r["frames"], r["method"] != "octstore"))
             path.write_text(json.dumps(rows, indent=1))
     results = {}
-    for section in ("groundtruth", "interior", "redkitchen", "scale"):
+    for section in ("groundtruth", "interior", "redkitchen", "scale", "cube-sizes"):
         path = args.out / f"results-{section}.json"
         results[section] = json.loads(path.read_text()) if path.exists() else []
     write_markdown(results, args.out, args.markdown)

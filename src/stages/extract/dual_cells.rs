@@ -495,8 +495,7 @@ mod tests {
     use super::*;
 
     fn random(seed: &mut u64) -> u64 {
-        *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        *seed >> 33
+        crate::kernels::random::splitmix(seed) >> 33
     }
 
     #[test]
