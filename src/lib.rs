@@ -55,3 +55,4 @@ pub use stages::extract::ExtractOptions;
 pub use stages::ingest::IngestOptions;
 pub use stages::solve::SolveParams;
 pub use store::{RunOptions, RunReport, Snapshot, Store, StoreError};
+pub use sys::die_quietly_on_closed_pipe;

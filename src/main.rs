@@ -17,6 +17,7 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 const QUIET_VULKAN_PROBES: &[(&str, &str)] = &[("NODEVICE_SELECT", "1")];
 
 fn main() -> ExitCode {
+    octstore::die_quietly_on_closed_pipe();
     for (name, value) in QUIET_VULKAN_PROBES {
         if std::env::var_os(name).is_none() {
             // SAFETY: the first statement of `main`: no other thread exists yet, so nothing can

@@ -79,6 +79,59 @@ pub trait IndicatorField {
     fn cubes_in(&self, bbox: &BoundingBox, level: u8) -> Result<Vec<CubeInfo>>;
 }
 
+/// The last version at which `stage`'s visible content changed (0 when it has none).
+fn last_change(snapshot: &Snapshot<'_>, stage: &str) -> u64 {
+    snapshot
+        .segments(stage)
+        .iter()
+        .map(|(_, r)| r.created)
+        .max()
+        .unwrap_or(0)
+}
+
+/// Whether the snapshot's finest solution was computed from its own octree and histograms.
+///
+/// A solve runs the octree, the histograms and the levels in that order, and each rewrites the
+/// units whose inputs changed, so a complete version has the octree's last change no later
+/// than the histograms' and theirs no later than the finest level's. After `solve --until
+/// octree`, or while a solve runs, a newer octree or histograms sit under an older solution:
+/// its surface would combine the new cubes with values solved for the old ones.
+pub fn solution_is_current(snapshot: &Snapshot<'_>) -> bool {
+    let Some(finest) = snapshot.finest_level() else {
+        return true;
+    };
+    let octree = last_change(snapshot, crate::stages::OCTREE);
+    let histograms = last_change(snapshot, HISTOGRAMS);
+    let solution = last_change(snapshot, LEVEL_STAGES[usize::from(finest)]);
+    octree <= histograms && histograms <= solution
+}
+
+/// An error unless [`solution_is_current`]; it names the latest older version that is.
+pub fn ensure_solution_is_current(snapshot: &Snapshot<'_>) -> Result<()> {
+    if solution_is_current(snapshot) {
+        return Ok(());
+    }
+    let store = snapshot.store();
+    let complete = (1..snapshot.version()).rev().find(|&v| {
+        store
+            .snapshot(v)
+            .is_ok_and(|s| s.finest_level().is_some() && solution_is_current(&s))
+    });
+    let advice = match complete {
+        Some(v) => {
+            format!("run `octstore solve` to finish it, or read version {v}, the latest complete one (--version {v})")
+        }
+        None => "run `octstore solve` to finish it".into(),
+    };
+    Err(StoreError::Stage {
+        stage: "read".into(),
+        unit: format!("version {}", snapshot.version()),
+        message: format!(
+            "its solution is older than its octree or histograms (a solve has not finished since the last change): {advice}"
+        ),
+    })
+}
+
 fn scene_of(snapshot: &Snapshot<'_>) -> Result<Scene> {
     read_scene(snapshot.store())?.ok_or_else(|| StoreError::Stage {
         stage: "query".into(),
@@ -101,6 +154,7 @@ fn finest_cell_at(snapshot: &Snapshot<'_>, point: DVec3) -> Result<Option<(Scene
     let Some(level) = snapshot.finest_level() else {
         return Ok(None);
     };
+    ensure_solution_is_current(snapshot)?;
     let scene = scene_of(snapshot)?;
     Ok(full_resolution(&scene, point).map(|cell| (scene, level, cell)))
 }
@@ -194,6 +248,7 @@ impl IndicatorField for Snapshot<'_> {
     }
 
     fn cubes_in(&self, bbox: &BoundingBox, level: u8) -> Result<Vec<CubeInfo>> {
+        ensure_solution_is_current(self)?;
         let scene = scene_of(self)?;
         let treetop = Treetop::of(self)?;
         let mut level_cut = LevelCut::new(self, &treetop, level);

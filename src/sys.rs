@@ -25,3 +25,16 @@ pub fn return_freed_memory() {
         libc::malloc_trim(0);
     }
 }
+
+/// Lets a closed pipe end the process quietly, as it ends other command-line tools:
+/// `octstore info STORE | head -1` otherwise panicked in `println!` once `head` had exited
+/// (Rust ignores SIGPIPE, so every write after that fails with EPIPE). Only the binary calls it,
+/// first thing; a library user keeps its own handling.
+pub fn die_quietly_on_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: called at the start of `main`, before any other thread exists; restoring the
+    // default disposition of SIGPIPE installs no handler and touches no memory of ours.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}

@@ -506,3 +506,77 @@ fn assert_cut_around_each_leaf_answers_like_the_whole_cut(store: &Path) {
     }
     assert!(probes > 1000, "{probes} probes");
 }
+
+/// A version whose octree is newer than its solution (an ingest and `solve --until octree`
+/// after a solve) is not read as a surface: `extract` and `query` fail naming the latest
+/// complete version, which still reads; a finished solve makes the latest readable again.
+/// The old mesh at `-o` survives the refused extraction whole.
+#[test]
+fn half_solved_versions_are_refused_and_name_the_latest_complete_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let first = sphere().write(&dir.path().join("first")).unwrap();
+    let store = run_cli(dir.path(), &first, "1000000", "2");
+    let s = store.to_str().unwrap();
+    let version_of = |s: &str| {
+        let info: serde_json::Value = serde_json::from_str(&stdout(&octstore(&["info", s, "--json"], &[]))).unwrap();
+        info["version"].as_u64().unwrap()
+    };
+    let solved = version_of(s);
+    let mesh = dir.path().join("mesh.ply");
+    let before = std::fs::read(&mesh).unwrap();
+
+    let more = SceneSpec {
+        cameras: 5,
+        distance: 1.9,
+        ..sphere()
+    }
+    .write(&dir.path().join("more"))
+    .unwrap();
+    let run = |args: &[&str]| {
+        let out = octstore(&[args, &["--quiet"][..]].concat(), &[]);
+        assert!(out.status.success(), "{args:?}: {}", stderr(&out));
+    };
+    run(&["ingest", s, more.to_str().unwrap()]);
+    run(&["solve", s, "--until", "octree", "--leaf-cubes", "1000000"]);
+    let latest = version_of(s);
+    let refused = |out: &std::process::Output| {
+        assert!(!out.status.success(), "read a half-solved version");
+        let err = stderr(out);
+        assert!(
+            err.contains(&format!("version {latest}")) && err.contains("older than its octree"),
+            "{err}"
+        );
+        err
+    };
+    let err = refused(&octstore(&["extract", s, "-o", mesh.to_str().unwrap()], &[]));
+    assert_eq!(
+        std::fs::read(&mesh).unwrap(),
+        before,
+        "the refused extraction touched the old mesh"
+    );
+    let version = err
+        .split("--version ")
+        .nth(1)
+        .and_then(|rest| rest.split(')').next())
+        .expect("the error names the latest complete version")
+        .to_string();
+    refused(&octstore(&["query", s, "--point", "0.2,-0.1,0.3"], &[]));
+    let old = octstore(
+        &[
+            "extract",
+            s,
+            "-o",
+            dir.path().join("old.ply").to_str().unwrap(),
+            "--version",
+            &version,
+        ],
+        &[],
+    );
+    assert!(old.status.success(), "{}", stderr(&old));
+    // The ingest's own version still holds the solved octree: it is the latest complete one.
+    assert_eq!(version.parse::<u64>().unwrap(), solved + 1);
+
+    run(&["solve", s, "--iterations", "60", "--leaf-cubes", "1000000"]);
+    let out = octstore(&["extract", s, "-o", mesh.to_str().unwrap()], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+}

@@ -220,3 +220,22 @@ fn catalogs_newer_than_this_build_are_refused() {
         assert!(error.contains(&(CATALOG_FORMAT_VERSION + 1).to_string()), "{error}");
     }
 }
+
+/// A reader of the command's output that goes away early ends it quietly (SIGPIPE), instead
+/// of a panic in `println!` (`octstore info STORE | head -1` failed 2 times in 7).
+#[test]
+fn a_closed_output_pipe_ends_the_command_quietly() {
+    let dir = tempfile::tempdir().unwrap();
+    copy_dir(&golden(CATALOG_FORMAT_VERSION), dir.path());
+    let command = format!("'{}' info '{}' | true", octstore_bin().display(), dir.path().display());
+    for _ in 0..5 {
+        let out = std::process::Command::new("sh")
+            .arg("-c")
+            .arg(&command)
+            .output()
+            .unwrap();
+        assert!(out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!err.contains("panicked") && !err.contains("Broken pipe"), "{err}");
+    }
+}

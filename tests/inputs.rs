@@ -580,6 +580,7 @@ fn manifest_entries_name_their_depth_noise() {
         quadratic,
         offset,
         sigmas,
+        footprints: octstore::inputs::DEFAULT_NOISE_FOOTPRINTS,
     };
     assert_eq!(read(serde_json::json!({})).unwrap(), DepthNoise::STRUCTURED_LIGHT);
     assert_eq!(

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use clap::{Args, Parser, Subcommand};
 
 use super::parse::{
-    parse_depth_noise, parse_noise_sigmas, parse_point, parse_ratio, parse_region, parse_root, parse_size,
-    parse_tolerance,
+    parse_depth_noise, parse_margin, parse_memory_budget, parse_noise_sigmas, parse_point, parse_ratio, parse_region,
+    parse_root, parse_tolerance, parse_weight,
 };
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
@@ -33,7 +33,7 @@ pub struct Cli {
 #[derive(Args, Debug, Clone)]
 pub struct GlobalOptions {
     /// Memory the whole process may use, e.g. 512MiB, 1GiB.
-    #[arg(long, global = true, default_value = "1GiB", value_parser = parse_size)]
+    #[arg(long, global = true, default_value = "1GiB", value_parser = parse_memory_budget)]
     pub memory_budget: u64,
     /// Worker threads (default: all cores).
     #[arg(long, global = true)]
@@ -50,13 +50,13 @@ use crate::pipeline::SolveUntil;
 #[derive(clap::Args, Debug, Clone, Copy)]
 pub struct SolverArgs {
     /// TGV weight of |grad u - v| (times the cube side).
-    #[arg(long, default_value_t = SolveParams::default().alpha1)]
+    #[arg(long, default_value_t = SolveParams::default().alpha1, value_parser = parse_weight)]
     alpha1: f32,
     /// TGV weight of |E(v)| (times the cube side squared).
-    #[arg(long, default_value_t = SolveParams::default().alpha0)]
+    #[arg(long, default_value_t = SolveParams::default().alpha0, value_parser = parse_weight)]
     alpha0: f32,
     /// Weight of the histogram data term.
-    #[arg(long, default_value_t = SolveParams::default().lambda)]
+    #[arg(long, default_value_t = SolveParams::default().lambda, value_parser = parse_weight)]
     lambda: f32,
     /// The most primal-dual iterations a unit runs at each level.
     #[arg(long, default_value_t = SolveParams::default().iterations)]
@@ -150,10 +150,11 @@ pub struct IngestArgs {
     /// box grown by --root-margin).
     #[arg(long, value_parser = parse_root)]
     pub root: Option<([f64; 3], f64)>,
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.1, value_parser = parse_margin)]
     pub root_margin: f64,
-    /// Deepest octree level a sample may create (first ingest only).
-    #[arg(long, default_value_t = 24)]
+    /// Deepest octree level a sample may create (first ingest only; at most 32, the keys'
+    /// limit).
+    #[arg(long, default_value_t = 24, value_parser = clap::value_parser!(u8).range(1..=i64::from(crate::format::MAX_DEPTH)))]
     pub max_depth: u8,
     #[arg(long)]
     pub resume: bool,
@@ -172,7 +173,7 @@ pub struct SolveArgs {
     #[command(flatten)]
     pub solver: SolverArgs,
     /// Treetop leaves hold fewer cubes than this.
-    #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
+    #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES, value_parser = clap::value_parser!(u64).range(64..))]
     pub leaf_cubes: u64,
     /// Where the histogram votes and the TGV iterations run: auto takes a hardware GPU
     /// when there is one (never a software rasteriser), gpu any adapter (llvmpipe
@@ -244,7 +245,7 @@ pub struct SlurmArgs {
     #[arg(long)]
     pub dry_run: bool,
     /// Treetop leaves of the octree job hold fewer cubes than this.
-    #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES)]
+    #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES, value_parser = clap::value_parser!(u64).range(64..))]
     pub leaf_cubes: u64,
     /// Also extract the mesh into this file, chunked like the other stages.
     #[arg(short, long)]

@@ -39,6 +39,39 @@ pub(crate) fn parse_noise_sigmas(text: &str) -> Result<f64, ArgumentError> {
     }
 }
 
+/// A finite, non-negative weight of the solver's energy.
+pub(crate) fn parse_weight(text: &str) -> Result<f32, ArgumentError> {
+    match text.trim().parse::<f32>() {
+        Ok(w) if w.is_finite() && w >= 0.0 => Ok(w),
+        _ => Err(ArgumentError(format!("'{text}' is not a finite weight >= 0"))),
+    }
+}
+
+/// A finite, non-negative fraction of the scene's extent.
+pub(crate) fn parse_margin(text: &str) -> Result<f64, ArgumentError> {
+    match text.trim().parse::<f64>() {
+        Ok(m) if m.is_finite() && (0.0..=10.0).contains(&m) => Ok(m),
+        _ => Err(ArgumentError(format!(
+            "'{text}' is not a margin in [0, 10] (a fraction of the largest extent)"
+        ))),
+    }
+}
+
+/// The least memory budget: below it the leaf cap makes leaves of a few cubes, and every
+/// stage runs many times slower instead of within the budget.
+pub(crate) const LEAST_MEMORY_BUDGET: u64 = 32 << 20;
+
+/// A size ([`parse_size`]) of at least [`LEAST_MEMORY_BUDGET`].
+pub(crate) fn parse_memory_budget(text: &str) -> Result<u64, ArgumentError> {
+    let size = parse_size(text)?;
+    if size < LEAST_MEMORY_BUDGET {
+        return Err(ArgumentError(format!(
+            "a memory budget of '{text}' is below the least one octstore works in, 32MiB"
+        )));
+    }
+    Ok(size)
+}
+
 /// `x,y,z`.
 pub(crate) fn parse_point(text: &str) -> Result<[f64; 3], ArgumentError> {
     let v = numbers(text)?;

@@ -382,6 +382,10 @@ struct ManifestPose {
     axes: String,
 }
 
+/// The largest vote weight a manifest may give: votes are summed in f32, and a weight near
+/// f32's range (1e38 was tried) overflows the sums into infinities and the solution into NaN.
+const MAX_WEIGHT: f32 = 1000.0;
+
 fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
     let parsed: Manifest =
         serde_json::from_str(&read_text(path)?).map_err(|e| bad(path, format!("invalid manifest: {e}")))?;
@@ -458,6 +462,10 @@ fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
                     ),
                 ));
             }
+            let weight = entry.weight.unwrap_or(kind.default_weight());
+            if !(0.0..=MAX_WEIGHT).contains(&weight) {
+                return Err(at(format!("weight {weight} is not in [0, {MAX_WEIGHT}]")));
+            }
             let sigmas = entry.noise_sigmas.unwrap_or(DEFAULT_NOISE_SIGMAS);
             let noise = match &entry.depth_noise {
                 None => Ok(kind.default_noise().with_sigmas(sigmas)),
@@ -477,7 +485,7 @@ fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
                 projection,
                 camera_to_world: matrix.to_cols_array(),
                 kind,
-                weight: entry.weight.unwrap_or(kind.default_weight()),
+                weight,
                 noise,
             };
             source.check_intrinsics()?;

@@ -64,16 +64,22 @@ pub fn read_pfm(path: &Path) -> Result<DepthImage, InputError> {
             format!("not a grey PFM (magic '{}', expected 'Pf')", tokens[0]),
         ));
     }
-    let parse = |t: &str, what: &str| t.parse::<f64>().map_err(|_| bad(path, format!("bad PFM {what} '{t}'")));
-    let (w, h, scale) = (
-        parse(&tokens[1], "width")?,
-        parse(&tokens[2], "height")?,
-        parse(&tokens[3], "scale")?,
-    );
-    if w < 1.0 || h < 1.0 || w > 1e6 || h > 1e6 {
-        return Err(bad(path, format!("PFM size {w}x{h} is not plausible")));
+    // Sizes are whole numbers: parsed as floats, "nan" passed every range check and became 0.
+    let size = |t: &str, what: &str| t.parse::<u32>().map_err(|_| bad(path, format!("bad PFM {what} '{t}'")));
+    let (width, height) = (size(&tokens[1], "width")?, size(&tokens[2], "height")?);
+    let scale = tokens[3]
+        .parse::<f64>()
+        .ok()
+        .filter(|s| s.is_finite() && *s != 0.0)
+        .ok_or_else(|| {
+            bad(
+                path,
+                format!("bad PFM scale '{}' (a finite, non-zero number)", tokens[3]),
+            )
+        })?;
+    if width < 1 || height < 1 || width > 1_000_000 || height > 1_000_000 {
+        return Err(bad(path, format!("PFM size {width}x{height} is not plausible")));
     }
-    let (width, height) = (w as u32, h as u32);
     let count = width as usize * height as usize;
     let data = bytes
         .get(pos..pos + count * 4)

@@ -18,8 +18,8 @@ mod tum;
 
 pub use colmap::{WorkspaceWriter, write_colmap_depth};
 pub use depth_map::{
-    DEFAULT_NOISE_SIGMAS, DepthImage, DepthMapSource, DepthNoise, ImageFormat, InputError, Kind, Projection, bad,
-    check_pose,
+    DEFAULT_NOISE_FOOTPRINTS, DEFAULT_NOISE_SIGMAS, DepthImage, DepthMapSource, DepthNoise, ImageFormat, InputError,
+    Kind, Projection, bad, check_pose,
 };
 pub use discover::{DiscoverOptions, InputFormat, discover};
 pub use image_files::{read_npy, read_pfm, read_png16, write_pfm};

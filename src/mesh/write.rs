@@ -13,11 +13,71 @@ pub fn ply_header(vertices: u64, triangles: u64) -> String {
     )
 }
 
-/// Writes binary little-endian PLY, or OBJ when the path ends in `.obj`. A mesh without
-/// normals gets zero normals in PLY (whose header always has them) and none in OBJ.
+/// The temporary name beside `path` that a writer of `path` uses for `part`: hidden, and
+/// ending in `.tmp`, so that [`remove_leftovers`] finds it after a killed run.
+pub fn temporary_beside(path: &Path, part: &str) -> std::path::PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!(".{name}.{part}.tmp"))
+}
+
+/// Removes what a killed writer of `path` left beside it ([`temporary_beside`] names). One
+/// writer per output path at a time: a second one's parts would be removed too.
+pub fn remove_leftovers(path: &Path) -> std::io::Result<()> {
+    let Some(name) = path.file_name().map(|n| n.to_string_lossy().into_owned()) else {
+        return Ok(());
+    };
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
+    };
+    let prefix = format!(".{name}.");
+    let entries = match std::fs::read_dir(&dir) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(e),
+    };
+    for entry in entries {
+        let entry = entry?;
+        let file = entry.file_name().to_string_lossy().into_owned();
+        if file.starts_with(&prefix) && file.ends_with(".tmp") {
+            std::fs::remove_file(entry.path())?;
+        }
+    }
+    Ok(())
+}
+
+/// Writes `path` atomically: `write` fills a temporary file beside it, which is flushed,
+/// synced and renamed over `path`, so a reader (or a killed run) sees the old file or the whole
+/// new one, never a part. On an error the temporary file is removed and `path` is untouched.
+pub fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
+) -> std::io::Result<()> {
+    let temporary = temporary_beside(path, &format!("{}.out", std::process::id()));
+    let result = (|| {
+        let mut out = std::io::BufWriter::new(std::fs::File::create(&temporary)?);
+        write(&mut out)?;
+        out.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        std::fs::rename(&temporary, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&temporary);
+    }
+    result
+}
+
+/// Writes binary little-endian PLY, or OBJ when the path ends in `.obj`, atomically
+/// ([`write_atomically`]). A mesh without normals gets zero normals in PLY (whose header always
+/// has them) and none in OBJ.
 pub fn write_mesh(path: &Path, mesh: &Mesh) -> std::io::Result<()> {
-    let file = std::fs::File::create(path)?;
-    let mut out = std::io::BufWriter::new(file);
+    remove_leftovers(path)?;
+    write_atomically(path, |out| write_mesh_to(path, mesh, out))
+}
+
+fn write_mesh_to(path: &Path, mesh: &Mesh, out: &mut impl Write) -> std::io::Result<()> {
     let is_obj = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("obj"));
     let has_normals = mesh.normals.len() == mesh.positions.len();
     let normal = |i: usize| {
@@ -61,4 +121,62 @@ pub fn write_mesh(path: &Path, mesh: &Mesh) -> std::io::Result<()> {
         }
     }
     out.flush()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A writer that fails half-way leaves the old file whole and nothing beside it; one that
+    /// succeeds replaces it whole.
+    #[test]
+    fn atomic_writes_replace_the_old_file_whole_or_not_at_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("mesh.ply");
+        std::fs::write(&path, b"old mesh").unwrap();
+        let failed = write_atomically(&path, |out| {
+            out.write_all(b"half a new m")?;
+            out.flush()?;
+            Err(std::io::Error::other("disk full"))
+        });
+        assert!(failed.is_err());
+        assert_eq!(std::fs::read(&path).unwrap(), b"old mesh");
+        let names = |dir: &Path| {
+            let mut names: Vec<String> = std::fs::read_dir(dir)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            names.sort();
+            names
+        };
+        assert_eq!(names(dir.path()), ["mesh.ply"]);
+        write_atomically(&path, |out| out.write_all(b"new mesh")).unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"new mesh");
+        assert_eq!(names(dir.path()), ["mesh.ply"]);
+    }
+
+    /// What a killed writer of a path leaves beside it is removed, and nothing else.
+    #[test]
+    fn leftovers_of_a_killed_writer_are_removed_and_nothing_else() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("mesh.ply");
+        for name in [
+            "mesh.ply",
+            ".mesh.ply.vertices.tmp",
+            ".mesh.ply.4242.out.tmp",
+            ".other.ply.faces.tmp",
+            "mesh.ply.tmp",
+        ] {
+            std::fs::write(dir.path().join(name), b"x").unwrap();
+        }
+        assert_eq!(temporary_beside(&path, "faces"), dir.path().join(".mesh.ply.faces.tmp"));
+        remove_leftovers(&path).unwrap();
+        let mut names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        assert_eq!(names, [".other.ply.faces.tmp", "mesh.ply", "mesh.ply.tmp"]);
+        remove_leftovers(&dir.path().join("missing").join("mesh.ply")).unwrap();
+    }
 }

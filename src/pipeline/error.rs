@@ -78,10 +78,15 @@ impl From<StoreError> for PipelineError {
 pub type Result<T, E = PipelineError> = std::result::Result<T, E>;
 
 /// Writes `image` as a PNG at `path`; the image crate's error becomes an I/O error on the file.
+/// Writes `image` as PNG at `path`, atomically (`mesh::write_atomically`).
 pub(crate) fn save_png(image: &image::RgbImage, path: &std::path::Path) -> Result<()> {
+    let mut encoded = std::io::Cursor::new(Vec::new());
     image
-        .save(path)
-        .map_err(|e| io_error("write image", path)(std::io::Error::other(e.to_string())))
+        .write_to(&mut encoded, image::ImageFormat::Png)
+        .map_err(|e| io_error("encode image", path)(std::io::Error::other(e.to_string())))?;
+    crate::mesh::remove_leftovers(path).map_err(io_error("write image", path))?;
+    crate::mesh::write_atomically(path, |out| std::io::Write::write_all(out, encoded.get_ref()))
+        .map_err(io_error("write image", path))
 }
 
 /// `map_err` adapter: an I/O error of `action` on `path`.

@@ -179,6 +179,7 @@ pub fn extract(store: &Store, output: &Path, options: &ExtractOptions, version: 
         Some(v) => store.snapshot(v)?,
         None => store.latest()?,
     };
+    crate::query::ensure_solution_is_current(&snapshot)?;
     let finest = octree_max_depth(store)?;
     Ok(extract_to_file(&snapshot, &scene, finest, options, output)?)
 }

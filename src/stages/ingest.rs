@@ -69,8 +69,7 @@ impl SampleStats {
 
 /// Back-projected samples of one depth map: world positions and radii r_x (paper 4.1: half
 /// the 3D distance to the neighbouring samples; the nearest valid 4-neighbour here, which is
-/// robust at depth discontinuities), at least the map's noise model's least radius at the
-/// sample's depth (`DepthNoise`).
+/// robust at depth discontinuities), widened by the map's noise model (`DepthNoise::radius`).
 pub struct Samples {
     pub points: Vec<DVec3>,
     pub radii: Vec<f64>,
@@ -110,7 +109,7 @@ pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
                 Projection::Spherical => p.length(),
             };
             points.push(pose.transform_point3(p));
-            radii.push((nearest * 0.5).max(source.noise.least_radius(depth)));
+            radii.push(source.noise.radius(nearest * 0.5, depth));
             spikes.push(close < 2);
         }
     }
@@ -398,6 +397,17 @@ impl IngestStage {
         maps.sort_by_key(|(id, _)| *id);
         maps.dedup_by_key(|(id, _)| *id);
 
+        if !(1..=crate::format::MAX_DEPTH).contains(&options.max_depth) {
+            return Err(StoreError::Stage {
+                stage: INGEST.into(),
+                unit: "options".into(),
+                message: format!(
+                    "max depth {} is outside 1..={} (the cube keys' limit)",
+                    options.max_depth,
+                    crate::format::MAX_DEPTH
+                ),
+            });
+        }
         let (scene, scene_is_new) = match read_scene(store)? {
             Some(scene) => (scene, false),
             None => {
@@ -685,11 +695,11 @@ mod tests {
         assert!(!bounds_sample(&back_project(&source, &image), 100).is_empty());
     }
 
-    /// A wall at depths 1 to 3 (f = 100: samples 1 to 3 cm apart, radii 5 to 15 mm): the
-    /// footprint rule keeps the half spacing; a noise model raises every radius to its least
-    /// radius where that is larger, and leaves the rest.
+    /// A wall at depths 1 to 3 (f = 100: samples 1 to 3 cm apart, footprint radii 5 to 15 mm):
+    /// the footprint rule keeps the half spacing; a noise model raises a radius to its floor
+    /// where that is larger, but to at most its footprint cap.
     #[test]
-    fn noise_models_raise_radii_to_their_least_radius() {
+    fn noise_models_raise_radii_to_their_floor_within_the_cap() {
         let (w, h) = (64u32, 48u32);
         let depth: Vec<f32> = (0..w * h)
             .map(|index| 1.0 + 2.0 * (index / w) as f32 / h as f32)
@@ -701,25 +711,30 @@ mod tests {
         };
         let footprint = back_project(&camera(w, h), &image);
         let noise = DepthNoise::Axial {
-            constant: 0.001,
-            quadratic: 0.004,
-            offset: 0.5,
+            constant: 0.0,
+            quadratic: 0.01,
+            offset: 1.0,
             sigmas: 2.0,
+            footprints: 1.5,
         };
         let noisy = back_project(&DepthMapSource { noise, ..camera(w, h) }, &image);
         assert_eq!(footprint.points, noisy.points);
-        let (mut raised, mut kept) = (0, 0);
+        let (mut kept, mut raised, mut capped) = (0, 0, 0);
         for ((p, before), after) in footprint.points.iter().zip(&footprint.radii).zip(&noisy.radii) {
-            let least = 2.0 * (0.001 + 0.004 * (p.z - 0.5).powi(2));
-            assert!((after - before.max(least)).abs() < 1e-12, "z {} {before} {after}", p.z);
-            if least > *before {
+            let floor = 2.0 * (0.01 * (p.z - 1.0).powi(2));
+            let expected = before.max(floor.min(1.5 * before));
+            assert!((after - expected).abs() < 1e-12, "z {} {before} {after}", p.z);
+            if floor <= *before {
+                kept += 1;
+            } else if floor < 1.5 * before {
                 raised += 1;
             } else {
-                kept += 1;
+                capped += 1;
             }
         }
-        // Noise dominates far away (sigma grows with the square of depth), the footprint near.
-        assert!(raised > 100 && kept > 100, "raised {raised}, kept {kept}");
+        // The footprint wins near the camera, the floor a little farther, the cap far away
+        // (sigma grows with the square of depth, the footprint linearly).
+        assert!(kept > 100 && raised > 100 && capped > 100, "{kept} {raised} {capped}");
     }
 
     /// The noise model is recorded with a depth map but is not part of its identity.

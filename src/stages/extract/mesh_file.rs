@@ -8,7 +8,7 @@ use glam::DVec3;
 
 use super::MeshSummary;
 use super::weld::MeshWriter;
-use crate::mesh::ply_header;
+use crate::mesh::{ply_header, remove_leftovers, temporary_beside, write_atomically};
 
 /// Writes a mesh file in two passes over temporary files beside it: fixed-size vertex records
 /// (so that normals can be fixed in place) and face records, joined under the header at the end.
@@ -27,12 +27,8 @@ const FACE_RECORD: usize = 1 + 3 * std::mem::size_of::<u32>();
 
 impl MeshFile {
     pub(super) fn create(path: &Path) -> std::io::Result<MeshFile> {
-        let name = path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        let beside = |suffix: &str| path.with_file_name(format!(".{name}.{suffix}.tmp"));
-        let (vertices_path, faces_path) = (beside("vertices"), beside("faces"));
+        remove_leftovers(path)?;
+        let (vertices_path, faces_path) = (temporary_beside(path, "vertices"), temporary_beside(path, "faces"));
         let open = |p: &Path| -> std::io::Result<std::io::BufWriter<std::fs::File>> {
             Ok(std::io::BufWriter::new(
                 std::fs::OpenOptions::new()
@@ -52,46 +48,18 @@ impl MeshFile {
         })
     }
 
-    /// Joins the parts into the mesh file (PLY, or OBJ by extension) and removes them.
+    /// Joins the parts into the mesh file (PLY, or OBJ by extension), atomically
+    /// (`write_atomically`), and removes them.
     pub(super) fn finish(self, summary: &MeshSummary) -> std::io::Result<()> {
-        use std::io::{Read, Seek, SeekFrom};
+        use std::io::{Seek, SeekFrom};
         let mut vertices = self.vertices.into_inner().map_err(|e| e.into_error())?;
         let mut faces = self.faces.into_inner().map_err(|e| e.into_error())?;
         vertices.seek(SeekFrom::Start(0))?;
         faces.seek(SeekFrom::Start(0))?;
-        let mut out = std::io::BufWriter::new(std::fs::File::create(&self.path)?);
-        let is_obj = self.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("obj"));
-        if is_obj {
-            let mut reader = std::io::BufReader::new(vertices);
-            let mut record = [0u8; VERTEX_RECORD as usize];
-            for _ in 0..summary.vertices {
-                reader.read_exact(&mut record)?;
-                let f: Vec<f32> = record
-                    .chunks_exact(4)
-                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                    .collect();
-                writeln!(out, "v {} {} {}", f[0], f[1], f[2])?;
-                writeln!(out, "vn {} {} {}", f[3], f[4], f[5])?;
-            }
-            let mut reader = std::io::BufReader::new(faces);
-            let mut record = [0u8; FACE_RECORD];
-            for _ in 0..summary.triangles {
-                reader.read_exact(&mut record)?;
-                let v: Vec<u32> = record[1..]
-                    .chunks_exact(4)
-                    .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) + 1)
-                    .collect();
-                writeln!(out, "f {0}//{0} {1}//{1} {2}//{2}", v[0], v[1], v[2])?;
-            }
-        } else {
-            write!(out, "{}", ply_header(summary.vertices, summary.triangles))?;
-            std::io::copy(&mut vertices, &mut out)?;
-            std::io::copy(&mut faces, &mut out)?;
-        }
-        out.flush()?;
+        let joined = write_atomically(&self.path, |out| join(&self.path, summary, vertices, faces, out));
         std::fs::remove_file(&self.vertices_path)?;
         std::fs::remove_file(&self.faces_path)?;
-        Ok(())
+        joined
     }
 
     pub(super) fn abandon(self) {
@@ -100,6 +68,46 @@ impl MeshFile {
         let _ = std::fs::remove_file(&self.vertices_path);
         let _ = std::fs::remove_file(&self.faces_path);
     }
+}
+
+/// Writes the mesh file from its parts: vertex records, then face records.
+fn join(
+    path: &Path,
+    summary: &MeshSummary,
+    mut vertices: std::fs::File,
+    mut faces: std::fs::File,
+    out: &mut std::io::BufWriter<std::fs::File>,
+) -> std::io::Result<()> {
+    use std::io::Read;
+    let is_obj = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("obj"));
+    if is_obj {
+        let mut reader = std::io::BufReader::new(vertices);
+        let mut record = [0u8; VERTEX_RECORD as usize];
+        for _ in 0..summary.vertices {
+            reader.read_exact(&mut record)?;
+            let f: Vec<f32> = record
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            writeln!(out, "v {} {} {}", f[0], f[1], f[2])?;
+            writeln!(out, "vn {} {} {}", f[3], f[4], f[5])?;
+        }
+        let mut reader = std::io::BufReader::new(faces);
+        let mut record = [0u8; FACE_RECORD];
+        for _ in 0..summary.triangles {
+            reader.read_exact(&mut record)?;
+            let v: Vec<u32> = record[1..]
+                .chunks_exact(4)
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) + 1)
+                .collect();
+            writeln!(out, "f {0}//{0} {1}//{1} {2}//{2}", v[0], v[1], v[2])?;
+        }
+    } else {
+        write!(out, "{}", ply_header(summary.vertices, summary.triangles))?;
+        std::io::copy(&mut vertices, out)?;
+        std::io::copy(&mut faces, out)?;
+    }
+    Ok(())
 }
 
 impl MeshWriter for MeshFile {
