@@ -133,22 +133,12 @@ pub enum DepthNoise {
 
 impl std::fmt::Display for DepthNoise {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match *self {
-            DepthNoise::Footprint => write!(f, "none (pixel footprint)"),
-            DepthNoise::Axial {
-                constant,
-                quadratic: 0.0,
-                sigmas,
-                footprints,
-                ..
-            } => write!(f, "radius >= min({sigmas} x {constant}, {footprints} footprints)"),
-            DepthNoise::Axial {
-                constant,
-                quadratic,
-                offset,
-                sigmas,
-                footprints,
-            } => write!(
+        match self.parts() {
+            None => write!(f, "none (pixel footprint)"),
+            Some([constant, 0.0, _, sigmas, footprints]) => {
+                write!(f, "radius >= min({sigmas} x {constant}, {footprints} footprints)")
+            }
+            Some([constant, quadratic, offset, sigmas, footprints]) => write!(
                 f,
                 "radius >= min({sigmas} x ({constant} + {quadratic} (d - {offset})^2), {footprints} footprints)"
             ),
@@ -159,80 +149,67 @@ impl std::fmt::Display for DepthNoise {
 impl DepthNoise {
     /// Structured-light and time-of-flight RGB-D sensors (Kinect class): sigma(z) = 0.0012 +
     /// 0.0019 (z - 0.4)^2 metres (Nguyen, Izadi and Lovell 2012, axial noise).
-    pub const STRUCTURED_LIGHT: DepthNoise = DepthNoise::Axial {
-        constant: 0.0012,
-        quadratic: 0.0019,
-        offset: 0.4,
-        sigmas: DEFAULT_NOISE_SIGMAS,
-        footprints: DEFAULT_NOISE_FOOTPRINTS,
-    };
+    pub const STRUCTURED_LIGHT: DepthNoise =
+        DepthNoise::from_parts([0.0012, 0.0019, 0.4, DEFAULT_NOISE_SIGMAS, DEFAULT_NOISE_FOOTPRINTS]);
 
     /// Terrestrial laser scanners: about 2 mm of range noise, whatever the range.
-    pub const TERRESTRIAL_LIDAR: DepthNoise = DepthNoise::Axial {
-        constant: 0.002,
-        quadratic: 0.0,
-        offset: 0.0,
-        sigmas: DEFAULT_NOISE_SIGMAS,
-        footprints: DEFAULT_NOISE_FOOTPRINTS,
-    };
+    pub const TERRESTRIAL_LIDAR: DepthNoise =
+        DepthNoise::from_parts([0.002, 0.0, 0.0, DEFAULT_NOISE_SIGMAS, DEFAULT_NOISE_FOOTPRINTS]);
+
+    /// An axial model from [constant, quadratic, offset, sigmas, footprints].
+    const fn from_parts([constant, quadratic, offset, sigmas, footprints]: [f64; 5]) -> DepthNoise {
+        DepthNoise::Axial {
+            constant,
+            quadratic,
+            offset,
+            sigmas,
+            footprints,
+        }
+    }
+
+    /// [constant, quadratic, offset, sigmas, footprints] of an axial model.
+    fn parts(&self) -> Option<[f64; 5]> {
+        match *self {
+            DepthNoise::Footprint => None,
+            DepthNoise::Axial {
+                constant,
+                quadratic,
+                offset,
+                sigmas,
+                footprints,
+            } => Some([constant, quadratic, offset, sigmas, footprints]),
+        }
+    }
 
     /// The radius of a sample at `depth` whose footprint radius (half the distance to its
     /// nearest neighbour) is `footprint`.
     pub fn radius(&self, footprint: f64, depth: f64) -> f64 {
-        match *self {
-            DepthNoise::Footprint => footprint,
-            DepthNoise::Axial {
-                constant,
-                quadratic,
-                offset,
-                sigmas,
-                footprints,
-            } => {
-                let floor = sigmas * (constant + quadratic * (depth - offset).powi(2));
-                footprint.max(floor.min(footprints * footprint))
-            }
-        }
+        let Some([constant, quadratic, offset, sigmas, footprints]) = self.parts() else {
+            return footprint;
+        };
+        let floor = sigmas * (constant + quadratic * (depth - offset).powi(2));
+        footprint.max(floor.min(footprints * footprint))
     }
 
     /// The same model spanning `sigmas` standard deviations (no change to [`Footprint`](Self::Footprint)).
     pub fn with_sigmas(self, sigmas: f64) -> DepthNoise {
-        match self {
-            DepthNoise::Footprint => DepthNoise::Footprint,
-            DepthNoise::Axial {
-                constant,
-                quadratic,
-                offset,
-                footprints,
-                ..
-            } => DepthNoise::Axial {
-                constant,
-                quadratic,
-                offset,
-                sigmas,
-                footprints,
-            },
+        match self.parts() {
+            None => DepthNoise::Footprint,
+            Some([constant, quadratic, offset, _, footprints]) => {
+                DepthNoise::from_parts([constant, quadratic, offset, sigmas, footprints])
+            }
         }
     }
 
     /// A model from its numbers: none (no model), sigma (constant), or constant, quadratic and
-    /// offset; `sigmas` per radius.
+    /// offset; `sigmas` per radius, at most [`DEFAULT_NOISE_FOOTPRINTS`].
     pub fn from_numbers(numbers: &[f64], sigmas: f64) -> Result<DepthNoise, String> {
         let noise = match *numbers {
             [] => DepthNoise::Footprint,
-            [constant] => DepthNoise::Axial {
-                constant,
-                quadratic: 0.0,
-                offset: 0.0,
-                sigmas,
-                footprints: DEFAULT_NOISE_FOOTPRINTS,
-            },
-            [constant, quadratic, offset] => DepthNoise::Axial {
-                constant,
-                quadratic,
-                offset,
-                sigmas,
-                footprints: DEFAULT_NOISE_FOOTPRINTS,
-            },
+            [constant] => DepthNoise::from_parts([constant, 0.0, 0.0, sigmas, DEFAULT_NOISE_FOOTPRINTS]),
+            [constant, quadratic, offset] => {
+                DepthNoise::from_parts([constant, quadratic, offset, sigmas, DEFAULT_NOISE_FOOTPRINTS])
+            }
             _ => {
                 return Err(format!(
                     "a depth noise model has 1 number (sigma) or 3 (constant, quadratic, offset: sigma(d) = constant + quadratic (d - offset)^2), not {}",
@@ -250,18 +227,8 @@ impl DepthNoise {
 
     /// Whether every number is finite and none negative.
     pub fn is_valid(&self) -> bool {
-        match *self {
-            DepthNoise::Footprint => true,
-            DepthNoise::Axial {
-                constant,
-                quadratic,
-                offset,
-                sigmas,
-                footprints,
-            } => [constant, quadratic, offset, sigmas, footprints]
-                .iter()
-                .all(|v| v.is_finite() && *v >= 0.0),
-        }
+        self.parts()
+            .is_none_or(|parts| parts.iter().all(|v| v.is_finite() && *v >= 0.0))
     }
 }
 
