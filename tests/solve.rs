@@ -412,6 +412,7 @@ fn histogram_catalog(path: &std::path::Path) -> (RawStates, MapSets) {
 fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
     use octstore::stages::histograms::HistogramState;
     use octstore::store::catalog::{self, META, UNIT_STATE};
+    use redb::ReadableTable;
     let root = tempfile::tempdir().unwrap();
     let (all, fixed) = sphere_maps(root.path(), 6);
     let path = root.path().join("store");
@@ -458,13 +459,30 @@ fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
             let mut meta = txn.open_table(META).unwrap();
             meta.remove(catalog::map_set_key(digest).as_str()).unwrap();
             meta.insert("format_version", 1u32.to_le_bytes().as_slice()).unwrap();
+            // Depth map sources before version 3 end at `weight`: drop the noise model (these
+            // photo maps have `Footprint`, the u32 tag 0 before the record's last 64 bytes).
+            let mut maps = txn.open_table(catalog::DEPTH_MAPS).unwrap();
+            let records: Vec<(u64, Vec<u8>)> = maps
+                .iter()
+                .unwrap()
+                .map(|entry| {
+                    let (id, value) = entry.unwrap();
+                    (id.value(), value.value().to_vec())
+                })
+                .collect();
+            for (id, mut value) in records {
+                let tag = value.len() - 68;
+                assert_eq!(value[tag..tag + 4], [0, 0, 0, 0], "a map with a noise model");
+                value.drain(tag..tag + 4);
+                maps.insert(id, value.as_slice()).unwrap();
+            }
         }
         txn.commit().unwrap();
     }
     let v1 = Store::open_read_only(&path).unwrap();
     assert_ne!(v1.canonical_dump().unwrap(), dump);
     drop(v1);
-    // A writable open migrates it back to exactly the version-2 catalog.
+    // A writable open migrates it back to exactly the newest catalog.
     let migrated = Store::open(&path).unwrap();
     assert_eq!(migrated.canonical_dump().unwrap(), dump, "the migrated catalog differs");
     // Maps added after the migration vote incrementally into the migrated units, and the
