@@ -580,3 +580,45 @@ fn half_solved_versions_are_refused_and_name_the_latest_complete_one() {
     let out = octstore(&["extract", s, "-o", mesh.to_str().unwrap()], &[]);
     assert!(out.status.success(), "{}", stderr(&out));
 }
+
+/// A depth map file replaced after its ingest is refused when the solve reads it again (its
+/// content no longer hashes to its id), naming the file; the store stays at its last commit,
+/// and with the ingested file back the solve runs.
+#[test]
+fn a_depth_map_replaced_after_ingest_is_refused_by_the_solve() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = sphere().write(&dir.path().join("input")).unwrap();
+    let store = dir.path().join("store");
+    let s = store.to_str().unwrap();
+    let out = octstore(
+        &["ingest", s, manifest.to_str().unwrap(), "--max-depth", "6", "--quiet"],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let view = dir.path().join("input").join("view-003.pfm");
+    let original = std::fs::read(&view).unwrap();
+    let mut image = octstore::inputs::read_pfm(&view).unwrap();
+    for d in &mut image.depth {
+        *d *= 1.1;
+    }
+    octstore::inputs::write_pfm(&view, &image).unwrap();
+    // The octree reads the ingest's runs, not the files: it commits.
+    let out = octstore(&["solve", s, "--until", "octree", "--quiet"], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let version = || {
+        let info: serde_json::Value = serde_json::from_str(&stdout(&octstore(&["info", s, "--json"], &[]))).unwrap();
+        info["version"].as_u64().unwrap()
+    };
+    let committed = version();
+    let out = octstore(&["solve", s, "--iterations", "20", "--quiet"], &[]);
+    assert!(!out.status.success(), "a changed depth map voted");
+    let err = stderr(&out);
+    assert!(
+        err.contains("view-003.pfm") && err.contains("changed since it was ingested"),
+        "{err}"
+    );
+    assert_eq!(version(), committed, "the failed solve committed a version");
+    std::fs::write(&view, original).unwrap();
+    let out = octstore(&["solve", s, "--iterations", "20", "--quiet"], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+}

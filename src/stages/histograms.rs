@@ -127,6 +127,8 @@ pub struct HistogramsStage {
     /// Treetop units voted together, by group id (the first member's index).
     groups: std::sync::OnceLock<BTreeMap<u64, Vec<usize>>>,
     cache: PyramidCache,
+    /// Depth maps whose file this run has found to be the one ingested (content hash = id).
+    verified: std::sync::Mutex<std::collections::BTreeSet<u64>>,
     /// Where the votes are cast; `None` is the CPU.
     gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
 }
@@ -150,8 +152,41 @@ impl HistogramsStage {
                 capacity: DEFAULT_PYRAMID_CACHE_BYTES,
                 state: std::sync::Mutex::default(),
             },
+            verified: std::sync::Mutex::default(),
             gpu: None,
         }
+    }
+
+    /// An error unless `source`'s file still hashes to `id`, the id its ingest recorded: a file
+    /// replaced after ingest would otherwise vote other data, silently. Hashed once per map and
+    /// run (the cache decodes a map again for each group that sees it).
+    fn check_unchanged(&self, id: u64, source: &crate::inputs::DepthMapSource, unit: &str) -> Result<()> {
+        let seen = |verified: &std::sync::Mutex<std::collections::BTreeSet<u64>>| {
+            verified
+                .lock()
+                .unwrap_or_else(|poisoned| poisoned.into_inner())
+                .contains(&id)
+        };
+        if seen(&self.verified) {
+            return Ok(());
+        }
+        let stage_error = |message: String| StoreError::Stage {
+            stage: HISTOGRAMS.into(),
+            unit: unit.to_string(),
+            message,
+        };
+        let found = super::ingest::depth_map_id(source).map_err(|e| stage_error(e.to_string()))?;
+        if found != id {
+            return Err(stage_error(format!(
+                "{}: the file changed since it was ingested (its content hash is {found:016x}, the store recorded {id:016x}); put the ingested file back, or ingest the new one into a new store",
+                source.path.display()
+            )));
+        }
+        self.verified
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+            .insert(id);
+        Ok(())
     }
 
     /// Casts the votes on `gpu` (falling back to the CPU per group on a GPU failure).
@@ -548,6 +583,7 @@ impl HistogramsStage {
                 continue;
             }
             let pyramid = self.cache.get_or_load(*id, || {
+                self.check_unchanged(*id, source, &unit.label)?;
                 let image = source.load().map_err(|e| StoreError::Stage {
                     stage: HISTOGRAMS.into(),
                     unit: unit.label.clone(),
