@@ -681,3 +681,40 @@ fn images_of_the_wrong_geometry_are_refused() {
         assert!(err.contains("bad.pfm") && err.contains(expected), "{header:?}: {err}");
     }
 }
+
+/// Focal lengths that are not positive are the intrinsics file's error, named as such, whether
+/// it is a folder's camera-intrinsics.txt or a file given with --intrinsics.
+#[test]
+fn bad_focal_lengths_name_the_intrinsics_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = dir.path().join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    for suffix in ["depth.png", "pose.txt"] {
+        std::fs::copy(
+            kitchen().join(format!("frame-000000.{suffix}")),
+            frames.join(format!("frame-000000.{suffix}")),
+        )
+        .unwrap();
+    }
+    let own = frames.join("camera-intrinsics.txt");
+    std::fs::write(&own, "0 0 320\n0 585 240\n0 0 1\n").unwrap();
+    let given = dir.path().join("intrinsics.txt");
+    std::fs::write(&given, "585 -585 320 240\n").unwrap();
+    let store = dir.path().join("store");
+    for (extra, file) in [(vec![], &own), (vec!["--intrinsics", given.to_str().unwrap()], &given)] {
+        let args = [
+            &["ingest", store.to_str().unwrap(), frames.to_str().unwrap(), "--quiet"][..],
+            &extra,
+        ]
+        .concat();
+        let out = octstore(&args, &[]);
+        assert!(!out.status.success());
+        let err = stderr(&out);
+        assert!(
+            err.contains(file.to_str().unwrap())
+                && err.contains("focal lengths must be positive")
+                && !err.contains("depth.png"),
+            "{err}"
+        );
+    }
+}

@@ -211,7 +211,7 @@ fn seven_scenes_intrinsics(dir: &Path, options: &DiscoverOptions) -> Result<Proj
             ));
         }
         let k = numbers(&path, &read_text(&path)?, 9, "3x3 intrinsics matrix")?;
-        return Ok(pinhole_of_matrix(&k));
+        return with_positive_focal_lengths(&path, pinhole_of_matrix(&k));
     };
     intrinsics_file(path)
 }
@@ -246,25 +246,42 @@ fn tum_folder(dir: &Path, options: &DiscoverOptions) -> Result<Vec<DepthMapSourc
 }
 
 /// Intrinsics from a file: a 3x3 matrix (9 numbers) or fx fy cx cy (4 numbers).
+/// The pinhole of an intrinsics file; focal lengths that are not positive and finite are the
+/// file's error (`with_positive_focal_lengths`), not every depth image's that uses it.
 fn intrinsics_file(path: &Path) -> Result<Projection, InputError> {
     let text = read_text(path)?;
     let count = text.split_whitespace().count();
-    if count == 4 {
+    let projection = if count == 4 {
         let k = numbers(path, &text, 4, "intrinsics fx fy cx cy")?;
-        return Ok(Projection::Pinhole {
+        Projection::Pinhole {
             fx: k[0],
             fy: k[1],
             cx: k[2],
             cy: k[3],
-        });
-    }
-    if count != 9 {
+        }
+    } else if count == 9 {
+        pinhole_of_matrix(&numbers(path, &text, 9, "3x3 intrinsics matrix")?)
+    } else {
         return Err(bad(
             path,
             format!("intrinsics: expected a 3x3 matrix (9 numbers) or fx fy cx cy (4 numbers), found {count} values"),
         ));
+    };
+    with_positive_focal_lengths(path, projection)
+}
+
+/// `projection`, or an error naming the intrinsics file `path` when its focal lengths are not
+/// positive and finite.
+fn with_positive_focal_lengths(path: &Path, projection: Projection) -> Result<Projection, InputError> {
+    if let Projection::Pinhole { fx, fy, .. } = projection
+        && !(fx > 0.0 && fy > 0.0 && fx.is_finite() && fy.is_finite())
+    {
+        return Err(bad(
+            path,
+            format!("intrinsics: focal lengths must be positive (fx {fx}, fy {fy})"),
+        ));
     }
-    Ok(pinhole_of_matrix(&numbers(path, &text, 9, "3x3 intrinsics matrix")?))
+    Ok(projection)
 }
 
 /// A pinhole from a row-major 3x3 camera matrix.
