@@ -53,6 +53,6 @@ pub use quality::synthetic_scenes::SceneSpec;
 pub use query::{CubeInfo, IndicatorField, LeafInfo};
 pub use stages::extract::ExtractOptions;
 pub use stages::ingest::IngestOptions;
-pub use stages::solve::SolveParams;
+pub use stages::solve::{Method, SolveParams, SsdParams};
 pub use store::{RunOptions, RunReport, Snapshot, Store, StoreError};
 pub use sys::die_quietly_on_closed_pipe;

@@ -11,7 +11,7 @@ use crate::format::{BoundingBox, CubeKey, MAX_DEPTH, Scene};
 use crate::kernels::votes::BINS;
 use crate::stages::HISTOGRAMS;
 use crate::stages::ingest::read_scene;
-use crate::stages::solve::{LEVEL_STAGES, LevelCut};
+use crate::stages::solve::{LEVEL_STAGES, LevelCut, method_of_segment};
 use crate::stages::treetop::Treetop;
 use crate::store::{Result, Snapshot, StoreError};
 
@@ -77,6 +77,10 @@ pub trait IndicatorField {
 
     /// Cubes of the level-`level` cut that meet `bbox`, with centre, size, u and histogram.
     fn cubes_in(&self, bbox: &BoundingBox, level: u8) -> Result<Vec<CubeInfo>>;
+
+    /// The solver of the finest level: `tgv` (u an indicator in [-1, 1]), `ssd` or `hybrid`
+    /// (u a signed distance in units of the root side); `None` before a solve.
+    fn method(&self) -> Result<Option<&'static str>>;
 }
 
 /// The last version at which `stage`'s visible content changed (0 when it has none).
@@ -164,6 +168,16 @@ impl IndicatorField for Snapshot<'_> {
         (0..=MAX_DEPTH)
             .rev()
             .find(|&l| !self.segments(LEVEL_STAGES[usize::from(l)]).is_empty())
+    }
+
+    fn method(&self) -> Result<Option<&'static str>> {
+        let Some(level) = self.finest_level() else {
+            return Ok(None);
+        };
+        match self.segments(LEVEL_STAGES[usize::from(level)]).first() {
+            Some((name, _)) => Ok(Some(method_of_segment(self, name)?)),
+            None => Ok(None),
+        }
     }
 
     fn levels(&self) -> Vec<u8> {

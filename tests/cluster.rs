@@ -236,3 +236,47 @@ fn cluster_errors_are_clear() {
     );
     assert!(out.contains("commit") && out.contains("solution-05-plan"), "{out}");
 }
+
+/// `--method ssd` on a cluster: the samples stage and the SSD levels through plan, work and
+/// commit equal a single-process `solve --method ssd` byte for byte, and the Slurm chain runs
+/// the samples stage after the octree.
+#[test]
+fn an_ssd_cluster_run_equals_a_single_process_solve() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = scene().write(&dir.path().join("input")).unwrap();
+    let cluster = dir.path().join("cluster");
+    let single = dir.path().join("single");
+    let c = cluster.to_str().unwrap();
+    run(&["ingest", c, manifest.to_str().unwrap(), "--max-depth", "6", "--quiet"]);
+    run(&["solve", c, "--until", "octree", "--leaf-cubes", "400", "--quiet"]);
+    copy_dir(&cluster, &single);
+    let s = single.to_str().unwrap();
+    run(&["solve", s, "--method", "ssd", "--leaf-cubes", "400", "--quiet"]);
+    let mut stages = vec!["samples".to_string(), "histograms".to_string()];
+    stages.extend((0..=6).map(|l| format!("solution-{l:02}")));
+    for stage in &stages {
+        run(&["plan", c, "--stage", stage, "--chunks", "3", "--method", "ssd"]);
+        for chunk in 0..3u32 {
+            run(&["work", c, "--stage", stage, "--chunk", &chunk.to_string()]);
+        }
+        run(&["commit", c, "--stage", stage, "--quiet"]);
+    }
+    assert_same_store(
+        &fingerprint(&single),
+        &fingerprint(&cluster),
+        "ssd cluster vs single process",
+    );
+    let chain = run(&["slurm", s, "--chunks", "2", "--method", "ssd", "--dry-run"]);
+    let samples = chain.find("--stage samples").expect("a samples job");
+    assert!(
+        chain.find("--until octree").is_some_and(|octree| octree < samples)
+            && chain
+                .find("--stage histograms")
+                .is_some_and(|histograms| samples < histograms),
+        "{chain}"
+    );
+    assert!(
+        chain.contains("--stage solution-03 --chunks 2") && chain.contains("--method ssd"),
+        "{chain}"
+    );
+}

@@ -1,5 +1,5 @@
-//! SIGKILL `octstore solve` at random moments of the histogram and level phases: `verify`
-//! passes afterwards and `solve --resume` ends byte-identical to an uninterrupted run.
+//! SIGKILL `octstore solve` (TGV, and SSD with its samples stage) at random moments of the
+//! histogram and level phases: `verify` passes afterwards and `solve --resume` ends byte-identical to an uninterrupted run.
 
 mod common;
 
@@ -32,6 +32,21 @@ fn solve_args(store: &std::path::Path, resume: bool) -> Vec<String> {
 
 #[test]
 fn sigkill_during_histograms_and_solve_then_resume() {
+    kill_trials_of(TRIALS, &solve_args);
+}
+
+/// `solve --method ssd` adds the samples stage and its own levels: the same guarantee.
+#[test]
+fn sigkill_during_the_ssd_solve_then_resume() {
+    let ssd_args = |store: &std::path::Path, resume: bool| {
+        let mut args = solve_args(store, resume);
+        args.extend(["--method".to_string(), "ssd".to_string()]);
+        args
+    };
+    kill_trials_of(8, &ssd_args);
+}
+
+fn kill_trials_of(trials: u64, args: &dyn Fn(&std::path::Path, bool) -> Vec<String>) {
     let root = tempfile::tempdir().unwrap();
     let center = DVec3::new(0.0, 0.0, 0.2);
     let spec = SceneSpec {
@@ -69,11 +84,11 @@ fn sigkill_during_histograms_and_solve_then_resume() {
     };
     KillTrials {
         root: root.path(),
-        trials: TRIALS,
+        trials,
         seed: 0x9E37_79B9_7F4A_7C15,
         window_percent: 100,
         prepare: &copy,
-        args: &solve_args,
+        args,
     }
     .run();
 }

@@ -6,12 +6,12 @@ use clap::{Args, Parser, Subcommand};
 
 use super::parse::{
     parse_depth_noise, parse_margin, parse_memory_budget, parse_noise_sigmas, parse_point, parse_ratio, parse_region,
-    parse_root, parse_tolerance, parse_weight,
+    parse_root, parse_ssd_weight, parse_tolerance, parse_weight,
 };
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
 use crate::stages::octree;
-use crate::stages::solve::SolveParams;
+use crate::stages::solve::{Method, SolveParams, SsdParams};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -46,7 +46,7 @@ pub struct GlobalOptions {
 
 use crate::pipeline::SolveUntil;
 
-/// Solver parameters of a cluster plan (the same as `solve`'s).
+/// Solver parameters and method of `solve`, a cluster plan and a Slurm chain.
 #[derive(clap::Args, Debug, Clone, Copy)]
 pub struct SolverArgs {
     /// TGV weight of |grad u - v| (times the cube side).
@@ -65,6 +65,18 @@ pub struct SolverArgs {
     /// by at most this fraction; 0 runs all --iterations.
     #[arg(long, default_value_t = SolveParams::default().tolerance, value_parser = parse_tolerance)]
     tolerance: f32,
+    /// The energy minimised on each level: tgv (robust to outliers: the paper's method), ssd
+    /// (smooth signed distance from the samples' positions and normals: sub-cube accuracy on
+    /// clean data) or hybrid (ssd from the samples the histograms confirm). README, "Solvers".
+    #[arg(long, value_enum, default_value = "tgv")]
+    method: MethodChoice,
+    /// ssd and hybrid: weight of the normal term, relative to the position term (> 0).
+    #[arg(long, default_value_t = SsdParams::default().normal_weight, value_parser = parse_ssd_weight)]
+    ssd_normal_weight: f64,
+    /// ssd and hybrid: weight of the smoothness term, relative to the position term (> 0;
+    /// noisy RGB-D data wants more than the default: README, "Solvers").
+    #[arg(long, default_value_t = SsdParams::default().smoothness, value_parser = parse_ssd_weight)]
+    ssd_smoothness: f64,
 }
 
 impl SolverArgs {
@@ -77,6 +89,30 @@ impl SolverArgs {
             tolerance: self.tolerance,
         }
     }
+
+    pub(super) fn method(self) -> Method {
+        let ssd = SsdParams {
+            normal_weight: self.ssd_normal_weight,
+            smoothness: self.ssd_smoothness,
+            ..SsdParams::default()
+        };
+        match self.method {
+            MethodChoice::Tgv => Method::Tgv,
+            MethodChoice::Ssd => Method::Ssd(ssd),
+            MethodChoice::Hybrid => Method::Hybrid(ssd),
+        }
+    }
+}
+
+/// `solve --method`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MethodChoice {
+    /// Total generalized variation with the histogram data term.
+    Tgv,
+    /// Smooth signed distance.
+    Ssd,
+    /// Smooth signed distance from the samples the histograms confirm.
+    Hybrid,
 }
 
 /// The verbs.

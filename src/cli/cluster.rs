@@ -33,9 +33,13 @@ pub(super) fn plan(args: PlanArgs) -> Result<()> {
         );
         return Ok(());
     }
-    let params = args.solver.params();
-    let runnable = cluster::cluster_stage(&store, &args.stage, params, None)?;
-    let plan = store.plan_cluster_run(runnable.as_ref(), args.chunks, crate::store::catalog::encode(&params))?;
+    let (params, method) = (args.solver.params(), args.solver.method());
+    let runnable = cluster::cluster_stage(&store, &args.stage, params, method, None)?;
+    let plan = store.plan_cluster_run(
+        runnable.as_ref(),
+        args.chunks,
+        crate::store::catalog::encode(&(params, method)),
+    )?;
     println!(
         "plan {}: {} pending unit(s) in {} chunk(s), base version {}, target {}",
         args.stage,
@@ -103,6 +107,7 @@ pub(super) fn slurm(global: &GlobalOptions, args: SlurmArgs) -> Result<()> {
         sbatch_args: args.sbatch_args,
         binary: std::env::current_exe().map_err(io_error("locate octstore", &store))?,
         params: args.solver.params(),
+        method: args.solver.method(),
         memory_budget: global.memory_budget,
         leaf_cubes: args.leaf_cubes,
         device: args.device,

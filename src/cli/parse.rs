@@ -47,6 +47,16 @@ pub(crate) fn parse_weight(text: &str) -> Result<f32, ArgumentError> {
     }
 }
 
+/// A finite, positive SSD weight (`solve --ssd-normal-weight`, `--ssd-smoothness`): with no
+/// normal term f = 0 everywhere minimises the energy, and with no smoothness the cubes far from
+/// samples are free.
+pub(crate) fn parse_ssd_weight(text: &str) -> Result<f64, ArgumentError> {
+    match text.trim().parse::<f64>() {
+        Ok(w) if w.is_finite() && w > 0.0 && w <= 1e6 => Ok(w),
+        _ => Err(ArgumentError(format!("'{text}' is not a weight in (0, 1e6]"))),
+    }
+}
+
 /// A finite, non-negative fraction of the scene's extent.
 pub(crate) fn parse_margin(text: &str) -> Result<f64, ArgumentError> {
     match text.trim().parse::<f64>() {

@@ -17,7 +17,7 @@ use crate::mesh::{View, read_mesh, render_view};
 use crate::pipeline::{self, DemoOptions, save_png};
 use crate::stages::exercise::ExerciseStage;
 use crate::stages::extract::ExtractOptions;
-use crate::stages::ingest::IngestOptions;
+use crate::stages::ingest::{IngestOptions, read_scene};
 use crate::store::Store;
 
 pub(super) fn ingest(global: &GlobalOptions, args: IngestArgs) -> Result<()> {
@@ -53,6 +53,7 @@ pub(super) fn solve(global: &GlobalOptions, args: SolveArgs) -> Result<()> {
         leaf_cubes: args.leaf_cubes,
         memory_budget: global.memory_budget,
         params: args.solver.params(),
+        method: args.solver.method(),
         run: run_options(global, args.resume),
         device: args.device,
     };
@@ -139,14 +140,23 @@ pub(super) fn query(args: QueryArgs) -> Result<()> {
     };
     let u = snapshot.indicator_at(glam::DVec3::from_array(point))?;
     let seen = snapshot.seen_at(glam::DVec3::from_array(point))?;
+    let method = snapshot.method()?;
     if args.json {
-        let value = serde_json::json!({"version": snapshot.version(), "point": point, "u": u, "seen": seen, "level": snapshot.finest_level()});
+        let value = serde_json::json!({"version": snapshot.version(), "point": point, "u": u, "seen": seen, "level": snapshot.finest_level(), "method": method});
         println!("{value}");
     } else {
+        // Under SSD u is a signed distance in units of the root side: say it in world units.
+        let signed_distance = match (method, read_scene(&store)?) {
+            (Some("ssd" | "hybrid"), Some(scene)) => {
+                u.map(|u| format!(", signed distance {:.6}", f64::from(u) * scene.root_side))
+            }
+            _ => None,
+        };
         match u {
             Some(u) => println!(
-                "u = {u:.6} ({}, {}) at version {}",
+                "u = {u:.6} ({}{}, {}) at version {}",
                 if u < 0.0 { "inside" } else { "outside" },
+                signed_distance.unwrap_or_default(),
                 if seen == Some(true) {
                     "seen"
                 } else {

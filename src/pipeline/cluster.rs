@@ -13,29 +13,44 @@ use crate::stages::extract::{
 };
 use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::registered_depth_maps;
-use crate::stages::solve::{LEVEL_STAGES, LevelStage, SolveParams};
+use crate::stages::samples::{SAMPLES, SamplesStage};
+use crate::stages::solve::{LEVEL_STAGES, LevelStage, Method, SolveParams};
 use crate::stages::treetop::Treetop;
 use crate::stages::{HISTOGRAMS, OCTREE, octree_max_depth};
 use crate::store::cluster::{ClusterPlan, WorkReport, decode_chunk_file, encode_chunk_file};
 use crate::store::{Stage, Store};
 
-/// The stage a cluster run works on, by its catalog name: `histograms` or `solution-LL`. The
+/// The stage a cluster run works on, by its catalog name: `samples`, `histograms` or
+/// `solution-LL`. The
 /// octree is one global merge and is built by a single process (`solve --until octree`).
 /// `gpu`, when given, runs the votes or the iterations (with the CPU fallback per unit).
-pub fn cluster_stage(store: &Store, name: &str, params: SolveParams, gpu: Option<Arc<Gpu>>) -> Result<Box<dyn Stage>> {
+pub fn cluster_stage(
+    store: &Store,
+    name: &str,
+    params: SolveParams,
+    method: Method,
+    gpu: Option<Arc<Gpu>>,
+) -> Result<Box<dyn Stage>> {
     let scene = required_scene(store, name)?;
+    if name == SAMPLES {
+        return Ok(Box::new(SamplesStage::new()));
+    }
     if name == HISTOGRAMS {
         return Ok(Box::new(
             HistogramsStage::new(scene, registered_depth_maps(store)?).with_gpu(gpu),
         ));
     }
     if let Some(level) = LEVEL_STAGES.iter().position(|s| *s == name) {
-        return Ok(Box::new(LevelStage::new(level as u8, scene, params).with_gpu(gpu)));
+        return Ok(Box::new(
+            LevelStage::new(level as u8, scene, params)
+                .with_gpu(gpu)
+                .with_method(method),
+        ));
     }
     let hint = if name == OCTREE {
         "the octree is one global merge: build it with `octstore solve STORE --until octree`"
     } else {
-        "cluster stages are `histograms` and `solution-00` to `solution-32`"
+        "cluster stages are `samples` (ssd and hybrid only), `histograms` and `solution-00` to `solution-32`"
     };
     Err(PipelineError::NotAClusterStage {
         stage: name.into(),
@@ -48,8 +63,15 @@ pub fn stage_of_plan(store: &Store, stage: &str, gpu: Option<Arc<Gpu>>) -> Resul
     let plan = store
         .cluster_plan(stage)?
         .ok_or_else(|| PipelineError::NoPlan { stage: stage.into() })?;
-    let params: SolveParams = crate::store::catalog::decode("cluster plan args", &plan.args)?;
-    cluster_stage(store, stage, params, gpu)
+    // Plans recorded before the method existed hold the parameters alone: TGV.
+    let (params, method): (SolveParams, Method) = match crate::store::catalog::decode("cluster plan args", &plan.args) {
+        Ok(both) => both,
+        Err(_) => (
+            crate::store::catalog::decode("cluster plan args", &plan.args)?,
+            Method::Tgv,
+        ),
+    };
+    cluster_stage(store, stage, params, method, gpu)
 }
 
 /// Options of the generated Slurm job chain.
@@ -65,6 +87,8 @@ pub struct SlurmOptions {
     pub binary: PathBuf,
     /// The solver's parameters.
     pub params: SolveParams,
+    /// The energy the levels minimise; ssd and hybrid add the samples stage after the octree.
+    pub method: Method,
     /// Bytes each job may use.
     pub memory_budget: u64,
     /// Treetop leaf size of the octree job.
@@ -106,10 +130,18 @@ pub fn slurm_jobs(store: &Path, levels: u8, options: &SlurmOptions) -> Vec<Slurm
     let store = shell_quote(&store.display().to_string());
     let bin = shell_quote(&options.binary.display().to_string());
     let p = options.params;
-    let solver = format!(
+    let mut solver = format!(
         "--alpha1 {} --alpha0 {} --lambda {} --iterations {}",
         p.alpha1, p.alpha0, p.lambda, p.iterations
     );
+    if let Some(ssd) = options.method.ssd() {
+        solver.push_str(&format!(
+            " --method {} --ssd-normal-weight {} --ssd-smoothness {}",
+            options.method.name(),
+            ssd.normal_weight,
+            ssd.smoothness
+        ));
+    }
     let budget = format!("--memory-budget {} --quiet", options.memory_budget);
     let header = |name: &str, array: Option<u32>| {
         let mut lines = vec!["#!/bin/bash".to_string(), format!("#SBATCH --job-name=octstore-{name}")];
@@ -132,7 +164,12 @@ pub fn slurm_jobs(store: &Path, levels: u8, options: &SlurmOptions) -> Vec<Slurm
             options.leaf_cubes
         ),
     }];
-    let stages = std::iter::once(HISTOGRAMS.to_string())
+    let stages = options
+        .method
+        .ssd()
+        .map(|_| SAMPLES.to_string())
+        .into_iter()
+        .chain(std::iter::once(HISTOGRAMS.to_string()))
         .chain((0..=levels.min(crate::format::MAX_DEPTH)).map(|l| LEVEL_STAGES[usize::from(l)].to_string()))
         .chain(options.output.as_ref().map(|_| EXTRACT.to_string()));
     for stage in stages {

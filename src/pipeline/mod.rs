@@ -50,7 +50,8 @@ use crate::stages::extract::{ExtractOptions, MeshSummary, extract_to_file};
 use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps};
 use crate::stages::octree::{OctreeStage, effective_leaf_cubes};
-use crate::stages::solve::{LevelStage, SolveParams};
+use crate::stages::samples::SamplesStage;
+use crate::stages::solve::{LevelStage, Method, SolveParams};
 use crate::stages::{OCTREE, octree_max_depth};
 use crate::store::{RunOptions, RunReport, Store};
 
@@ -76,6 +77,8 @@ pub struct SolveOptions {
     pub memory_budget: u64,
     /// The TGV weights and iterations.
     pub params: SolveParams,
+    /// The energy minimised on each level: TGV (the default) or SSD.
+    pub method: Method,
     /// Threads, resumption, progress bars.
     pub run: RunOptions,
     /// Where the histogram votes and the solver's iterations run.
@@ -89,6 +92,7 @@ impl Default for SolveOptions {
             leaf_cubes: 1 << 24,
             memory_budget: 1 << 30,
             params: SolveParams::default(),
+            method: Method::Tgv,
             run: RunOptions::default(),
             device: DeviceChoice::Auto,
         }
@@ -113,8 +117,8 @@ pub fn ingest(
     Ok(store.run_stage(&stage, run)?)
 }
 
-/// Runs the pending stages up to `options.until`: the octree, the histograms, then every level
-/// of the solution coarse to fine. `on_report` sees each stage's report as it finishes.
+/// Runs the pending stages up to `options.until`: the octree, (for SSD) the samples, the
+/// histograms, then every level of the solution coarse to fine. `on_report` sees each stage's report as it finishes.
 pub fn solve(store: &Store, options: &SolveOptions, on_report: impl FnMut(&RunReport)) -> Result<()> {
     let gpu = if options.until >= SolveUntil::Histograms {
         open_gpu(options.device)?
@@ -141,6 +145,10 @@ pub fn solve_with_gpu(
         // Scratch files are rebuilt by any later run; a failure to remove them costs only disk.
         let _ = std::fs::remove_dir_all(scratch);
     }
+    if options.until >= SolveUntil::Solution && options.method.ssd().is_some() {
+        // Before the histograms: a store ingested without sample moments fails in seconds.
+        on_report(&store.run_stage(&SamplesStage::new(), &options.run)?);
+    }
     if options.until >= SolveUntil::Histograms {
         // Stages run one at a time: an eighth of the budget for decoded depth maps, beside the
         // workers' groups of leaves, keeps the histogram stage within the budget.
@@ -151,7 +159,9 @@ pub fn solve_with_gpu(
     }
     if options.until >= SolveUntil::Solution {
         for level in 0..=octree_max_depth(store)? {
-            let stage = LevelStage::new(level, scene, options.params).with_gpu(gpu.clone());
+            let stage = LevelStage::new(level, scene, options.params)
+                .with_gpu(gpu.clone())
+                .with_method(options.method);
             on_report(&store.run_stage(&stage, &options.run)?);
         }
     }

@@ -14,6 +14,7 @@ use serde::{Deserialize, Serialize};
 use xxhash_rust::xxh3::Xxh3;
 
 use super::INGEST;
+use super::samples::{Moments, moment_columns};
 use crate::format::{Column, ColumnValues, CubeKey, META_SCENE, Scene};
 use crate::inputs::{DepthImage, DepthMapSource, DepthNoise, InputError, Projection};
 use crate::store::catalog::{self, META, UnitRecord};
@@ -76,6 +77,12 @@ pub struct Samples {
     /// Whether each sample is a spike: fewer than two of its 4-neighbours lie within
     /// `SPIKE_SPACING` pixel footprints.
     pub spikes: Vec<bool>,
+    /// World-frame unit normals from the local depth gradient, oriented towards the camera;
+    /// zero where no neighbour on one of the axes is valid.
+    pub normals: Vec<DVec3>,
+    /// The surface area each sample stands for: the squared distance to its nearest valid
+    /// 4-neighbour (world units).
+    pub areas: Vec<f64>,
     pub stats: SampleStats,
 }
 
@@ -90,6 +97,9 @@ pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
     let mut points = Vec::with_capacity(valid);
     let mut radii = Vec::with_capacity(valid);
     let mut spikes = Vec::with_capacity(valid);
+    let mut normals = Vec::with_capacity(valid);
+    let mut areas = Vec::with_capacity(valid);
+    let rotation = glam::DMat3::from_mat4(pose);
     for j in 0..grid.height {
         for i in 0..grid.width {
             let Some(p) = grid.at(i, j) else { continue };
@@ -111,6 +121,11 @@ pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
             points.push(pose.transform_point3(p));
             radii.push(source.noise.radius(nearest * 0.5, depth));
             spikes.push(close < 2);
+            normals.push(
+                grid.normal(i, j, p)
+                    .map_or(DVec3::ZERO, |n| (rotation * n).normalize_or_zero()),
+            );
+            areas.push(nearest * nearest);
         }
     }
     stats.samples = points.len() as u64;
@@ -118,6 +133,8 @@ pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
         points,
         radii,
         spikes,
+        normals,
+        areas,
         stats,
     }
 }
@@ -183,6 +200,33 @@ impl CameraGrid {
 
     /// The valid ones among the left, right, upper and lower neighbours of pixel (i, j).
     fn neighbours(&self, i: usize, j: usize) -> impl Iterator<Item = DVec3> + '_ {
+        self.neighbour_pixels(i, j)
+            .into_iter()
+            .filter_map(|(ni, nj)| self.at(ni?, nj?))
+    }
+
+    /// The camera-frame normal at pixel (i, j), whose point is `p`: the cross product of the
+    /// depth gradient along the rows and along the columns, each taken towards the neighbour
+    /// nearer to `p` (a difference across a depth edge would tilt it), oriented towards the
+    /// camera. `None` when an axis has no valid neighbour.
+    fn normal(&self, i: usize, j: usize, p: DVec3) -> Option<DVec3> {
+        let [left, right, up, down] = self.neighbour_pixels(i, j).map(|(ni, nj)| self.at(ni?, nj?));
+        let along = |before: Option<DVec3>, after: Option<DVec3>| match (before, after) {
+            (Some(b), Some(a)) if (a - p).length() <= (p - b).length() => Some(a - p),
+            (Some(b), _) => Some(p - b),
+            (None, Some(a)) => Some(a - p),
+            (None, None) => None,
+        };
+        let n = along(left, right)?.cross(along(up, down)?).normalize_or_zero();
+        if n == DVec3::ZERO {
+            return None;
+        }
+        Some(if n.dot(p) > 0.0 { -n } else { n })
+    }
+
+    /// Left, right, upper and lower neighbours of pixel (i, j), wrapping around horizontally
+    /// for spherical maps; a `None` coordinate lies outside the image.
+    fn neighbour_pixels(&self, i: usize, j: usize) -> [(Option<usize>, Option<usize>); 4] {
         let left = i
             .checked_sub(1)
             .or(if self.wraps { self.width.checked_sub(1) } else { None });
@@ -196,8 +240,6 @@ impl CameraGrid {
         let up = j.checked_sub(1);
         let down = if j + 1 < self.height { Some(j + 1) } else { None };
         [(left, Some(j)), (right, Some(j)), (Some(i), up), (Some(i), down)]
-            .into_iter()
-            .filter_map(|(ni, nj)| self.at(ni?, nj?))
     }
 }
 
@@ -456,23 +498,38 @@ impl IngestStage {
         self.maps.len()
     }
 
-    /// Cubes of one depth map, merged by key: (keys, radius sums, counts, spike counts).
+    /// Cubes of one depth map, merged by key: (keys, radius sums, counts, spike counts, and
+    /// the SSD solver's sample moments, `stages::samples`).
     pub fn cubes(&self, source: &DepthMapSource) -> std::result::Result<(Vec<Column>, SampleStats), InputError> {
         let image = source.load()?;
         let samples = back_project(source, &image);
         let mut stats = samples.stats;
-        let mut entries: Vec<(CubeKey, u64, bool)> = Vec::with_capacity(samples.points.len());
+        let mut entries: Vec<(CubeKey, u64, bool, Moments)> = Vec::with_capacity(samples.points.len());
         // Consistent samples outside the root mean the map sees beyond the scene the store was
         // sized for; spikes outside it are noise.
         let mut consistent_outside = 0u64;
-        for ((p, r), spike) in samples.points.iter().zip(&samples.radii).zip(&samples.spikes) {
+        let weight = f64::from(source.weight);
+        for (((p, r), spike), (normal, area)) in samples
+            .points
+            .iter()
+            .zip(&samples.radii)
+            .zip(&samples.spikes)
+            .zip(samples.normals.iter().zip(&samples.areas))
+        {
             if !self.scene.contains(*p) {
                 stats.outside += 1;
                 consistent_outside += u64::from(!*spike);
                 continue;
             }
             let depth = self.scene.depth_for_radius(*r);
-            entries.push((self.scene.key_at(*p, depth), self.scene.quantize_radius(*r), *spike));
+            let key = self.scene.key_at(*p, depth);
+            // Spikes and samples without a normal say nothing SSD can use.
+            let moments = if *spike || *normal == DVec3::ZERO {
+                Moments::default()
+            } else {
+                Moments::of_sample(&self.scene, key, *p, area * weight, *normal)
+            };
+            entries.push((key, self.scene.quantize_radius(*r), *spike, moments));
         }
         if consistent_outside * 100 > stats.samples.max(1) {
             return Err(crate::inputs::bad(
@@ -484,35 +541,42 @@ impl IngestStage {
             ));
         }
         // By key alone: entries of one key are summed, in any order.
-        entries.sort_unstable_by_key(|(key, _, _)| *key);
+        entries.sort_unstable_by_key(|(key, _, _, _)| *key);
         let mut keys: Vec<CubeKey> = Vec::new();
         let mut sums: Vec<u64> = Vec::new();
         let mut counts: Vec<u32> = Vec::new();
         let mut spike_counts: Vec<u32> = Vec::new();
-        for (key, r, spike) in entries {
+        let mut moments: Vec<Moments> = Vec::new();
+        for (key, r, spike, m) in entries {
             if keys.last() == Some(&key) {
-                if let (Some(s), Some(c), Some(sc)) = (sums.last_mut(), counts.last_mut(), spike_counts.last_mut()) {
+                if let (Some(s), Some(c), Some(sc), Some(sm)) = (
+                    sums.last_mut(),
+                    counts.last_mut(),
+                    spike_counts.last_mut(),
+                    moments.last_mut(),
+                ) {
                     *s += r;
                     *c += 1;
                     *sc += u32::from(spike);
+                    sm.add(&m);
                 }
             } else {
                 keys.push(key);
                 sums.push(r);
                 counts.push(1);
                 spike_counts.push(u32::from(spike));
+                moments.push(m);
             }
         }
         stats.cubes = keys.len() as u64;
-        Ok((
-            vec![
-                Column::keys(keys),
-                Column::new("radius_sum", 1, ColumnValues::U64(sums)),
-                Column::new("radius_count", 1, ColumnValues::U32(counts)),
-                Column::new(SPIKE_COUNT, 1, ColumnValues::U32(spike_counts)),
-            ],
-            stats,
-        ))
+        let mut columns = vec![
+            Column::keys(keys),
+            Column::new("radius_sum", 1, ColumnValues::U64(sums)),
+            Column::new("radius_count", 1, ColumnValues::U32(counts)),
+            Column::new(SPIKE_COUNT, 1, ColumnValues::U32(spike_counts)),
+        ];
+        columns.extend(moment_columns(&moments));
+        Ok((columns, stats))
     }
 }
 
@@ -658,6 +722,45 @@ mod tests {
         // The wall's own extent survives: x spans about +-0.32 at depth 1.
         assert!(lo.x < -0.3 && hi.x > 0.3, "{lo:?} {hi:?}");
         assert!(kept.len() as f64 > 0.85 * f64::from(w * h), "kept {}", kept.len());
+    }
+
+    /// The normals of a wall slanted 40 degrees about the camera's y axis, seen by a camera
+    /// turned about the world's z axis: the wall's normal in world coordinates, facing the
+    /// camera, with pixel areas of the squared sample spacing; a depth edge does not tilt them.
+    #[test]
+    fn normals_follow_the_depth_gradient_and_face_the_camera() {
+        let (w, h) = (64u32, 48u32);
+        let turn = glam::DMat4::from_rotation_z(0.7);
+        let source = DepthMapSource::test_pinhole("wall.pfm", (w, h), [100.0, 100.0, 32.0, 24.0], turn);
+        let slope = 40f64.to_radians().tan();
+        // The plane z = 1 + slope x in camera coordinates, and a step of 0.5 at column 40.
+        let depth: Vec<f32> = (0..w * h)
+            .map(|index| {
+                let x = (f64::from(index % w) - 32.0) / 100.0;
+                let step = if index % w >= 40 { 0.5 } else { 0.0 };
+                (1.0 / (1.0 - slope * x) + step) as f32
+            })
+            .collect();
+        let samples = back_project(
+            &source,
+            &DepthImage {
+                width: w,
+                height: h,
+                depth,
+            },
+        );
+        let expected = (turn.transform_vector3(DVec3::new(slope, 0.0, -1.0))).normalize();
+        let mut checked = 0;
+        for ((p, n), area) in samples.points.iter().zip(&samples.normals).zip(&samples.areas) {
+            let camera = turn.inverse().transform_point3(*p);
+            // Column 39 lies beside the step: its normal must come from its left neighbour.
+            if (camera.x / camera.z * 100.0 + 32.0).round() <= 39.0 {
+                assert!(n.dot(expected) > 0.9999, "{n:?} vs {expected:?}");
+                assert!(*area > 0.0 && *area < 0.03 * 0.03);
+                checked += 1;
+            }
+        }
+        assert!(checked > 1000, "{checked}");
     }
 
     /// A wall slanted 75 degrees from head-on is no spike (except the few pixels where it

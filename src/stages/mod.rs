@@ -9,6 +9,7 @@ pub mod histograms;
 pub mod ingest;
 pub mod observed;
 pub mod octree;
+pub mod samples;
 pub mod solve;
 pub mod treetop;
 

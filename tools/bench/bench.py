@@ -349,7 +349,12 @@ def flat_normal_deviation(mesh, radius=0.06):
     return float(np.average(angles, weights=area)) if area.sum() > 0 else None
 
 
-def groundtruth(work, quick, noises=GT_NOISE, outlier_levels=GT_OUTLIERS):
+# The groundtruth section's methods: octstore's three solvers (`octstore` is TGV, the
+# default) and the peers. `--gt-methods` runs a subset; rows of the others stay.
+GT_METHODS = ["octstore", "octstore-ssd", "octstore-hybrid", "tsdf", "poisson"]
+
+
+def groundtruth(work, quick, noises=GT_NOISE, outlier_levels=GT_OUTLIERS, methods=GT_METHODS):
     rows = []
     meshes = {"bunny": GT_MESHES["bunny"]} if quick else GT_MESHES
     for name, truth in meshes.items():
@@ -381,17 +386,26 @@ def groundtruth(work, quick, noises=GT_NOISE, outlier_levels=GT_OUTLIERS):
                 # One resolution for all: octstore's finest cubes at depth 9 of a root about
                 # 1.2 x the scene; TSDF voxels of the same size; Poisson at octree depth 9.
                 results = {}
-                mesh = case / "octstore.ply"
-                wall, cpu, peak, _ = octstore(case / "store", manifest, ["--max-depth", "9"], ["--iterations", "100"], mesh)
-                results["octstore"] = (mesh, wall, cpu, peak)
-                info = json.loads(subprocess.run(
-                    [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
-                ).stdout)
-                voxel = info["finest_cube_side"]
-                mesh = case / "tsdf.ply"
-                results["tsdf"] = (mesh, *run_worker("tsdf", manifest, mesh, voxel, 100.0))
-                mesh = case / "poisson.ply"
-                results["poisson"] = (mesh, *run_worker("poisson", manifest, mesh, 9))
+                voxel = None
+                for method in [m for m in methods if m.startswith("octstore")]:
+                    solver = method.removeprefix("octstore").removeprefix("-") or "tgv"
+                    mesh = case / f"{method}.ply"
+                    store = case / f"store-{solver}"
+                    wall, cpu, peak, _ = octstore(store, manifest, ["--max-depth", "9"],
+                                                  ["--iterations", "100", "--method", solver], mesh)
+                    results[method] = (mesh, wall, cpu, peak)
+                    info = json.loads(subprocess.run(
+                        [str(BIN / "octstore"), "info", str(store), "--json"], check=True, capture_output=True, text=True
+                    ).stdout)
+                    voxel = info["finest_cube_side"]
+                if "tsdf" in methods:
+                    if voxel is None:
+                        raise SystemExit("tsdf runs at octstore's finest cube size: include an octstore method")
+                    mesh = case / "tsdf.ply"
+                    results["tsdf"] = (mesh, *run_worker("tsdf", manifest, mesh, voxel, 100.0))
+                if "poisson" in methods:
+                    mesh = case / "poisson.ply"
+                    results["poisson"] = (mesh, *run_worker("poisson", manifest, mesh, 9))
                 for method, (mesh, wall, cpu, peak) in results.items():
                     metrics = evaluate(mesh, truth)
                     rows.append(
@@ -757,7 +771,7 @@ def groundtruth_plots(rows, out_dir):
     for name in sorted({r["mesh"] for r in rows}):
         for noise in sorted({r["noise"] for r in rows if r["mesh"] == name}):
             fig, axis = plt.subplots(figsize=(5, 3.5))
-            for method in ("octstore", "tsdf", "poisson"):
+            for method in GT_METHODS:
                 points = sorted(
                     (r["outliers"], r["f_score"]) for r in rows if (r["mesh"], r["noise"], r["method"]) == (name, noise, method)
                 )
@@ -893,7 +907,8 @@ def write_markdown(results, out_dir, path):
                   "`octstore-gt-render` renders 24 views of 320x240 around each mesh inside a room (so every ray "
                   "ends on a surface), with Gaussian depth noise (a fraction of the depth) and outlier pixels (a "
                   "random depth between 0.2 and 2 times the true one). All three methods read the same depth maps. "
-                  "octstore: `--max-depth 9`, 100 iterations per level. TSDF: Open3D VoxelBlockGrid at octstore's "
+                  "octstore: `--max-depth 9`, 100 iterations per level (TGV); octstore-ssd and octstore-hybrid: "
+                  "`solve --method ssd|hybrid`, default SSD settings. TSDF: Open3D VoxelBlockGrid at octstore's "
                   "finest cube size, truncation 4 voxels. Poisson: Open3D screened Poisson, depth 9, on the "
                   "back-projected pixels (every second one) with normals oriented to their camera, lowest 2 % "
                   "density trimmed. `octstore-evaluate` measures each mesh against the ground truth: tau = 1 % of "
@@ -1046,6 +1061,8 @@ def main():
     parser.add_argument("--quick", action="store_true", help="bunny only, one noise level")
     parser.add_argument("--gt-noise", nargs="+", type=float, default=GT_NOISE, help="depth noise levels of groundtruth")
     parser.add_argument("--gt-outliers", nargs="+", type=float, default=GT_OUTLIERS, help="outlier levels of groundtruth")
+    parser.add_argument("--gt-methods", nargs="+", default=GT_METHODS, choices=GT_METHODS,
+                        help="methods of groundtruth (octstore is TGV); rows of the others stay")
     parser.add_argument("--scale-budget", default="1GiB", help="--memory-budget of the scale section")
     parser.add_argument("--redkitchen-budget", default="512MiB", help="--memory-budget of the redkitchen section")
     parser.add_argument("--tsdf-voxel", type=float, default=None,
@@ -1062,7 +1079,7 @@ def main():
         work = Path(scratch)
         for section in args.sections:
             if section == "groundtruth":
-                rows = groundtruth(work, args.quick, args.gt_noise, args.gt_outliers)
+                rows = groundtruth(work, args.quick, args.gt_noise, args.gt_outliers, args.gt_methods)
             elif section == "interior":
                 rows = interior(work, args.out)
             elif section == "redkitchen":
@@ -1081,10 +1098,12 @@ def main():
                 # Sweeps at other budgets stay.
                 rows = [r for r in json.loads(path.read_text()) if r["budget"] != args.scale_budget] + rows
             if section == "groundtruth" and path.exists():
-                # Cases this run did not make stay.
-                made = {(r["mesh"], r["noise"], r["outliers"]) for r in rows}
-                rows = [r for r in json.loads(path.read_text()) if (r["mesh"], r["noise"], r["outliers"]) not in made] + rows
-                rows.sort(key=lambda r: (r["mesh"], r["noise"], r["outliers"]))
+                # Cases and methods this run did not make stay.
+                made = {(r["mesh"], r["noise"], r["outliers"], r["method"]) for r in rows}
+                rows = [r for r in json.loads(path.read_text())
+                        if (r["mesh"], r["noise"], r["outliers"], r["method"]) not in made] + rows
+                order = {m: i for i, m in enumerate(GT_METHODS)}
+                rows.sort(key=lambda r: (r["mesh"], r["noise"], r["outliers"], order.get(r["method"], 99)))
             if section == "redkitchen" and path.exists():
                 # Runs of other frame counts or cube sizes stay: the 1000-frame run can be made
                 # on its own.

@@ -15,8 +15,6 @@ use redb::WriteTransaction;
 use serde::{Deserialize, Serialize};
 
 use super::HISTOGRAMS;
-#[cfg(doc)]
-use super::observed::sampled_nodes;
 use super::observed::{measured_weight, sampled_of, seen_weight, surface_offset};
 use super::treetop::{Treetop, UnitKeys, children_on_min_face, plus_neighbour};
 use crate::format::Scene;
@@ -26,9 +24,15 @@ use crate::kernels::votes::BINS;
 use crate::store::catalog::{self, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
+mod cut;
 mod params;
+mod ssd;
 
-pub use params::{DEFAULT_TOLERANCE, SolveParams};
+pub use ssd::{METHOD_COLUMN, method_of_segment};
+
+pub use cut::{CutValue, LeafValues, LevelCut, cut_cube_ending_at};
+
+pub use params::{DEFAULT_TOLERANCE, Method, SolveParams, SsdParams};
 
 /// Stage names of the levels.
 pub const LEVEL_STAGES: [&str; MAX_DEPTH as usize + 1] = [
@@ -311,6 +315,7 @@ pub struct LevelStage {
     groups: std::sync::OnceLock<BTreeMap<u64, Vec<usize>>>,
     /// Where the iterations run; `None` is the CPU kernel.
     gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
+    method: Method,
 }
 
 #[derive(Serialize, Deserialize, Default, Clone, Copy)]
@@ -331,7 +336,14 @@ impl LevelStage {
             treetop: std::sync::OnceLock::new(),
             groups: std::sync::OnceLock::new(),
             gpu: None,
+            method: Method::Tgv,
         }
+    }
+
+    /// Minimises `method`'s energy rather than TGV's.
+    pub fn with_method(mut self, method: Method) -> LevelStage {
+        self.method = method;
+        self
     }
 
     /// Runs the iterations on `gpu` (falling back to the CPU per unit on a GPU failure).
@@ -399,9 +411,48 @@ impl LevelStage {
         }
     }
 
-    // long function build_problem: one pass that gathers a unit's cubes, their frozen neighbours and the difference terms, in the order the kernel's gather lists need.
-    /// Builds the unit's problem and initial state; `None` when the unit has no cut cubes.
+    /// Builds the unit's TGV problem and initial state; `None` when the unit has no cut cubes.
     pub fn build_problem(&self, base: &Snapshot<'_>, unit_index: usize) -> Result<Option<UnitProblem>> {
+        let Some(cut) = self.build_cut(base, unit_index)? else {
+            return Ok(None);
+        };
+        let side = |k: CubeKey| (0.5f64).powi(i32::from(k.depth())) as f32;
+        let n = cut.keys.len();
+        let mut state = State::zeros(n);
+        for (c, previous) in cut.previous.iter().enumerate() {
+            if let Some((u, v, p, q)) = previous {
+                state.u[c] = *u;
+                state.v[c] = *v;
+                state.p[c] = *p;
+                state.q[c] = *q;
+            }
+        }
+        let (frozen_u, frozen_v) = cut
+            .frozen
+            .iter()
+            .map(|(_, previous)| previous.map_or((0.0, [0.0; 3]), |(u, v, _, _)| (u, v)))
+            .unzip();
+        let problem = Problem {
+            n,
+            start: cut.start,
+            terms: cut.terms,
+            frozen_u,
+            frozen_v,
+            hist: cut.hist,
+            alpha1: cut.keys.iter().map(|k| self.params.alpha1 * side(*k)).collect(),
+            alpha0: cut
+                .keys
+                .iter()
+                .map(|k| self.params.alpha0 * side(*k) * side(*k))
+                .collect(),
+            lambda: self.params.lambda,
+        };
+        Ok(Some((cut.keys, problem, state, cut.offset)))
+    }
+
+    // long function build_cut: one pass that gathers a unit's cubes, their frozen neighbours and the difference terms, in the order the kernel's gather lists need.
+    /// Gathers the unit's level cut; `None` when the unit has no cut cubes.
+    fn build_cut(&self, base: &Snapshot<'_>, unit_index: usize) -> Result<Option<UnitCut>> {
         let treetop = self.treetop.get().ok_or_else(|| StoreError::Stage {
             stage: LEVEL_STAGES[usize::from(self.level)].into(),
             unit: format!("unit {unit_index}"),
@@ -491,8 +542,7 @@ impl LevelStage {
         // the same for a scaled or translated scene.
         let side = |k: CubeKey| (0.5f64).powi(i32::from(k.depth())) as f32;
         let mut frozen: BTreeMap<CubeKey, u32> = BTreeMap::new();
-        let mut frozen_u = Vec::new();
-        let mut frozen_v = Vec::new();
+        let mut frozen_cubes: Vec<(CubeKey, Option<Inherited>)> = Vec::new();
         let mut start = vec![0u32];
         let mut terms: Vec<(u32, f32)> = Vec::new();
         for &key in &keys {
@@ -523,13 +573,8 @@ impl LevelStage {
                             let slot = match frozen.get(&neighbour) {
                                 Some(s) => *s,
                                 None => {
-                                    let (u, v) = match hood.previous(self.source_key(neighbour))? {
-                                        Some((u, v, _, _)) => (u, v),
-                                        None => (0.0, [0.0; 3]),
-                                    };
-                                    let s = frozen_u.len() as u32;
-                                    frozen_u.push(u);
-                                    frozen_v.push(v);
+                                    let s = frozen_cubes.len() as u32;
+                                    frozen_cubes.push((neighbour, hood.previous(self.source_key(neighbour))?));
                                     frozen.insert(neighbour, s);
                                     s
                                 }
@@ -542,27 +587,20 @@ impl LevelStage {
                 start.push(terms.len() as u32);
             }
         }
-        let mut state = State::zeros(n);
-        for (c, key) in keys.iter().enumerate() {
-            if let Some((u, v, p, q)) = hood.previous(self.source_key(*key))? {
-                state.u[c] = u;
-                state.v[c] = v;
-                state.p[c] = p;
-                state.q[c] = q;
-            }
-        }
-        let problem = Problem {
-            n,
+        let previous = keys
+            .iter()
+            .map(|key| hood.previous(self.source_key(*key)))
+            .collect::<Result<_>>()?;
+        Ok(Some(UnitCut {
+            keys,
+            members,
+            hist,
+            offset,
             start,
             terms,
-            frozen_u,
-            frozen_v,
-            hist,
-            alpha1: keys.iter().map(|k| self.params.alpha1 * side(*k)).collect(),
-            alpha0: keys.iter().map(|k| self.params.alpha0 * side(*k) * side(*k)).collect(),
-            lambda: self.params.lambda,
-        };
-        Ok(Some((keys, problem, state, offset)))
+            frozen: frozen_cubes,
+            previous,
+        }))
     }
 }
 
@@ -572,12 +610,20 @@ impl Stage for LevelStage {
     }
 
     fn params(&self) -> Vec<u8> {
-        catalog::encode(&(self.params, self.scene))
+        // TGV's bytes are those of the builds before SSD existed, so their levels stay current.
+        match self.method {
+            Method::Tgv => catalog::encode(&(self.params, self.scene)),
+            Method::Ssd(ssd) => catalog::encode(&(self.params, self.scene, ssd)),
+            Method::Hybrid(ssd) => catalog::encode(&(self.params, self.scene, ssd, "hybrid")),
+        }
     }
 
     fn input_digest(&self, base: &Snapshot<'_>) -> Vec<u8> {
         let mut digest = base.digest(HISTOGRAMS).to_le_bytes().to_vec();
         digest.extend_from_slice(&base.digest(super::OCTREE).to_le_bytes());
+        if self.method.ssd().is_some() {
+            digest.extend_from_slice(&base.digest(super::samples::SAMPLES).to_le_bytes());
+        }
         if let Some(previous) = self.previous_stage() {
             digest.extend_from_slice(&base.digest(previous).to_le_bytes());
         }
@@ -621,6 +667,9 @@ impl Stage for LevelStage {
     }
 
     fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput> {
+        if let Some(params) = self.method.ssd() {
+            return self.run_ssd_unit(base, unit, params);
+        }
         let Some((keys, problem, mut state, offset)) = self.build_problem(base, unit.id as usize)? else {
             return Ok(UnitOutput {
                 extra: catalog::encode(&LevelUnitExtra::default()),
@@ -685,200 +734,52 @@ impl Stage for LevelStage {
         } else {
             format!("{mean:.0} iterations per cube, {fewest} to {most} per unit")
         };
+        let settings = match self.method {
+            Method::Tgv => format!(
+                "at most {}, tolerance {}; alpha1 {}, alpha0 {}, lambda {}",
+                self.params.iterations,
+                self.params.tolerance,
+                self.params.alpha1,
+                self.params.alpha0,
+                self.params.lambda
+            ),
+            Method::Ssd(ssd) | Method::Hybrid(ssd) => format!(
+                "{}, at most {}, residual {}; lambda1 {}, lambda2 {}",
+                self.method.name(),
+                ssd.iterations,
+                ssd.tolerance,
+                ssd.normal_weight,
+                ssd.smoothness
+            ),
+        };
         let line = format!(
-            "level {}: {} cubes, energy {:.6e} -> {:.6e} ({iterations}, at most {}, tolerance {}; alpha1 {}, alpha0 {}, lambda {})",
-            self.level,
-            total.cubes,
-            total.energy_before,
-            total.energy_after,
-            self.params.iterations,
-            self.params.tolerance,
-            self.params.alpha1,
-            self.params.alpha0,
-            self.params.lambda
+            "level {}: {} cubes, energy {:.6e} -> {:.6e} ({iterations}, {settings})",
+            self.level, total.cubes, total.energy_before, total.energy_after,
         );
         tracing::info!("{line}");
         Ok(line)
     }
 }
 
-/// The side of `cube` in finest cells.
-fn full_resolution_side(cube: CubeKey) -> u64 {
-    1u64 << (u32::from(MAX_DEPTH) - u32::from(cube.depth().min(MAX_DEPTH)))
-}
-
-/// The indicator of a cut cube and what the data says about it (`stages::observed`). Equal
-/// values are bit for bit equal (a missing offset is NaN, which equals itself here).
-#[derive(Clone, Copy, Debug)]
-pub struct CutValue {
-    pub u: f32,
-    /// [`seen_weight`]: the cube's whole vote weight.
-    pub votes: f32,
-    /// [`measured_weight`]: the part of `votes` that measured a distance to a surface.
-    pub measured: f32,
-    /// Samples spawned the cube or a descendant, or samples other than spikes an ancestor
-    /// ([`sampled_nodes`]).
-    pub sampled: bool,
-    /// [`surface_offset`], in world units: NaN when no vote measured a distance.
-    pub offset: f32,
-}
-
-impl CutValue {
-    /// Whether a depth map saw the cube: it has votes.
-    pub fn seen(&self) -> bool {
-        self.votes > 0.0
-    }
-}
-
-impl PartialEq for CutValue {
-    fn eq(&self, other: &CutValue) -> bool {
-        self.u.to_bits() == other.u.to_bits()
-            && self.votes.to_bits() == other.votes.to_bits()
-            && self.measured.to_bits() == other.measured.to_bits()
-            && self.sampled == other.sampled
-            && self.offset.to_bits() == other.offset.to_bits()
-    }
+/// A unit's level cut, as both solvers start from it.
+struct UnitCut {
+    /// The cut cubes, sorted.
+    keys: Vec<CubeKey>,
+    /// The treetop units solved together.
+    members: Vec<usize>,
+    hist: Vec<[f32; BINS]>,
+    /// Each cube's measured surface offset (`stages::observed::surface_offset`).
+    offset: Vec<f32>,
+    /// The difference rows, as [`Problem`]'s.
+    start: Vec<u32>,
+    terms: Vec<(u32, f32)>,
+    /// The frozen neighbours by slot, with the previous-level values of the cube each
+    /// inherits from ([`LevelStage::source_key`]).
+    frozen: Vec<(CubeKey, Option<Inherited>)>,
+    /// The previous-level values each cut cube starts from.
+    previous: Vec<Option<Inherited>>,
 }
 
 /// A unit's problem at one level: its cut keys, the problem, the starting state, and each
 /// cube's measured surface offset (`stages::observed::surface_offset`).
 pub type UnitProblem = (Vec<CubeKey>, Problem, State, Vec<f32>);
-
-/// Sorted cut keys of a unit at one level and their values.
-pub type LeafValues = (Vec<CubeKey>, Vec<CutValue>);
-
-/// The values of one solved level, unit by unit, loaded on demand; answers "which cut cube
-/// contains this point".
-pub struct LevelCut<'a, 's> {
-    snapshot: &'a Snapshot<'s>,
-    treetop: &'a Treetop,
-    segments: LevelSegments,
-    /// When set, only points in this box (full-resolution cells, `[low, high)` per axis) are
-    /// asked about, and groups keep only the cubes that meet it.
-    window: Option<[[u64; 3]; 2]>,
-    groups: BTreeMap<u64, Arc<LeafValues>>,
-    units: BTreeMap<usize, Option<Arc<LeafValues>>>,
-}
-
-impl<'a, 's> LevelCut<'a, 's> {
-    pub fn new(snapshot: &'a Snapshot<'s>, treetop: &'a Treetop, level: u8) -> LevelCut<'a, 's> {
-        LevelCut {
-            snapshot,
-            treetop,
-            segments: LevelSegments::of(snapshot, LEVEL_STAGES[usize::from(level.min(MAX_DEPTH))]),
-            window: None,
-            groups: BTreeMap::new(),
-            units: BTreeMap::new(),
-        }
-    }
-
-    /// A cut that is only asked about points within one finest cell of `cube` (its cube, the
-    /// cubes touching it and its own units): a group decoded for a neighbour then keeps only
-    /// the cubes that reach that shell, so memory follows `cube`'s surface, not the neighbours'
-    /// volumes. Asking about a point outside gives `None` or a cube that does not hold it.
-    pub fn around(snapshot: &'a Snapshot<'s>, treetop: &'a Treetop, level: u8, cube: CubeKey) -> LevelCut<'a, 's> {
-        let corner = cube.corner_full_resolution().map(u64::from);
-        let side = full_resolution_side(cube);
-        LevelCut {
-            window: Some([corner.map(|c| c.saturating_sub(1)), corner.map(|c| c + side + 1)]),
-            ..LevelCut::new(snapshot, treetop, level)
-        }
-    }
-
-    /// The values of the group that may hold treetop unit `unit`.
-    fn group(&mut self, unit: usize) -> Result<Option<Arc<LeafValues>>> {
-        let Some((id, name)) = self.segments.group_of(unit) else {
-            return Ok(None);
-        };
-        if let Some(values) = self.groups.get(&id) {
-            return Ok(Some(values.clone()));
-        }
-        let mut loaded = read_level_u(self.snapshot, name)?;
-        if let Some([low, high]) = self.window {
-            // Only a cube that meets the window can hold a point of it, and dropping the others
-            // leaves that cube the last key at or before such a point (the cut has no keys
-            // between a cube and its descendants).
-            let meets = |key: &CubeKey| {
-                let corner = key.corner_full_resolution().map(u64::from);
-                let side = full_resolution_side(*key);
-                (0..3).all(|axis| corner[axis] < high[axis] && corner[axis] + side > low[axis])
-            };
-            let (keys, values) = loaded;
-            loaded = keys.into_iter().zip(values).filter(|(key, _)| meets(key)).unzip();
-        }
-        let loaded = Arc::new(loaded);
-        self.groups.insert(id, loaded.clone());
-        Ok(Some(loaded))
-    }
-
-    /// The cut cubes of treetop unit `unit` and their u; `None` when it has none.
-    pub fn unit(&mut self, unit: usize) -> Result<Option<Arc<LeafValues>>> {
-        if let Some(v) = self.units.get(&unit) {
-            return Ok(v.clone());
-        }
-        let own = match self.group(unit)? {
-            // A leaf unit's keys are one range in key order (its subtree's), so when the
-            // group's first and last keys are the unit's, all are, and the group itself is the
-            // answer, without a copy. The top unit's keys are scattered between the leaves'.
-            Some(group)
-                if self.treetop.units.get(unit).is_some_and(|u| !u.top)
-                    && group.0.first().is_some_and(|k| self.treetop.unit_of(*k) == unit)
-                    && group.0.last().is_some_and(|k| self.treetop.unit_of(*k) == unit) =>
-            {
-                Some(group)
-            }
-            Some(group) => {
-                let (keys, values): (Vec<CubeKey>, Vec<CutValue>) = group
-                    .0
-                    .iter()
-                    .zip(&group.1)
-                    .filter(|(key, _)| self.treetop.unit_of(**key) == unit)
-                    .map(|(key, value)| (*key, *value))
-                    .unzip();
-                (!keys.is_empty()).then(|| Arc::new((keys, values)))
-            }
-            None => None,
-        };
-        self.units.insert(unit, own.clone());
-        Ok(own)
-    }
-
-    /// The cut cube containing the finest cell at full-resolution coordinates `cell`, and its
-    /// values.
-    pub fn cube_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, CutValue)>> {
-        self.cube_containing(CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]))
-    }
-
-    /// The cut cube that is `probe` or an ancestor of it, and its values.
-    pub fn cube_containing(&mut self, probe: CubeKey) -> Result<Option<(CubeKey, CutValue)>> {
-        let unit = self.treetop.unit_of(probe);
-        // The group's cut tiles its units' cubes, so the one ancestor of the probe among its
-        // keys is the answer.
-        let Some(values) = self.group(unit)? else {
-            return Ok(None);
-        };
-        let (keys, cut_values) = (&values.0, &values.1);
-        Ok(cut_cube_ending_at(
-            keys,
-            cut_values,
-            keys.partition_point(|k| *k <= probe),
-            probe,
-        ))
-    }
-}
-
-/// The cube of a sorted cut (`keys`, their values) just before `position`, the cut's first key
-/// after `probe`, when it contains `probe`: the cut tiles what it covers, so that cube is the
-/// only candidate.
-pub fn cut_cube_ending_at<T: Copy>(
-    keys: &[CubeKey],
-    values: &[T],
-    position: usize,
-    probe: CubeKey,
-) -> Option<(CubeKey, T)> {
-    position
-        .checked_sub(1)
-        .and_then(|i| keys.get(i).zip(values.get(i)))
-        .filter(|(k, _)| k.is_ancestor_or_self_of(probe))
-        .map(|(k, value)| (*k, *value))
-}

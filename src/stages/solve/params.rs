@@ -48,3 +48,61 @@ impl SolveParams {
         }
     }
 }
+
+/// Which energy a solve minimises on the level cuts (README, "Solvers").
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, Default, PartialEq)]
+pub enum Method {
+    /// TGV with the histogram data term (the paper's method): robust to outliers.
+    #[default]
+    Tgv,
+    /// Smooth signed distance (`kernels::ssd`): the samples' positions and normals, with
+    /// sub-cube accuracy on clean data.
+    Ssd(SsdParams),
+    /// SSD whose samples count only in cubes where the histograms' votes measured a surface
+    /// (`stages::solve::ssd::evidence`): outliers in space the depth maps saw as free or as
+    /// hidden behind a surface pull nothing, as under TGV.
+    Hybrid(SsdParams),
+}
+
+impl Method {
+    /// The method's name on the command line.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Method::Tgv => "tgv",
+            Method::Ssd(_) => "ssd",
+            Method::Hybrid(_) => "hybrid",
+        }
+    }
+
+    /// The SSD parameters of `ssd` and `hybrid`.
+    pub fn ssd(&self) -> Option<&SsdParams> {
+        match self {
+            Method::Tgv => None,
+            Method::Ssd(params) | Method::Hybrid(params) => Some(params),
+        }
+    }
+}
+
+/// The SSD solver's weights and when its conjugate gradients stop.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
+pub struct SsdParams {
+    /// lambda1, relative to the position term (`kernels::ssd`).
+    pub normal_weight: f64,
+    /// lambda2, relative to the position term.
+    pub smoothness: f64,
+    /// A unit stops when its residual |A f - b| is at most this fraction of |b|.
+    pub tolerance: f64,
+    /// The most conjugate-gradient iterations a unit runs at each level.
+    pub iterations: u32,
+}
+
+impl Default for SsdParams {
+    fn default() -> Self {
+        SsdParams {
+            normal_weight: crate::kernels::ssd::DEFAULT_NORMAL_WEIGHT,
+            smoothness: crate::kernels::ssd::DEFAULT_SMOOTHNESS,
+            tolerance: 1e-4,
+            iterations: 500,
+        }
+    }
+}

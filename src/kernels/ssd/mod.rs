@@ -1,0 +1,426 @@
+//! Smooth signed distance (Calakli and Taubin 2011; Calakli et al. 2012, eq. 11) on one unit
+//! of an adaptive level cut: the second solver on the store (ARCHITECTURE.md, "Method notes").
+//!
+//! The unknown is f at the cut's cube centres, where the store keeps every per-cube value (the
+//! paper puts f on the primal vertices; the centres let SSD share the level cut, its frozen
+//! borders, the segments and the dual extractor with TGV). f > 0 is outside, like TGV's u.
+//! The gradient g_c = (D f)_c is TGV's forward difference to the `+` face neighbour(s), which
+//! has no checkerboard null space. Per free cube c, with side h_c and the samples that fell in
+//! it summarised by their weight W_c, weighted centroid offset d_c and weighted normal sum N_c:
+//!
+//!   E(f) = sum_c W_c (f_c + g_c . d_c)^2                               (f = 0 at the samples)
+//!        + lambda1 sum_c h_c^2 (W_c |g_c|^2 - 2 g_c . N_c + W_c)        (grad f = n there)
+//!        + lambda2 sum_(c,t) sigma_ct h^3 |g_c - g_t|^2                  (smooth gradient)
+//!        + ANCHOR sum_c h_c^2 (f_c - f0_c)^2
+//!
+//! over the pairs (c, t) of each difference row, sigma_ct the shared face area over the centre
+//! distance (the paper's sigma), h the row's cube side. The factors of h make every term scale
+//! as h^4 (W is an area, f a length): each level solves the same problem in its own units,
+//! which is what lets a coarse level's solution start the next (cascadic multigrid). The
+//! anchor ties f, very weakly, to the start f0 (the coarser level's f carried to the cube
+//! centre), so that cubes without data or neighbours still have a unique solution. A target t
+//! outside the unit is frozen: its f and g are constants.
+//!
+//! E(f) = f^T A f - 2 b^T f + const with A symmetric positive definite; [`solve`] runs
+//! conjugate gradients preconditioned by A's diagonal, in f64, with every sum in a fixed order
+//! so the result does not depend on the thread count.
+
+use rayon::prelude::*;
+
+#[cfg(test)]
+mod tests;
+
+/// Weight of the anchor to the start values, relative to one sample's data term at full
+/// weight: small enough not to move a surface that data constrains, large enough to make A
+/// positive definite in a cube no sample and no neighbour reaches.
+pub const ANCHOR: f64 = 1.0e-10;
+
+/// lambda1 and lambda2 by default, in the cube-relative units above: on a sphere 4.8 cubes in
+/// radius (the kernel's test), 1 and 1 put the zero set 0.07 cubes off on average, 0.1 and
+/// 0.1 0.02 cubes; 10 times more normal weight or smoothness doubles to sextuples the error.
+pub const DEFAULT_NORMAL_WEIGHT: f64 = 0.1;
+/// See [`DEFAULT_NORMAL_WEIGHT`].
+pub const DEFAULT_SMOOTHNESS: f64 = 0.1;
+
+/// Index of a difference-term target: a free cube (< n) or a frozen one (n + index).
+pub type Target = u32;
+
+/// What the samples in one cube say: the data of its energy terms.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CubeSamples {
+    /// Sum of the samples' weights: footprint areas (root units squared) times their maps'
+    /// weights, the paper's surface density mu integrated over the cube.
+    pub weight: f64,
+    /// Weighted mean offset of the samples from the cube centre (root units).
+    pub centroid: [f64; 3],
+    /// Weighted sum of the samples' unit normals, oriented towards their cameras.
+    pub normal: [f64; 3],
+}
+
+/// For each free cube, the rows (3 c + axis) with a term that targets it, in row order; and
+/// each row's weight sum (the coefficient of the row's own cube is minus it).
+#[derive(Clone, Debug, Default)]
+pub struct Reverse {
+    start: Vec<u32>,
+    entries: Vec<(u32, f32)>,
+    row_sum: Vec<f64>,
+}
+
+impl Reverse {
+    fn of(&self, c: usize) -> &[(u32, f32)] {
+        let (a, b) = (
+            self.start.get(c).copied().unwrap_or(0) as usize,
+            self.start.get(c + 1).copied().unwrap_or(0) as usize,
+        );
+        self.entries.get(a..b).unwrap_or(&[])
+    }
+}
+
+/// One unit's SSD problem. Lengths are in root units, like TGV's.
+#[derive(Clone, Debug, Default)]
+pub struct SsdProblem {
+    pub n: usize,
+    /// Difference rows exactly as [`crate::kernels::tgv::Problem`]'s: the terms of row
+    /// (c, axis) are `terms[start[3c + axis] .. start[3c + axis + 1]]`.
+    pub start: Vec<u32>,
+    pub terms: Vec<(Target, f32)>,
+    /// Cube sides (root units).
+    pub side: Vec<f64>,
+    pub samples: Vec<CubeSamples>,
+    /// The start values the anchor ties f to.
+    pub anchor: Vec<f64>,
+    pub frozen_f: Vec<f64>,
+    pub frozen_gradient: Vec<[f64; 3]>,
+    /// lambda1: the normal term's weight.
+    pub normal_weight: f64,
+    /// lambda2: the smoothness term's weight.
+    pub smoothness: f64,
+    /// Built from `start` and `terms` on first use: set those first (construct with
+    /// `..SsdProblem::default()`).
+    pub reverse: std::sync::OnceLock<Reverse>,
+}
+
+/// How a solve ended.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Solved {
+    pub iterations: usize,
+    /// |A f - b| / |b| at the end (0 when b = 0).
+    pub relative_residual: f64,
+    pub energy_before: f64,
+    pub energy_after: f64,
+}
+
+/// The gradient of one free cube as a sparse combination of free values: (index, coefficient
+/// per axis), its own cube first.
+type Support = Vec<(usize, [f64; 3])>;
+
+impl SsdProblem {
+    fn row(&self, row: usize) -> &[(Target, f32)] {
+        let (a, b) = (
+            self.start.get(row).copied().unwrap_or(0) as usize,
+            self.start.get(row + 1).copied().unwrap_or(0) as usize,
+        );
+        self.terms.get(a..b).unwrap_or(&[])
+    }
+
+    /// The face-pair weight of a term of row (c, axis): sigma (shared area over distance)
+    /// times h^3, so that it scales as h^4 like the data terms (|g_c - g_t| is O(h) where
+    /// the surface curves, O(1) where f kinks).
+    fn pair_weight(&self, c: usize, w: f32) -> f64 {
+        let h = self.side.get(c).copied().unwrap_or(0.0);
+        // w = 1 / (count * distance), and the shared area is h^2 / count for `count` finer
+        // neighbours or h^2 for one coarser one: sigma = w h^2 either way.
+        self.smoothness * f64::from(w) * h.powi(5)
+    }
+
+    /// g_c for free values `f`, frozen values included when `with_frozen`.
+    fn gradient(&self, c: usize, f: &[f64], with_frozen: bool) -> [f64; 3] {
+        let fc = f.get(c).copied().unwrap_or(0.0);
+        std::array::from_fn(|axis| {
+            self.row(3 * c + axis)
+                .iter()
+                .map(|(t, w)| {
+                    let t = *t as usize;
+                    let ft = if t < self.n {
+                        f.get(t).copied().unwrap_or(0.0)
+                    } else if with_frozen {
+                        self.frozen_f.get(t - self.n).copied().unwrap_or(0.0)
+                    } else {
+                        0.0
+                    };
+                    f64::from(*w) * (ft - fc)
+                })
+                .sum()
+        })
+    }
+
+    /// The gradient of target `t` of a row: a free cube's, or a frozen one's constant.
+    fn target_gradient(&self, t: usize, g: &[[f64; 3]], with_frozen: bool) -> [f64; 3] {
+        if t < self.n {
+            g.get(t).copied().unwrap_or([0.0; 3])
+        } else if with_frozen {
+            self.frozen_gradient.get(t - self.n).copied().unwrap_or([0.0; 3])
+        } else {
+            [0.0; 3]
+        }
+    }
+
+    /// The energy's gradient dE/df for free values `f`; without `with_constants` the frozen
+    /// values, normals and anchor values count as zero (then it is 2 A f). Every output is
+    /// gathered in a fixed order (own rows, then the reverse lists), so the result does not
+    /// depend on the thread count.
+    fn energy_gradient(&self, f: &[f64], with_constants: bool) -> Vec<f64> {
+        let n = self.n;
+        let reverse = self.reverse();
+        let g: Vec<[f64; 3]> = (0..n)
+            .into_par_iter()
+            .map(|c| self.gradient(c, f, with_constants))
+            .collect();
+        // r_c = dE/dg_c: the cube's own data terms, its rows' pairs, and the pairs of the rows
+        // that target it.
+        let r: Vec<[f64; 3]> = (0..n)
+            .into_par_iter()
+            .map(|c| {
+                let (s, gc, h) = (self.samples[c], g[c], self.side[c]);
+                let h2 = h * h;
+                let e = f[c] + dot(gc, s.centroid);
+                let normal = if with_constants { s.normal } else { [0.0; 3] };
+                let mut rc: [f64; 3] = std::array::from_fn(|axis| {
+                    2.0 * s.weight * e * s.centroid[axis]
+                        + 2.0 * self.normal_weight * h2 * (s.weight * gc[axis] - normal[axis])
+                });
+                for axis in 0..3 {
+                    for (t, w) in self.row(3 * c + axis) {
+                        let sigma = self.pair_weight(c, *w);
+                        let gt = self.target_gradient(*t as usize, &g, with_constants);
+                        (0..3).for_each(|k| rc[k] += 2.0 * sigma * (gc[k] - gt[k]));
+                    }
+                }
+                for (row, w) in reverse.of(c) {
+                    let source = *row as usize / 3;
+                    let sigma = self.pair_weight(source, *w);
+                    (0..3).for_each(|k| rc[k] -= 2.0 * sigma * (g[source][k] - gc[k]));
+                }
+                rc
+            })
+            .collect();
+        (0..n)
+            .into_par_iter()
+            .map(|c| {
+                let (s, gc, h) = (self.samples[c], g[c], self.side[c]);
+                let anchor = if with_constants { self.anchor[c] } else { 0.0 };
+                let mut total = 2.0 * s.weight * (f[c] + dot(gc, s.centroid)) + 2.0 * ANCHOR * h * h * (f[c] - anchor);
+                for (axis, rc) in r[c].iter().enumerate() {
+                    total -= reverse.row_sum[3 * c + axis] * rc;
+                }
+                for (row, w) in reverse.of(c) {
+                    let row = *row as usize;
+                    total += f64::from(*w) * r[row / 3][row % 3];
+                }
+                total
+            })
+            .collect()
+    }
+
+    /// The reverse lists of the difference rows, built once.
+    fn reverse(&self) -> &Reverse {
+        self.reverse.get_or_init(|| {
+            let n = self.n;
+            let mut start = vec![0u32; n + 1];
+            for (t, _) in &self.terms {
+                if (*t as usize) < n
+                    && let Some(count) = start.get_mut(*t as usize + 1)
+                {
+                    *count += 1;
+                }
+            }
+            for i in 0..n {
+                start[i + 1] += start[i];
+            }
+            let mut fill = start.clone();
+            let mut entries = vec![(0u32, 0f32); start[n] as usize];
+            let mut row_sum = vec![0f64; 3 * n];
+            for (row, sum) in row_sum.iter_mut().enumerate() {
+                for (t, w) in self.row(row) {
+                    *sum += f64::from(*w);
+                    if (*t as usize) < n
+                        && let Some(slot) = fill.get_mut(*t as usize)
+                    {
+                        entries[*slot as usize] = (row as u32, *w);
+                        *slot += 1;
+                    }
+                }
+            }
+            Reverse {
+                start,
+                entries,
+                row_sum,
+            }
+        })
+    }
+
+    /// g = D f at every free cube, frozen values included: what a level stores beside f.
+    pub fn gradients(&self, f: &[f64]) -> Vec<[f64; 3]> {
+        (0..self.n).into_par_iter().map(|c| self.gradient(c, f, true)).collect()
+    }
+
+    /// A f.
+    pub fn apply(&self, f: &[f64]) -> Vec<f64> {
+        self.energy_gradient(f, false).into_iter().map(|x| 0.5 * x).collect()
+    }
+
+    /// b: minus half the energy's gradient at f = 0.
+    pub fn rhs(&self) -> Vec<f64> {
+        self.energy_gradient(&vec![0.0; self.n], true)
+            .into_iter()
+            .map(|x| -0.5 * x)
+            .collect()
+    }
+
+    /// E(f), constants included: what a solve reports and decreases.
+    pub fn energy(&self, f: &[f64]) -> f64 {
+        let n = self.n;
+        let g: Vec<[f64; 3]> = (0..n).into_par_iter().map(|c| self.gradient(c, f, true)).collect();
+        let mut total = 0.0;
+        for c in 0..n {
+            let (s, gc, h) = (self.samples[c], g[c], self.side[c]);
+            let h2 = h * h;
+            let e = f[c] + dot(gc, s.centroid);
+            total += s.weight * e * e;
+            total += self.normal_weight * h2 * (s.weight * dot(gc, gc) - 2.0 * dot(gc, s.normal) + s.weight);
+            total += ANCHOR * h2 * (f[c] - self.anchor[c]).powi(2);
+            for axis in 0..3 {
+                for (t, w) in self.row(3 * c + axis) {
+                    let gt = self.target_gradient(*t as usize, &g, true);
+                    let d = [gc[0] - gt[0], gc[1] - gt[1], gc[2] - gt[2]];
+                    total += self.pair_weight(c, *w) * dot(d, d);
+                }
+            }
+        }
+        total
+    }
+
+    /// g_c's coefficients on the free values.
+    fn support(&self, c: usize) -> Support {
+        let mut own = [0.0; 3];
+        let mut out: Support = Vec::new();
+        for (axis, own_axis) in own.iter_mut().enumerate() {
+            for (t, w) in self.row(3 * c + axis) {
+                let w = f64::from(*w);
+                *own_axis -= w;
+                let t = *t as usize;
+                if t == c {
+                    *own_axis += w;
+                } else if t < self.n {
+                    match out.iter_mut().find(|(j, _)| *j == t) {
+                        Some((_, coefficient)) => coefficient[axis] += w,
+                        None => {
+                            let mut coefficient = [0.0; 3];
+                            coefficient[axis] = w;
+                            out.push((t, coefficient));
+                        }
+                    }
+                }
+            }
+        }
+        out.insert(0, (c, own));
+        out
+    }
+
+    /// A's diagonal, for the Jacobi preconditioner: A_jj = E_h(e_j), the homogeneous energy of
+    /// the unit vector, summed term by term.
+    pub fn diagonal(&self) -> Vec<f64> {
+        let n = self.n;
+        let supports: Vec<Support> = (0..n).into_par_iter().map(|c| self.support(c)).collect();
+        let mut diagonal = vec![0.0; n];
+        for c in 0..n {
+            let (s, h) = (self.samples[c], self.side[c]);
+            let h2 = h * h;
+            diagonal[c] += ANCHOR * h2;
+            for (index, (j, coefficient)) in supports[c].iter().enumerate() {
+                let de = if index == 0 { 1.0 } else { 0.0 } + dot(*coefficient, s.centroid);
+                diagonal[*j] +=
+                    s.weight * de * de + self.normal_weight * h2 * s.weight * dot(*coefficient, *coefficient);
+            }
+            for axis in 0..3 {
+                for (t, w) in self.row(3 * c + axis) {
+                    let sigma = self.pair_weight(c, *w);
+                    let t = *t as usize;
+                    let mut difference: Support = supports[c].clone();
+                    if let Some(other) = supports.get(t) {
+                        for (j, coefficient) in other {
+                            match difference.iter_mut().find(|(i, _)| i == j) {
+                                Some((_, d)) => (0..3).for_each(|k| d[k] -= coefficient[k]),
+                                None => difference.push((*j, coefficient.map(|x| -x))),
+                            }
+                        }
+                    }
+                    for (j, d) in difference {
+                        diagonal[j] += sigma * dot(d, d);
+                    }
+                }
+            }
+        }
+        diagonal
+    }
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn inner(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Minimises the unit's energy from `f` (the start values) by conjugate gradients with A's
+/// diagonal as preconditioner, until |A f - b| <= tolerance |b| or `max_iterations`.
+pub fn solve(problem: &SsdProblem, f: &mut [f64], tolerance: f64, max_iterations: usize) -> Solved {
+    let energy_before = problem.energy(f);
+    let b = problem.rhs();
+    let b_norm = inner(&b, &b).sqrt();
+    let inverse_diagonal: Vec<f64> = problem
+        .diagonal()
+        .into_iter()
+        .map(|d| if d > 0.0 { 1.0 / d } else { 0.0 })
+        .collect();
+    let af = problem.apply(f);
+    let mut r: Vec<f64> = b.iter().zip(&af).map(|(b, a)| b - a).collect();
+    let mut z: Vec<f64> = r.iter().zip(&inverse_diagonal).map(|(r, m)| r * m).collect();
+    let mut p = z.clone();
+    let mut rz = inner(&r, &z);
+    let mut iterations = 0;
+    let target = tolerance * b_norm;
+    while iterations < max_iterations && inner(&r, &r).sqrt() > target && rz > 0.0 {
+        let ap = problem.apply(&p);
+        let pap = inner(&p, &ap);
+        if pap <= 0.0 {
+            break;
+        }
+        let alpha = rz / pap;
+        for i in 0..f.len() {
+            f[i] += alpha * p[i];
+            r[i] -= alpha * ap[i];
+        }
+        for i in 0..z.len() {
+            z[i] = r[i] * inverse_diagonal[i];
+        }
+        let rz_next = inner(&r, &z);
+        let beta = rz_next / rz;
+        rz = rz_next;
+        for i in 0..p.len() {
+            p[i] = z[i] + beta * p[i];
+        }
+        iterations += 1;
+    }
+    Solved {
+        iterations,
+        relative_residual: if b_norm > 0.0 {
+            inner(&r, &r).sqrt() / b_norm
+        } else {
+            0.0
+        },
+        energy_before,
+        energy_after: problem.energy(f),
+    }
+}

@@ -1,0 +1,320 @@
+#![expect(
+    clippy::needless_range_loop,
+    reason = "dense matrices and grids read clearest with their indices"
+)]
+
+use super::*;
+use crate::kernels::random::uniform;
+
+/// A regular grid of free cubes of side `h`, each row targeting its `+` neighbour; on the `+`
+/// faces, rows target frozen cubes when `frozen_border`, else none (the root's boundary).
+fn grid(size: usize, h: f64, frozen_border: bool) -> SsdProblem {
+    let n = size * size * size;
+    let index = |x: usize, y: usize, z: usize| x + size * (y + size * z);
+    let mut start = vec![0u32];
+    let mut terms = Vec::new();
+    let mut frozen = 0u32;
+    for z in 0..size {
+        for y in 0..size {
+            for x in 0..size {
+                for axis in 0..3 {
+                    let mut at = [x, y, z];
+                    at[axis] += 1;
+                    if at[axis] < size {
+                        terms.push((index(at[0], at[1], at[2]) as u32, (1.0 / h) as f32));
+                    } else if frozen_border {
+                        terms.push((n as u32 + frozen, (1.0 / h) as f32));
+                        frozen += 1;
+                    }
+                    start.push(terms.len() as u32);
+                }
+            }
+        }
+    }
+    SsdProblem {
+        n,
+        start,
+        terms,
+        side: vec![h; n],
+        samples: vec![CubeSamples::default(); n],
+        anchor: vec![0.0; n],
+        frozen_f: vec![0.0; frozen as usize],
+        frozen_gradient: vec![[0.0; 3]; frozen as usize],
+        normal_weight: 1.0,
+        smoothness: 1.0,
+        ..SsdProblem::default()
+    }
+}
+
+/// A small problem with everything random: samples in some cubes, frozen borders, anchors,
+/// and rows of two half-weight targets (an adaptive cut's finer neighbours).
+fn random_problem(seed: u64) -> SsdProblem {
+    let mut state = seed;
+    let mut unit = move || uniform(&mut state);
+    let h = 0.125;
+    let mut p = grid(3, h, true);
+    for s in &mut p.samples {
+        if unit() < 0.6 {
+            s.weight = h * h * (0.5 + unit());
+            s.centroid = [0; 3].map(|_| h * (unit() - 0.5));
+            s.normal = [0; 3].map(|_| s.weight * (2.0 * unit() - 1.0));
+        }
+    }
+    p.anchor = (0..p.n).map(|_| h * (unit() - 0.5)).collect();
+    p.frozen_f = p.frozen_f.iter().map(|_| h * (unit() - 0.5)).collect();
+    p.frozen_gradient = p.frozen_gradient.iter().map(|_| [0; 3].map(|_| unit() - 0.5)).collect();
+    // Split some single-target rows into two half-weight terms.
+    let mut start = vec![0u32];
+    let mut terms = Vec::new();
+    for row in 0..3 * p.n {
+        for (t, w) in p.row(row) {
+            if unit() < 0.3 {
+                let other = (unit() * p.n as f64) as u32 % p.n as u32;
+                terms.push((*t, 0.5 * w));
+                terms.push((other, 0.5 * w));
+            } else {
+                terms.push((*t, *w));
+            }
+        }
+        start.push(terms.len() as u32);
+    }
+    p.start = start;
+    p.terms = terms;
+    p.normal_weight = 0.7;
+    p.smoothness = 1.3;
+    p
+}
+
+fn unit_vector(n: usize, j: usize) -> Vec<f64> {
+    let mut e = vec![0.0; n];
+    e[j] = 1.0;
+    e
+}
+
+/// A and b from the energy alone, by polarisation (exact for a quadratic up to rounding).
+fn dense_reference(p: &SsdProblem) -> (Vec<Vec<f64>>, Vec<f64>) {
+    let n = p.n;
+    let mut homogeneous = p.clone();
+    homogeneous.anchor = vec![0.0; n];
+    homogeneous.frozen_f.iter_mut().for_each(|x| *x = 0.0);
+    homogeneous.frozen_gradient.iter_mut().for_each(|x| *x = [0.0; 3]);
+    homogeneous.samples.iter_mut().for_each(|s| s.normal = [0.0; 3]);
+    let zero_energy = homogeneous.energy(&vec![0.0; n]);
+    let quadratic = |f: &[f64]| homogeneous.energy(f) - zero_energy;
+    let mut a = vec![vec![0.0; n]; n];
+    for i in 0..n {
+        for j in 0..n {
+            let mut e = unit_vector(n, i);
+            e[j] += 1.0;
+            a[i][j] = if i == j {
+                quadratic(&unit_vector(n, i))
+            } else {
+                0.5 * (quadratic(&e) - quadratic(&unit_vector(n, i)) - quadratic(&unit_vector(n, j)))
+            };
+        }
+    }
+    let constant = p.energy(&vec![0.0; n]);
+    let b = (0..n)
+        .map(|i| 0.5 * (a[i][i] + constant - p.energy(&unit_vector(n, i))))
+        .collect();
+    (a, b)
+}
+
+fn cholesky_solve(a: &[Vec<f64>], b: &[f64]) -> Option<Vec<f64>> {
+    let n = b.len();
+    let mut l = vec![vec![0.0; n]; n];
+    for i in 0..n {
+        for j in 0..=i {
+            let s: f64 = a[i][j] - (0..j).map(|k| l[i][k] * l[j][k]).sum::<f64>();
+            if i == j {
+                if s <= 0.0 {
+                    return None;
+                }
+                l[i][i] = s.sqrt();
+            } else {
+                l[i][j] = s / l[j][j];
+            }
+        }
+    }
+    let mut y = vec![0.0; n];
+    for i in 0..n {
+        y[i] = (b[i] - (0..i).map(|k| l[i][k] * y[k]).sum::<f64>()) / l[i][i];
+    }
+    let mut x = vec![0.0; n];
+    for i in (0..n).rev() {
+        x[i] = (y[i] - (i + 1..n).map(|k| l[k][i] * x[k]).sum::<f64>()) / l[i][i];
+    }
+    Some(x)
+}
+
+fn scale_of(a: &[Vec<f64>]) -> f64 {
+    a.iter().flatten().fold(0.0f64, |m, x| m.max(x.abs()))
+}
+
+#[test]
+fn the_operator_right_side_and_diagonal_match_a_dense_reference() {
+    for seed in 1..4 {
+        let p = random_problem(seed);
+        let (a, b) = dense_reference(&p);
+        let scale = scale_of(&a);
+        for j in 0..p.n {
+            let column = p.apply(&unit_vector(p.n, j));
+            for i in 0..p.n {
+                assert!(
+                    (column[i] - a[i][j]).abs() <= 1e-9 * scale,
+                    "A[{i}][{j}]: {} vs {}",
+                    column[i],
+                    a[i][j]
+                );
+                assert!((a[i][j] - a[j][i]).abs() <= 1e-9 * scale, "A is symmetric");
+            }
+        }
+        let rhs = p.rhs();
+        let b_scale = b.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        assert!(b_scale > 0.0);
+        for i in 0..p.n {
+            assert!(
+                (rhs[i] - b[i]).abs() <= 1e-8 * b_scale,
+                "b[{i}]: {} vs {}",
+                rhs[i],
+                b[i]
+            );
+        }
+        let diagonal = p.diagonal();
+        for i in 0..p.n {
+            assert!((diagonal[i] - a[i][i]).abs() <= 1e-9 * scale, "diagonal {i}");
+        }
+        assert!(cholesky_solve(&a, &b).is_some(), "A is positive definite");
+    }
+}
+
+#[test]
+fn conjugate_gradients_reach_the_residual_target_and_the_dense_solution() {
+    let p = random_problem(7);
+    let (a, b) = dense_reference(&p);
+    let exact = cholesky_solve(&a, &b).expect("positive definite");
+    let mut f = vec![0.0; p.n];
+    let solved = solve(&p, &mut f, 1e-10, 1000);
+    assert!(solved.relative_residual <= 1e-10, "{solved:?}");
+    assert!(solved.iterations < p.n * 2, "{solved:?}");
+    assert!(solved.energy_after < solved.energy_before);
+    // The residual is |A f - b|, recomputed rather than CG's running one.
+    let af = p.apply(&f);
+    let residual: f64 = af.iter().zip(&b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt();
+    assert!(residual <= 1e-9 * inner(&b, &b).sqrt());
+    let size = exact.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    for (x, y) in f.iter().zip(&exact) {
+        assert!((x - y).abs() <= 1e-7 * size, "{x} vs {y}");
+    }
+    // A stricter target costs iterations; a looser one stops earlier.
+    let mut loose = vec![0.0; p.n];
+    let early = solve(&p, &mut loose, 1e-3, 1000);
+    assert!(early.iterations < solved.iterations && early.relative_residual <= 1e-3);
+}
+
+#[test]
+fn solutions_are_bit_identical_for_any_thread_count() {
+    let p = random_problem(11);
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("pool");
+        pool.install(|| {
+            let mut f = vec![0.0; p.n];
+            solve(&p, &mut f, 1e-12, 500);
+            f.iter().map(|x| x.to_bits()).collect::<Vec<u64>>()
+        })
+    };
+    assert_eq!(run(1), run(3));
+}
+
+/// Samples of a sphere (Fibonacci points, outward normals, equal areas) binned into a grid of
+/// `size`^3 cubes filling [0, 1]^3.
+fn sphere_problem(size: usize, radius: f64, centre: [f64; 3]) -> SsdProblem {
+    let h = 1.0 / size as f64;
+    let mut p = grid(size, h, false);
+    let count = 40 * size * size;
+    let area = 4.0 * std::f64::consts::PI * radius * radius / count as f64;
+    let mut sums = vec![([0.0; 3], 0.0, [0.0; 3]); p.n];
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    for i in 0..count {
+        let z = 1.0 - 2.0 * (i as f64 + 0.5) / count as f64;
+        let r = (1.0 - z * z).sqrt();
+        let phi = golden * i as f64;
+        let normal = [r * phi.cos(), r * phi.sin(), z];
+        let point: [f64; 3] = std::array::from_fn(|k| centre[k] + radius * normal[k]);
+        let cell = point.map(|x| ((x / h) as usize).min(size - 1));
+        let c = cell[0] + size * (cell[1] + size * cell[2]);
+        let (offset, weight, normal_sum) = &mut sums[c];
+        for k in 0..3 {
+            offset[k] += area * (point[k] - (cell[k] as f64 + 0.5) * h);
+            normal_sum[k] += area * normal[k];
+        }
+        *weight += area;
+    }
+    for (s, (offset, weight, normal)) in p.samples.iter_mut().zip(sums) {
+        if weight > 0.0 {
+            *s = CubeSamples {
+                weight,
+                centroid: offset.map(|x| x / weight),
+                normal,
+            };
+        }
+    }
+    p
+}
+
+/// Zero crossings of f along the grid's edges, as distances from `centre` minus `radius`, in
+/// cubes: (mean, max) of their absolute values, and how many there are.
+fn sphere_errors(f: &[f64], size: usize, radius: f64, centre: [f64; 3]) -> (f64, f64, usize) {
+    let h = 1.0 / size as f64;
+    let index = |c: [usize; 3]| c[0] + size * (c[1] + size * c[2]);
+    let (mut sum, mut max, mut count) = (0.0, 0.0f64, 0);
+    for z in 0..size {
+        for y in 0..size {
+            for x in 0..size {
+                for axis in 0..3 {
+                    let mut next = [x, y, z];
+                    next[axis] += 1;
+                    if next[axis] >= size {
+                        continue;
+                    }
+                    let (a, b) = (f[index([x, y, z])], f[index(next)]);
+                    if (a > 0.0) == (b > 0.0) {
+                        continue;
+                    }
+                    let t = a / (a - b);
+                    let point: [f64; 3] = std::array::from_fn(|k| {
+                        let at = [x, y, z][k] as f64 + 0.5 + if k == axis { t } else { 0.0 };
+                        at * h - centre[k]
+                    });
+                    let error = ((dot(point, point).sqrt() - radius) / h).abs();
+                    sum += error;
+                    max = max.max(error);
+                    count += 1;
+                }
+            }
+        }
+    }
+    (sum / count.max(1) as f64, max, count)
+}
+
+#[test]
+fn a_sphere_is_reconstructed_within_a_tenth_of_a_cube_by_the_defaults() {
+    let (size, radius, centre) = (16, 0.3, [0.5, 0.47, 0.52]);
+    let mut p = sphere_problem(size, radius, centre);
+    p.normal_weight = DEFAULT_NORMAL_WEIGHT;
+    p.smoothness = DEFAULT_SMOOTHNESS;
+    let mut f = vec![0.0; p.n];
+    let solved = solve(&p, &mut f, 1e-8, 4000);
+    assert!(solved.relative_residual <= 1e-8, "{solved:?}");
+    let (mean, max, crossings) = sphere_errors(&f, size, radius, centre);
+    // A closed surface: f is negative at the centre and positive in the corners.
+    assert!(f[8 + size * (8 + size * 8)] < 0.0 && f[0] > 0.0 && f[p.n - 1] > 0.0);
+    assert!(crossings > 400, "{crossings}");
+    assert!(
+        mean < 0.05 && max < 0.1,
+        "mean {mean:.4}, max {max:.4} cubes ({solved:?})"
+    );
+}

@@ -1,0 +1,374 @@
+//! `samples`: what the depth maps' samples say to the SSD solver (`kernels::ssd`), per octree
+//! node: the weight, centroid and normal sums of the samples that spawned it.
+//!
+//! Ingest writes each sample's share into its depth map's run, beside the radius sums, as
+//! fixed-point integers relative to the spawned cube ([`Moments`]); this stage adds the runs
+//! up per treetop unit, one segment aligned row for row with the unit's octree segment. The
+//! sums are integers, so their order, and with it the order of the inputs and the thread
+//! count, cannot change a bit. Only `solve --method ssd` runs it; it is rebuilt whole when the
+//! octree or the set of depth maps changes (format-spec.md, "Columns used by stages").
+
+use std::sync::{Arc, Mutex};
+
+use glam::DVec3;
+
+use super::treetop::Treetop;
+use super::{INGEST, OCTREE};
+use crate::format::{Column, ColumnValues, CubeKey, Scene};
+use crate::store::catalog::{self, UnitRecord};
+use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
+
+/// The stage's name.
+pub const SAMPLES: &str = "samples";
+
+/// Columns of ingest runs and of this stage's segments (U64 columns holding i64 values).
+pub const SAMPLE_WEIGHT: &str = "sample_weight";
+pub const SAMPLE_OFFSET: &str = "sample_offset";
+pub const SAMPLE_NORMAL: &str = "sample_normal";
+
+/// Fixed-point scale of [`Moments`]: a sample whose area equals its cube's face weighs 2^24.
+pub const FIXED_POINT: f64 = 16_777_216.0;
+
+/// The samples of one cube, relative to it: with h its side and c its centre, the sums over
+/// its samples of a = area / h^2 (times the map's weight), a (x - c) / h and a n, each
+/// rounded to 1 / [`FIXED_POINT`] per sample.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Moments {
+    pub weight: i64,
+    pub offset: [i64; 3],
+    pub normal: [i64; 3],
+}
+
+fn fixed(x: f64) -> i64 {
+    (x * FIXED_POINT).round() as i64
+}
+
+impl Moments {
+    /// One sample's share: `area` in world units squared, `normal` a unit vector.
+    pub fn of_sample(scene: &Scene, key: CubeKey, point: DVec3, area: f64, normal: DVec3) -> Moments {
+        let side = scene.cube_side(key.depth());
+        let a = area / (side * side);
+        let offset = (point - scene.cube_center(key)) / side;
+        Moments {
+            weight: fixed(a),
+            offset: [fixed(a * offset.x), fixed(a * offset.y), fixed(a * offset.z)],
+            normal: [fixed(a * normal.x), fixed(a * normal.y), fixed(a * normal.z)],
+        }
+    }
+
+    pub fn add(&mut self, other: &Moments) {
+        self.weight = self.weight.saturating_add(other.weight);
+        for k in 0..3 {
+            self.offset[k] = self.offset[k].saturating_add(other.offset[k]);
+            self.normal[k] = self.normal[k].saturating_add(other.normal[k]);
+        }
+    }
+
+    /// In root units for a node `key`: its weight (root units squared), its samples'
+    /// centroid (root units, inside the node's cube) and weighted normal sum; `None` without
+    /// weight.
+    pub fn in_root_units(&self, key: CubeKey) -> Option<(f64, [f64; 3], [f64; 3])> {
+        if self.weight <= 0 {
+            return None;
+        }
+        let side = 0.5f64.powi(i32::from(key.depth()));
+        let area = side * side / FIXED_POINT;
+        let centre = cube_centre(key);
+        let w = self.weight as f64;
+        let centroid = std::array::from_fn(|k| centre[k] + side * (self.offset[k] as f64 / w).clamp(-0.5, 0.5));
+        Some((w * area, centroid, self.normal.map(|n| n as f64 * area)))
+    }
+}
+
+/// A cube's centre in root units.
+pub fn cube_centre(key: CubeKey) -> [f64; 3] {
+    let side = 0.5f64.powi(i32::from(key.depth()));
+    key.coords().map(|c| (f64::from(c) + 0.5) * side)
+}
+
+/// The three columns of `moments`.
+pub fn moment_columns(moments: &[Moments]) -> [Column; 3] {
+    let bits = |x: i64| x as u64;
+    [
+        Column::new(
+            SAMPLE_WEIGHT,
+            1,
+            ColumnValues::U64(moments.iter().map(|m| bits(m.weight)).collect()),
+        ),
+        Column::new(
+            SAMPLE_OFFSET,
+            3,
+            ColumnValues::U64(moments.iter().flat_map(|m| m.offset.map(bits)).collect()),
+        ),
+        Column::new(
+            SAMPLE_NORMAL,
+            3,
+            ColumnValues::U64(moments.iter().flat_map(|m| m.normal.map(bits)).collect()),
+        ),
+    ]
+}
+
+/// Moments from the three columns' values (`rows` of them); `None` when their lengths do not
+/// match.
+fn moments_of(weight: &[u64], offset: &[u64], normal: &[u64], rows: usize) -> Option<Vec<Moments>> {
+    if weight.len() != rows || offset.len() != 3 * rows || normal.len() != 3 * rows {
+        return None;
+    }
+    let signed = |x: u64| x as i64;
+    Some(
+        weight
+            .iter()
+            .zip(offset.chunks_exact(3).zip(normal.chunks_exact(3)))
+            .map(|(w, (o, n))| Moments {
+                weight: signed(*w),
+                offset: std::array::from_fn(|k| o.get(k).copied().map_or(0, signed)),
+                normal: std::array::from_fn(|k| n.get(k).copied().map_or(0, signed)),
+            })
+            .collect(),
+    )
+}
+
+/// A unit's keys and moments from its samples segment.
+pub fn read_samples(snapshot: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeKey>, Vec<Moments>)> {
+    let file = snapshot.open_segment(segment)?;
+    let reader = file.reader()?;
+    let c = |e| file.corruption(e);
+    let keys = reader.read_keys().map_err(c)?;
+    let (_, weight) = reader.read_u64(SAMPLE_WEIGHT).map_err(c)?;
+    let (_, offset) = reader.read_u64(SAMPLE_OFFSET).map_err(c)?;
+    let (_, normal) = reader.read_u64(SAMPLE_NORMAL).map_err(c)?;
+    let moments = moments_of(&weight, &offset, &normal, keys.len()).ok_or_else(|| {
+        file.corruption(crate::format::DecodeError::MissingColumn(
+            "sample_weight, sample_offset, sample_normal of the keys' length".into(),
+        ))
+    })?;
+    Ok((keys, moments))
+}
+
+/// An ingest run and the first key of each of its blocks.
+struct RunIndex {
+    name: String,
+    first_keys: Vec<CubeKey>,
+    last_key: CubeKey,
+}
+
+pub struct SamplesStage {
+    /// Built by the first unit that needs it: every run's block boundaries.
+    runs: Mutex<Option<Arc<Vec<RunIndex>>>>,
+    treetop: std::sync::OnceLock<Treetop>,
+}
+
+impl Default for SamplesStage {
+    fn default() -> Self {
+        SamplesStage::new()
+    }
+}
+
+impl SamplesStage {
+    pub fn new() -> SamplesStage {
+        SamplesStage {
+            runs: Mutex::new(None),
+            treetop: std::sync::OnceLock::new(),
+        }
+    }
+
+    fn error(unit: &str, message: String) -> StoreError {
+        StoreError::Stage {
+            stage: SAMPLES.into(),
+            unit: unit.into(),
+            message,
+        }
+    }
+
+    fn runs(&self, base: &Snapshot<'_>) -> Result<Arc<Vec<RunIndex>>> {
+        let mut slot = self
+            .runs
+            .lock()
+            .map_err(|_| Self::error("-", "a worker panicked while indexing the runs".into()))?;
+        if let Some(runs) = slot.as_ref() {
+            return Ok(runs.clone());
+        }
+        let mut runs = Vec::new();
+        for (name, _) in base.segments(INGEST) {
+            let file = base.open_segment(name)?;
+            let reader = file.reader()?;
+            if reader.column(SAMPLE_WEIGHT).is_err() {
+                return Err(Self::error(
+                    name,
+                    "this depth map's run carries no sample moments (it was ingested by an octstore older than `--method ssd`): ingest the depth maps into a new store to solve with ssd".into(),
+                ));
+            }
+            let mut first_keys = Vec::with_capacity(reader.block_count());
+            for block in 0..reader.block_count() {
+                match reader.read_block("key", block).map_err(|e| file.corruption(e))? {
+                    ColumnValues::Key(keys) => first_keys.extend(keys.first().copied()),
+                    _ => return Err(Self::error(name, "the key column holds no keys".into())),
+                }
+            }
+            runs.push(RunIndex {
+                name: name.clone(),
+                first_keys,
+                last_key: reader.last_key(),
+            });
+        }
+        let runs = Arc::new(runs);
+        *slot = Some(runs.clone());
+        Ok(runs)
+    }
+
+    /// Adds every run's moments of the unit's `keys` (sorted) into `sums`.
+    fn add_runs(&self, base: &Snapshot<'_>, keys: &[CubeKey], sums: &mut [Moments]) -> Result<()> {
+        let (Some(&low), Some(&high)) = (keys.first(), keys.last()) else {
+            return Ok(());
+        };
+        for run in self.runs(base)?.iter() {
+            let Some(&first) = run.first_keys.first() else { continue };
+            if first > high || run.last_key < low {
+                continue;
+            }
+            let file = base.open_segment(&run.name)?;
+            let reader = file.reader()?;
+            let c = |e| file.corruption(e);
+            let start = run.first_keys.partition_point(|k| *k <= low).saturating_sub(1);
+            for block in start..run.first_keys.len() {
+                let block_first = run.first_keys.get(block).copied().unwrap_or(high);
+                if block_first > high {
+                    break;
+                }
+                // Skip blocks that hold none of the unit's keys (the top unit's keys are
+                // scattered between the leaves').
+                let next = run.first_keys.get(block + 1).copied();
+                let from = keys.partition_point(|k| *k < block_first);
+                if keys.get(from).is_none_or(|k| next.is_some_and(|n| *k >= n)) {
+                    continue;
+                }
+                let (ColumnValues::Key(block_keys), ColumnValues::U64(w), ColumnValues::U64(o), ColumnValues::U64(n)) = (
+                    reader.read_block("key", block).map_err(c)?,
+                    reader.read_block(SAMPLE_WEIGHT, block).map_err(c)?,
+                    reader.read_block(SAMPLE_OFFSET, block).map_err(c)?,
+                    reader.read_block(SAMPLE_NORMAL, block).map_err(c)?,
+                ) else {
+                    return Err(Self::error(&run.name, "sample columns of the wrong type".into()));
+                };
+                let moments = moments_of(&w, &o, &n, block_keys.len())
+                    .ok_or_else(|| Self::error(&run.name, "sample columns of unequal lengths".into()))?;
+                // Both lists are sorted: one walk matches them.
+                let mut at = from;
+                for (key, m) in block_keys.iter().zip(&moments) {
+                    at += keys.get(at..).map_or(0, |rest| rest.partition_point(|k| k < key));
+                    if keys.get(at) == Some(key)
+                        && let Some(sum) = sums.get_mut(at)
+                    {
+                        sum.add(m);
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Stage for SamplesStage {
+    fn name(&self) -> &'static str {
+        SAMPLES
+    }
+
+    fn input_digest(&self, base: &Snapshot<'_>) -> Vec<u8> {
+        let mut digest = base.digest(OCTREE).to_le_bytes().to_vec();
+        digest.extend_from_slice(&base.digest(INGEST).to_le_bytes());
+        digest
+    }
+
+    fn plan(&self, base: &Snapshot<'_>) -> Result<Plan> {
+        let treetop = Treetop::of(base)?;
+        let units = treetop
+            .units
+            .iter()
+            .enumerate()
+            .map(|(index, unit)| UnitSpec {
+                id: index as u64,
+                label: if unit.top {
+                    "the treetop's internal nodes".into()
+                } else {
+                    format!("leaf {:?}", unit.key)
+                },
+            })
+            .collect();
+        let _ = self.treetop.set(treetop);
+        Ok(Plan {
+            units,
+            replace: Replace::All,
+        })
+    }
+
+    fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput> {
+        let info = self
+            .treetop
+            .get()
+            .and_then(|t| t.units.get(unit.id as usize))
+            .ok_or_else(|| Self::error(&unit.label, "no such treetop unit".into()))?;
+        let file = base.open_segment(&info.segment)?;
+        let keys = file.reader()?.read_keys().map_err(|e| file.corruption(e))?;
+        let mut sums = vec![Moments::default(); keys.len()];
+        self.add_runs(base, &keys, &mut sums)?;
+        let with_samples = sums.iter().filter(|m| m.weight > 0).count() as u64;
+        let mut columns = vec![Column::keys(keys)];
+        columns.extend(moment_columns(&sums));
+        Ok(UnitOutput {
+            segments: vec![columns],
+            extra: catalog::encode(&with_samples),
+            block_rows: 0,
+        })
+    }
+
+    fn finish(
+        &self,
+        _txn: &redb::WriteTransaction,
+        _base: &Snapshot<'_>,
+        units: &[(u64, UnitRecord)],
+    ) -> Result<String> {
+        let mut nodes = 0u64;
+        for (_, record) in units {
+            nodes += catalog::decode::<u64>("units_done", &record.extra)?;
+        }
+        let line = format!("{nodes} octree nodes hold samples, in {} unit(s)", units.len());
+        tracing::info!("{line}");
+        Ok(line)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_samples_moments_are_relative_to_its_cube_and_sum_exactly() {
+        let scene = Scene {
+            root_min: [-1.0, -1.0, -1.0],
+            root_side: 2.0,
+            max_depth: 8,
+        };
+        let key = scene.key_at(DVec3::new(0.3, 0.2, -0.4), 3);
+        let side = scene.cube_side(3);
+        let centre = scene.cube_center(key);
+        let point = centre + DVec3::new(0.25, -0.125, 0.0) * side;
+        let m = Moments::of_sample(&scene, key, point, 0.5 * side * side, DVec3::Z);
+        assert_eq!(m.weight, 1 << 23);
+        assert_eq!(m.offset, [1 << 21, -(1 << 20), 0]);
+        assert_eq!(m.normal, [0, 0, 1 << 23]);
+        // In root units the centroid is the point, and the weight its area over the root's.
+        let (w, centroid, normal) = m.in_root_units(key).expect("weight");
+        let root = (point - scene.min()) / scene.root_side;
+        assert!((w - 0.5 * (side / 2.0).powi(2)).abs() < 1e-15);
+        for k in 0..3 {
+            assert!((centroid[k] - root[k]).abs() < 1e-12);
+        }
+        assert!((normal[2] - w).abs() < 1e-15);
+        // Integer sums do not depend on their order.
+        let other = Moments::of_sample(&scene, key, centre, 0.3 * side * side, DVec3::X);
+        let (mut a, mut b) = (m, other);
+        a.add(&other);
+        b.add(&m);
+        assert_eq!(a, b);
+    }
+}

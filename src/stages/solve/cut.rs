@@ -1,0 +1,187 @@
+//! Reading a solved level: the values of each cut cube ([`CutValue`]) and which cut cube
+//! holds a point ([`LevelCut`]), for extraction and queries.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use super::{LEVEL_STAGES, LevelSegments, read_level_u};
+use crate::format::{CubeKey, MAX_DEPTH};
+use crate::stages::treetop::Treetop;
+use crate::store::{Result, Snapshot};
+
+/// The side of `cube` in finest cells.
+fn full_resolution_side(cube: CubeKey) -> u64 {
+    1u64 << (u32::from(MAX_DEPTH) - u32::from(cube.depth().min(MAX_DEPTH)))
+}
+
+/// The indicator of a cut cube and what the data says about it (`stages::observed`). Equal
+/// values are bit for bit equal (a missing offset is NaN, which equals itself here).
+#[derive(Clone, Copy, Debug)]
+pub struct CutValue {
+    pub u: f32,
+    /// [`seen_weight`](crate::stages::observed::seen_weight): the cube's whole vote weight.
+    pub votes: f32,
+    /// [`measured_weight`](crate::stages::observed::measured_weight): the part of `votes` that measured a distance to a surface.
+    pub measured: f32,
+    /// Samples spawned the cube or a descendant, or samples other than spikes an ancestor
+    /// ([`sampled_nodes`](crate::stages::observed::sampled_nodes)).
+    pub sampled: bool,
+    /// [`surface_offset`](crate::stages::observed::surface_offset), in world units: NaN when no vote measured a distance.
+    pub offset: f32,
+}
+
+impl CutValue {
+    /// Whether a depth map saw the cube: it has votes.
+    pub fn seen(&self) -> bool {
+        self.votes > 0.0
+    }
+}
+
+impl PartialEq for CutValue {
+    fn eq(&self, other: &CutValue) -> bool {
+        self.u.to_bits() == other.u.to_bits()
+            && self.votes.to_bits() == other.votes.to_bits()
+            && self.measured.to_bits() == other.measured.to_bits()
+            && self.sampled == other.sampled
+            && self.offset.to_bits() == other.offset.to_bits()
+    }
+}
+
+/// Sorted cut keys of a unit at one level and their values.
+pub type LeafValues = (Vec<CubeKey>, Vec<CutValue>);
+
+/// The values of one solved level, unit by unit, loaded on demand; answers "which cut cube
+/// contains this point".
+pub struct LevelCut<'a, 's> {
+    snapshot: &'a Snapshot<'s>,
+    treetop: &'a Treetop,
+    segments: LevelSegments,
+    /// When set, only points in this box (full-resolution cells, `[low, high)` per axis) are
+    /// asked about, and groups keep only the cubes that meet it.
+    window: Option<[[u64; 3]; 2]>,
+    groups: BTreeMap<u64, Arc<LeafValues>>,
+    units: BTreeMap<usize, Option<Arc<LeafValues>>>,
+}
+
+impl<'a, 's> LevelCut<'a, 's> {
+    pub fn new(snapshot: &'a Snapshot<'s>, treetop: &'a Treetop, level: u8) -> LevelCut<'a, 's> {
+        LevelCut {
+            snapshot,
+            treetop,
+            segments: LevelSegments::of(snapshot, LEVEL_STAGES[usize::from(level.min(MAX_DEPTH))]),
+            window: None,
+            groups: BTreeMap::new(),
+            units: BTreeMap::new(),
+        }
+    }
+
+    /// A cut that is only asked about points within one finest cell of `cube` (its cube, the
+    /// cubes touching it and its own units): a group decoded for a neighbour then keeps only
+    /// the cubes that reach that shell, so memory follows `cube`'s surface, not the neighbours'
+    /// volumes. Asking about a point outside gives `None` or a cube that does not hold it.
+    pub fn around(snapshot: &'a Snapshot<'s>, treetop: &'a Treetop, level: u8, cube: CubeKey) -> LevelCut<'a, 's> {
+        let corner = cube.corner_full_resolution().map(u64::from);
+        let side = full_resolution_side(cube);
+        LevelCut {
+            window: Some([corner.map(|c| c.saturating_sub(1)), corner.map(|c| c + side + 1)]),
+            ..LevelCut::new(snapshot, treetop, level)
+        }
+    }
+
+    /// The values of the group that may hold treetop unit `unit`.
+    fn group(&mut self, unit: usize) -> Result<Option<Arc<LeafValues>>> {
+        let Some((id, name)) = self.segments.group_of(unit) else {
+            return Ok(None);
+        };
+        if let Some(values) = self.groups.get(&id) {
+            return Ok(Some(values.clone()));
+        }
+        let mut loaded = read_level_u(self.snapshot, name)?;
+        if let Some([low, high]) = self.window {
+            // Only a cube that meets the window can hold a point of it, and dropping the others
+            // leaves that cube the last key at or before such a point (the cut has no keys
+            // between a cube and its descendants).
+            let meets = |key: &CubeKey| {
+                let corner = key.corner_full_resolution().map(u64::from);
+                let side = full_resolution_side(*key);
+                (0..3).all(|axis| corner[axis] < high[axis] && corner[axis] + side > low[axis])
+            };
+            let (keys, values) = loaded;
+            loaded = keys.into_iter().zip(values).filter(|(key, _)| meets(key)).unzip();
+        }
+        let loaded = Arc::new(loaded);
+        self.groups.insert(id, loaded.clone());
+        Ok(Some(loaded))
+    }
+
+    /// The cut cubes of treetop unit `unit` and their u; `None` when it has none.
+    pub fn unit(&mut self, unit: usize) -> Result<Option<Arc<LeafValues>>> {
+        if let Some(v) = self.units.get(&unit) {
+            return Ok(v.clone());
+        }
+        let own = match self.group(unit)? {
+            // A leaf unit's keys are one range in key order (its subtree's), so when the
+            // group's first and last keys are the unit's, all are, and the group itself is the
+            // answer, without a copy. The top unit's keys are scattered between the leaves'.
+            Some(group)
+                if self.treetop.units.get(unit).is_some_and(|u| !u.top)
+                    && group.0.first().is_some_and(|k| self.treetop.unit_of(*k) == unit)
+                    && group.0.last().is_some_and(|k| self.treetop.unit_of(*k) == unit) =>
+            {
+                Some(group)
+            }
+            Some(group) => {
+                let (keys, values): (Vec<CubeKey>, Vec<CutValue>) = group
+                    .0
+                    .iter()
+                    .zip(&group.1)
+                    .filter(|(key, _)| self.treetop.unit_of(**key) == unit)
+                    .map(|(key, value)| (*key, *value))
+                    .unzip();
+                (!keys.is_empty()).then(|| Arc::new((keys, values)))
+            }
+            None => None,
+        };
+        self.units.insert(unit, own.clone());
+        Ok(own)
+    }
+
+    /// The cut cube containing the finest cell at full-resolution coordinates `cell`, and its
+    /// values.
+    pub fn cube_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, CutValue)>> {
+        self.cube_containing(CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]))
+    }
+
+    /// The cut cube that is `probe` or an ancestor of it, and its values.
+    pub fn cube_containing(&mut self, probe: CubeKey) -> Result<Option<(CubeKey, CutValue)>> {
+        let unit = self.treetop.unit_of(probe);
+        // The group's cut tiles its units' cubes, so the one ancestor of the probe among its
+        // keys is the answer.
+        let Some(values) = self.group(unit)? else {
+            return Ok(None);
+        };
+        let (keys, cut_values) = (&values.0, &values.1);
+        Ok(cut_cube_ending_at(
+            keys,
+            cut_values,
+            keys.partition_point(|k| *k <= probe),
+            probe,
+        ))
+    }
+}
+
+/// The cube of a sorted cut (`keys`, their values) just before `position`, the cut's first key
+/// after `probe`, when it contains `probe`: the cut tiles what it covers, so that cube is the
+/// only candidate.
+pub fn cut_cube_ending_at<T: Copy>(
+    keys: &[CubeKey],
+    values: &[T],
+    position: usize,
+    probe: CubeKey,
+) -> Option<(CubeKey, T)> {
+    position
+        .checked_sub(1)
+        .and_then(|i| keys.get(i).zip(values.get(i)))
+        .filter(|(k, _)| k.is_ancestor_or_self_of(probe))
+        .map(|(k, value)| (*k, *value))
+}

@@ -1,0 +1,313 @@
+//! The SSD level units (`--method ssd`): the same level cut, frozen borders and segments as
+//! TGV's, with `kernels::ssd` minimised on it. Each level's f (a signed distance in root units)
+//! and its gradient g are the segment's `u` and `v`; `p` and `q` are zero. A cube inherits
+//! the coarser cube's f carried along its gradient to the cube's centre, f_P + g_P . (c - c_P),
+//! for its start, its anchor and, outside the unit, its frozen value: the cascadic multigrid
+//! of Calakli et al., without which the seams would sit on values half a coarse cube off.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use super::{Inherited, LevelStage, LevelUnitExtra, LevelValues, ObservedColumns, UnitCut, columns_of};
+use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
+use crate::kernels::ssd::{CubeSamples, Solved, SsdProblem, solve};
+use crate::stages::observed::{measured_weight, sampled_of, seen_weight};
+use crate::stages::samples::{Moments, SAMPLES, cube_centre, read_samples};
+use crate::stages::treetop::Treetop;
+use crate::store::catalog;
+use crate::store::{Result, Snapshot, StoreError};
+use crate::store::{UnitOutput, UnitSpec};
+
+use super::{Method, SsdParams};
+use crate::kernels::votes::BINS;
+
+/// The column that marks an SSD level segment: 1 for `ssd`, 2 for `hybrid` in every row (a
+/// TGV segment has none), so a reader knows u is a signed distance.
+pub const METHOD_COLUMN: &str = "method";
+
+/// The method that wrote a level segment, from its columns.
+pub fn method_of_segment(snapshot: &Snapshot<'_>, segment: &str) -> Result<&'static str> {
+    let file = snapshot.open_segment(segment)?;
+    let reader = file.reader()?;
+    if reader.column(METHOD_COLUMN).is_err() {
+        return Ok("tgv");
+    }
+    let (_, codes) = reader.read_u32(METHOD_COLUMN).map_err(|e| file.corruption(e))?;
+    Ok(match codes.first() {
+        Some(2) => "hybrid",
+        _ => "ssd",
+    })
+}
+
+/// Below this share of a cube's votes measuring a distance to a surface, `hybrid` gives its
+/// samples no weight; from [`FULL_EVIDENCE`] on, their whole weight. A floating outlier seen
+/// through by the other maps (free space, bin 7) or lying behind a surface they saw (bin 0)
+/// measures only in its own map's vote, a share of 1 / (maps that see the cube); around a
+/// surface a third to a half of the votes measure (`stages::extract::dual_cells`).
+pub const NO_EVIDENCE: f32 = 0.1;
+/// See [`NO_EVIDENCE`].
+pub const FULL_EVIDENCE: f32 = 0.25;
+
+/// The factor `hybrid` puts on a cube's samples, from its histogram.
+pub fn evidence(hist: &[f32; BINS]) -> f64 {
+    let seen = seen_weight(hist);
+    if seen <= 0.0 {
+        return 0.0;
+    }
+    let share = measured_weight(hist) / seen;
+    f64::from(((share - NO_EVIDENCE) / (FULL_EVIDENCE - NO_EVIDENCE)).clamp(0.0, 1.0))
+}
+
+/// A cube's side in root units.
+fn side(key: CubeKey) -> f64 {
+    0.5f64.powi(i32::from(key.depth()))
+}
+
+/// f at `key`'s centre from the values of the cube it inherits from, `source`.
+fn carried(key: CubeKey, source: CubeKey, values: Option<&Inherited>) -> (f64, [f64; 3]) {
+    let Some((u, v, _, _)) = values else {
+        return (0.0, [0.0; 3]);
+    };
+    let (to, from) = (cube_centre(key), cube_centre(source));
+    let g = v.map(f64::from);
+    let f = f64::from(*u) + (0..3).map(|k| g[k] * (to[k] - from[k])).sum::<f64>();
+    (f, g)
+}
+
+/// The finest key holding a point in root units.
+fn probe(point: [f64; 3]) -> CubeKey {
+    let full = |c: f64| (c * 4294967296.0).floor().clamp(0.0, 4294967295.0) as u32;
+    CubeKey::from_full_resolution(MAX_DEPTH, full(point[0]), full(point[1]), full(point[2]))
+}
+
+/// Each cut cube's samples. Every octree node's own samples go to the cut cube holding their
+/// centroid: their node's ancestor at the level, the node itself, or, for a node above the
+/// level, the finer cube its samples gather in. Each node lands in exactly one unit's cut: a
+/// leaf unit takes its own nodes and the treetop's nodes above it whose centroid lies in it;
+/// the treetop's unit takes its own and every leaf unit's that lies below the level.
+fn cut_samples(base: &Snapshot<'_>, treetop: &Treetop, level: u8, cut: &UnitCut) -> Result<Vec<CubeSamples>> {
+    let segments: BTreeMap<u64, &str> = base
+        .segments(SAMPLES)
+        .iter()
+        .map(|(name, record)| (record.unit, name.as_str()))
+        .collect();
+    let read = |unit: usize| -> Result<(Vec<CubeKey>, Vec<Moments>)> {
+        match segments.get(&(unit as u64)) {
+            Some(name) => read_samples(base, name),
+            None => Err(StoreError::Stage {
+                stage: SAMPLES.into(),
+                unit: format!("unit {unit}"),
+                message: "no samples for this unit: run the samples stage first".into(),
+            }),
+        }
+    };
+    let keys = &cut.keys;
+    let mut weight = vec![0.0f64; keys.len()];
+    let mut moment = vec![[0.0f64; 3]; keys.len()];
+    let mut normal = vec![[0.0f64; 3]; keys.len()];
+    let mut add = |node: CubeKey, m: &Moments| {
+        let Some((w, centroid, n)) = m.in_root_units(node) else {
+            return;
+        };
+        let probe = probe(centroid);
+        let position = keys.partition_point(|k| *k <= probe);
+        let Some(i) = position
+            .checked_sub(1)
+            .filter(|&i| keys.get(i).is_some_and(|k| k.is_ancestor_or_self_of(probe)))
+        else {
+            return;
+        };
+        let centre = cube_centre(keys[i]);
+        weight[i] += w;
+        for k in 0..3 {
+            moment[i][k] += w * (centroid[k] - centre[k]);
+            normal[i][k] += n[k];
+        }
+    };
+    let top = treetop.units.iter().position(|u| u.top);
+    let members: BTreeSet<usize> = cut.members.iter().copied().collect();
+    for &member in &members {
+        let (node_keys, moments) = read(member)?;
+        node_keys.iter().zip(&moments).for_each(|(k, m)| add(*k, m));
+    }
+    match top {
+        Some(top) if members.contains(&top) => {
+            for (index, unit) in treetop.units.iter().enumerate() {
+                if !unit.top && !members.contains(&index) && unit.key.depth() > level {
+                    let (node_keys, moments) = read(index)?;
+                    node_keys.iter().zip(&moments).for_each(|(k, m)| add(*k, m));
+                }
+            }
+        }
+        Some(top) => {
+            let (node_keys, moments) = read(top)?;
+            for (k, m) in node_keys.iter().zip(&moments) {
+                if members
+                    .iter()
+                    .filter_map(|&member| treetop.units.get(member))
+                    .any(|unit| k.is_ancestor_or_self_of(unit.key) && *k != unit.key)
+                {
+                    add(*k, m);
+                }
+            }
+        }
+        None => {}
+    }
+    Ok((0..keys.len())
+        .map(|i| CubeSamples {
+            weight: weight[i],
+            centroid: if weight[i] > 0.0 {
+                moment[i].map(|x| x / weight[i])
+            } else {
+                [0.0; 3]
+            },
+            normal: normal[i],
+        })
+        .collect())
+}
+
+impl LevelStage {
+    /// The unit's SSD problem and start values.
+    pub(super) fn ssd_problem(
+        &self,
+        base: &Snapshot<'_>,
+        treetop: &Treetop,
+        cut: &UnitCut,
+        params: &SsdParams,
+    ) -> Result<(SsdProblem, Vec<f64>)> {
+        let mut samples = cut_samples(base, treetop, self.level, cut)?;
+        if let Method::Hybrid(_) = self.method {
+            for (s, hist) in samples.iter_mut().zip(&cut.hist) {
+                let factor = evidence(hist);
+                s.weight *= factor;
+                s.normal = s.normal.map(|n| n * factor);
+            }
+        }
+        let start: Vec<f64> = cut
+            .keys
+            .iter()
+            .zip(&cut.previous)
+            .map(|(key, previous)| carried(*key, self.source_key(*key), previous.as_ref()).0)
+            .collect();
+        let (frozen_f, frozen_gradient) = cut
+            .frozen
+            .iter()
+            .map(|(key, previous)| carried(*key, self.source_key(*key), previous.as_ref()))
+            .unzip();
+        let problem = SsdProblem {
+            n: cut.keys.len(),
+            start: cut.start.clone(),
+            terms: cut.terms.clone(),
+            side: cut.keys.iter().map(|k| side(*k)).collect(),
+            samples,
+            anchor: start.clone(),
+            frozen_f,
+            frozen_gradient,
+            normal_weight: params.normal_weight,
+            smoothness: params.smoothness,
+            ..SsdProblem::default()
+        };
+        Ok((problem, start))
+    }
+
+    /// Solves the unit's SSD problem: f and its gradient per cut cube, and how it ended.
+    pub(super) fn solve_ssd(
+        &self,
+        base: &Snapshot<'_>,
+        treetop: &Treetop,
+        cut: &UnitCut,
+        params: &SsdParams,
+    ) -> Result<(Vec<f32>, Vec<[f32; 3]>, Solved)> {
+        let (problem, mut f) = self.ssd_problem(base, treetop, cut, params)?;
+        let solved = solve(&problem, &mut f, params.tolerance, params.iterations as usize);
+        let gradient = problem.gradients(&f).into_iter().map(|g| g.map(|x| x as f32)).collect();
+        Ok((f.into_iter().map(|x| x as f32).collect(), gradient, solved))
+    }
+}
+
+impl LevelStage {
+    /// A level unit under `--method ssd`: the level segment of TGV's layout with f as u, its
+    /// gradient as v, zero p and q, and no measured offsets (extraction then places vertices where f's interpolation crosses zero,
+    /// which is what SSD's accuracy is for).
+    pub(super) fn run_ssd_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec, params: &SsdParams) -> Result<UnitOutput> {
+        let Some(cut) = self.build_cut(base, unit.id as usize)? else {
+            return Ok(UnitOutput {
+                extra: catalog::encode(&LevelUnitExtra::default()),
+                ..UnitOutput::default()
+            });
+        };
+        let treetop = self
+            .treetop
+            .get()
+            .ok_or_else(|| self.stage_error(unit, "units run before planning".into()))?;
+        let (f, gradient, solved) = self.solve_ssd(base, treetop, &cut, params)?;
+        let n = cut.keys.len();
+        let observed = ObservedColumns {
+            seen: cut.hist.iter().map(seen_weight).collect(),
+            sampled: sampled_of(base, treetop, &cut.keys)?
+                .into_iter()
+                .map(u32::from)
+                .collect(),
+            offset: vec![f32::NAN; n],
+            measured: cut.hist.iter().map(measured_weight).collect(),
+        };
+        let values = LevelValues {
+            keys: cut.keys,
+            u: f,
+            v: gradient,
+            p: vec![[0.0; 3]; n],
+            q: vec![[0.0; 6]; n],
+        };
+        let mut columns = columns_of(&values, observed);
+        let code = if let Method::Hybrid(_) = self.method { 2 } else { 1 };
+        columns.push(Column::new(METHOD_COLUMN, 1, ColumnValues::U32(vec![code; n])));
+        Ok(UnitOutput {
+            segments: vec![columns],
+            extra: catalog::encode(&LevelUnitExtra {
+                cubes: n as u64,
+                energy_before: solved.energy_before,
+                energy_after: solved.energy_after,
+                iterations: solved.iterations as u64,
+            }),
+            block_rows: 0,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hybrid_evidence_ramps_with_the_share_of_measuring_votes() {
+        let hist = |measuring: f32, free: f32, behind: f32| {
+            let mut h = [0.0f32; BINS];
+            h[0] = behind;
+            h[3] = measuring;
+            h[BINS - 1] = free;
+            h
+        };
+        assert_eq!(evidence(&hist(0.0, 0.0, 0.0)), 0.0, "unseen");
+        // One map's vote among 16 that saw through the cube, or behind a surface.
+        assert_eq!(evidence(&hist(1.0, 15.0, 0.0)), 0.0);
+        assert_eq!(evidence(&hist(1.0, 0.0, 15.0)), 0.0);
+        // A surface: a third of the votes measure.
+        assert_eq!(evidence(&hist(5.0, 10.0, 0.0)), 1.0);
+        // 7 of 40 measure: halfway up the ramp from 0.1 to 0.25.
+        let between = evidence(&hist(7.0, 33.0, 0.0));
+        assert!((between - 0.5).abs() < 1e-6, "{between}");
+    }
+
+    #[test]
+    fn values_carry_along_the_gradient_to_the_cube_centre() {
+        let parent = CubeKey::new(2, 1, 2, 3);
+        let child = CubeKey::new(3, 3, 4, 7);
+        assert_eq!(child.parent(), Some(parent));
+        let (f, g) = carried(child, parent, Some(&(0.5, [1.0, -2.0, 0.25], [0.0; 3], [0.0; 6])));
+        // The child's centre is a quarter of the parent's side (1/16) off on each axis.
+        // g . (c - c_P) = (1, -2, 0.25) . (1, -1, 1) / 16.
+        let expected = 0.5 + (1.0 + 2.0 + 0.25) / 16.0;
+        assert!((f - expected).abs() < 1e-12, "{f} vs {expected}");
+        assert_eq!(g, [1.0, -2.0, 0.25]);
+        assert_eq!(carried(child, parent, None), (0.0, [0.0; 3]));
+    }
+}
