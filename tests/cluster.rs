@@ -63,17 +63,23 @@ fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
-#[test]
-fn plan_work_commit_equals_a_single_process_solve() {
-    let dir = tempfile::tempdir().unwrap();
-    let manifest = scene().write(&dir.path().join("input")).unwrap();
-    let cluster = dir.path().join("cluster");
-    let single = dir.path().join("single");
+/// The scene ingested and its octree built in `dir/cluster`, copied to `dir/single`.
+fn ingested_twice(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
+    let manifest = scene().write(&dir.join("input")).unwrap();
+    let cluster = dir.join("cluster");
+    let single = dir.join("single");
     let c = cluster.to_str().unwrap();
     run(&["ingest", c, manifest.to_str().unwrap(), "--max-depth", "6", "--quiet"]);
     run(&["solve", c, "--until", "octree", "--leaf-cubes", "400", "--quiet"]);
     copy_dir(&cluster, &single);
-    let s = single.to_str().unwrap();
+    (cluster, single)
+}
+
+#[test]
+fn plan_work_commit_equals_a_single_process_solve() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cluster, single) = ingested_twice(dir.path());
+    let (c, s) = (cluster.to_str().unwrap(), single.to_str().unwrap());
     run(&["solve", s, "--iterations", "30", "--leaf-cubes", "400", "--quiet"]);
 
     let chunks = 5u32;
@@ -243,14 +249,8 @@ fn cluster_errors_are_clear() {
 #[test]
 fn an_ssd_cluster_run_equals_a_single_process_solve() {
     let dir = tempfile::tempdir().unwrap();
-    let manifest = scene().write(&dir.path().join("input")).unwrap();
-    let cluster = dir.path().join("cluster");
-    let single = dir.path().join("single");
-    let c = cluster.to_str().unwrap();
-    run(&["ingest", c, manifest.to_str().unwrap(), "--max-depth", "6", "--quiet"]);
-    run(&["solve", c, "--until", "octree", "--leaf-cubes", "400", "--quiet"]);
-    copy_dir(&cluster, &single);
-    let s = single.to_str().unwrap();
+    let (cluster, single) = ingested_twice(dir.path());
+    let (c, s) = (cluster.to_str().unwrap(), single.to_str().unwrap());
     run(&["solve", s, "--method", "ssd", "--leaf-cubes", "400", "--quiet"]);
     let mut stages = vec!["samples".to_string(), "histograms".to_string()];
     stages.extend((0..=6).map(|l| format!("solution-{l:02}")));

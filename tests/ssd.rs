@@ -99,6 +99,10 @@ fn ssd_places_a_clean_sphere_closer_than_tgv() {
     // centre.
     let snapshot = store.latest().unwrap();
     assert_eq!(snapshot.method().unwrap(), Some("ssd"));
+    assert_eq!(
+        octstore::cli::info(&store, None).unwrap().solver.as_deref(),
+        Some("ssd")
+    );
     let scene = octstore::stages::ingest::read_scene(&store).unwrap().unwrap();
     let centre = f64::from(snapshot.indicator_at(CENTRE).unwrap().unwrap()) * scene.root_side;
     assert!(

@@ -36,6 +36,8 @@ pub struct InfoJson {
     pub finest_level: Option<u8>,
     /// The side of the finest level's cubes, in world units.
     pub finest_cube_side: Option<f64>,
+    /// The solver of the finest level: `tgv`, `ssd` or `hybrid` (absent before a solve).
+    pub solver: Option<String>,
 }
 
 /// The `info` report of the latest version, or of `version`.
@@ -60,6 +62,7 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
         root_side: scene.map(|s| s.root_side),
         finest_level,
         finest_cube_side: scene.zip(finest_level).map(|(s, level)| s.cube_side(level)),
+        solver: snapshot.method()?.map(str::to_string),
         store: store.root().display().to_string(),
         version: snapshot.version(),
         depth_maps: maps.len() as u64,

@@ -257,6 +257,9 @@ pub(super) fn info_verb(args: InfoArgs) -> Result<()> {
     if let (Some(level), Some(side)) = (info.finest_level, info.finest_cube_side) {
         println!("finest level   {level} (cubes of side {side})");
     }
+    if let Some(solver) = &info.solver {
+        println!("solver         {solver}");
+    }
     for (stage, digest) in &info.digest {
         println!("digest         {stage:<12} {digest}");
     }
