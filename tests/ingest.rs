@@ -605,6 +605,18 @@ fn numbers_out_of_range_are_refused_before_anything_is_written() {
         (vec!["ingest", s, &a, "--memory-budget", "1KB"], "below the least"),
         (vec!["solve", s, "--alpha1", "nan"], "not a finite weight"),
         (vec!["solve", s, "--lambda=-1"], "not a finite weight"),
+        (
+            vec!["solve", s, "--method", "ssd", "--ssd-normal-weight", "0"],
+            "not a weight in (0, 1e6]",
+        ),
+        (
+            vec!["solve", s, "--method", "ssd", "--ssd-smoothness", "inf"],
+            "not a weight in (0, 1e6]",
+        ),
+        (
+            vec!["solve", s, "--method", "ssd", "--ssd-tolerance", "1"],
+            "not a residual target in (0, 1)",
+        ),
         (vec!["solve", s, "--alpha0", "inf"], "not a finite weight"),
         (vec!["solve", s, "--leaf-cubes", "0"], "0 is not in 64.."),
     ] {

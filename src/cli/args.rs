@@ -6,7 +6,7 @@ use clap::{Args, Parser, Subcommand};
 
 use super::parse::{
     parse_depth_noise, parse_margin, parse_memory_budget, parse_noise_sigmas, parse_point, parse_ratio, parse_region,
-    parse_root, parse_ssd_weight, parse_tolerance, parse_weight,
+    parse_root, parse_ssd_tolerance, parse_ssd_weight, parse_tolerance, parse_weight,
 };
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
@@ -77,6 +77,10 @@ pub struct SolverArgs {
     /// noisy RGB-D data wants more than the default: README, "Solvers").
     #[arg(long, default_value_t = SsdParams::default().smoothness, value_parser = parse_ssd_weight)]
     ssd_smoothness: f64,
+    /// ssd and hybrid: a unit's conjugate gradients stop when the residual is at most this
+    /// fraction of the right side's norm.
+    #[arg(long, default_value_t = SsdParams::default().tolerance, value_parser = parse_ssd_tolerance)]
+    ssd_tolerance: f64,
 }
 
 impl SolverArgs {
@@ -94,6 +98,7 @@ impl SolverArgs {
         let ssd = SsdParams {
             normal_weight: self.ssd_normal_weight,
             smoothness: self.ssd_smoothness,
+            tolerance: self.ssd_tolerance,
             ..SsdParams::default()
         };
         match self.method {

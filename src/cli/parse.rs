@@ -57,6 +57,14 @@ pub(crate) fn parse_ssd_weight(text: &str) -> Result<f64, ArgumentError> {
     }
 }
 
+/// An SSD residual target (`solve --ssd-tolerance`): a fraction of |b| in (0, 1).
+pub(crate) fn parse_ssd_tolerance(text: &str) -> Result<f64, ArgumentError> {
+    match text.trim().parse::<f64>() {
+        Ok(t) if t > 0.0 && t < 1.0 => Ok(t),
+        _ => Err(ArgumentError(format!("'{text}' is not a residual target in (0, 1)"))),
+    }
+}
+
 /// A finite, non-negative fraction of the scene's extent.
 pub(crate) fn parse_margin(text: &str) -> Result<f64, ArgumentError> {
     match text.trim().parse::<f64>() {

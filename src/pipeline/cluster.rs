@@ -136,10 +136,11 @@ pub fn slurm_jobs(store: &Path, levels: u8, options: &SlurmOptions) -> Vec<Slurm
     );
     if let Some(ssd) = options.method.ssd() {
         solver.push_str(&format!(
-            " --method {} --ssd-normal-weight {} --ssd-smoothness {}",
+            " --method {} --ssd-normal-weight {} --ssd-smoothness {} --ssd-tolerance {}",
             options.method.name(),
             ssd.normal_weight,
-            ssd.smoothness
+            ssd.smoothness,
+            ssd.tolerance
         ));
     }
     let budget = format!("--memory-budget {} --quiet", options.memory_budget);
