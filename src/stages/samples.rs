@@ -16,7 +16,7 @@ use super::treetop::Treetop;
 use super::{INGEST, OCTREE};
 use crate::format::{Column, ColumnValues, CubeKey, Scene};
 use crate::store::catalog::{self, UnitRecord};
-use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
+use crate::store::{Plan, Replace, Result, SegmentFile, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
 /// The stage's name.
 pub const SAMPLES: &str = "samples";
@@ -145,9 +145,12 @@ pub fn read_samples(snapshot: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeK
     Ok((keys, moments))
 }
 
-/// An ingest run and the first key of each of its blocks.
+/// An ingest run, where it lies, and the first key of each of its blocks. Every unit opens
+/// the runs it overlaps by path and record, without searching the version's segment list.
 struct RunIndex {
     name: String,
+    path: std::path::PathBuf,
+    record: catalog::SegmentRecord,
     first_keys: Vec<CubeKey>,
     last_key: CubeKey,
 }
@@ -189,8 +192,9 @@ impl SamplesStage {
             return Ok(runs.clone());
         }
         let mut runs = Vec::new();
-        for (name, _) in base.segments(INGEST) {
-            let file = base.open_segment(name)?;
+        for (name, record) in base.segments(INGEST) {
+            let path = base.store().segment_path(name);
+            let file = SegmentFile::open(path.clone(), record)?;
             let reader = file.reader()?;
             if reader.column(SAMPLE_WEIGHT).is_err() {
                 return Err(Self::error(
@@ -207,6 +211,8 @@ impl SamplesStage {
             }
             runs.push(RunIndex {
                 name: name.clone(),
+                path,
+                record: record.clone(),
                 first_keys,
                 last_key: reader.last_key(),
             });
@@ -226,7 +232,7 @@ impl SamplesStage {
             if first > high || run.last_key < low {
                 continue;
             }
-            let file = base.open_segment(&run.name)?;
+            let file = SegmentFile::open(run.path.clone(), &run.record)?;
             let reader = file.reader()?;
             let c = |e| file.corruption(e);
             let start = run.first_keys.partition_point(|k| *k <= low).saturating_sub(1);
