@@ -10,7 +10,7 @@ use serde::Serialize;
 use crate::format::{BoundingBox, CubeKey, MAX_DEPTH, Scene};
 use crate::kernels::votes::BINS;
 use crate::stages::HISTOGRAMS;
-use crate::stages::ingest::read_scene;
+use crate::stages::ingest::scene_at;
 use crate::stages::solve::{LEVEL_STAGES, LevelCut, method_of_segment};
 use crate::stages::treetop::Treetop;
 use crate::store::{Result, Snapshot, StoreError};
@@ -137,7 +137,7 @@ pub fn ensure_solution_is_current(snapshot: &Snapshot<'_>) -> Result<()> {
 }
 
 fn scene_of(snapshot: &Snapshot<'_>) -> Result<Scene> {
-    read_scene(snapshot.store())?.ok_or_else(|| StoreError::Stage {
+    scene_at(snapshot.store(), snapshot.version())?.ok_or_else(|| StoreError::Stage {
         stage: "query".into(),
         unit: "-".into(),
         message: "the store has no depth maps yet".into(),

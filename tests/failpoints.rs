@@ -91,3 +91,34 @@ fn every_failpoint_then_resume_equals_an_uninterrupted_run() {
         }
     }
 }
+
+/// A full disk in the octree step fails the solve with a clear error, and its scratch files
+/// (sorted runs under `STORE/tmp`) go with it instead of staying until the next writable open.
+#[test]
+fn a_full_disk_in_the_octree_step_leaves_no_scratch_behind() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let frame = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/7scenes-redkitchen/frame-000000.depth.png");
+    let out = octstore(
+        &[
+            "ingest",
+            store.to_str().unwrap(),
+            frame.to_str().unwrap(),
+            "--max-depth",
+            "7",
+            "--quiet",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let out = octstore(
+        &["solve", store.to_str().unwrap(), "--until", "octree", "--quiet"],
+        &[("OCTSTORE_INJECT_ENOSPC_AFTER", "1")],
+    );
+    assert!(!out.status.success(), "the octree was written on a full disk");
+    assert!(stderr(&out).contains("no storage space"), "{}", stderr(&out));
+    assert!(!store.join("tmp").exists(), "scratch left behind");
+    let out = octstore(&["solve", store.to_str().unwrap(), "--until", "octree", "--quiet"], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+}

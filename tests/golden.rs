@@ -52,6 +52,11 @@ fn golden_v3_decodes_to_known_values() {
     decodes_to_known_values(3);
 }
 
+#[test]
+fn golden_v4_decodes_to_known_values() {
+    decodes_to_known_values(4);
+}
+
 fn decodes_to_known_values(version: u32) {
     let dir = tempfile::tempdir().unwrap();
     copy_dir(&golden(version), dir.path());

@@ -237,9 +237,15 @@ fn bad_input_gives_a_clear_error_and_leaves_the_store_unchanged() {
     let bytes = std::fs::read(frame(0)).unwrap();
     std::fs::write(&png, &bytes[..bytes.len() / 2]).unwrap();
     expect_error(&[png.to_str().unwrap()], "frame-000000.depth.png");
-    // Outside the root cube fixed by the first ingest.
+    // So far outside the root cube that growing it would take more than the doublings one
+    // ingest may apply.
     std::fs::write(&png, &bytes).unwrap();
-    expect_error(&[png.to_str().unwrap()], "outside the store's root cube");
+    std::fs::write(
+        bad.join("frame-000000.pose.txt"),
+        "1 0 0 1e9\n0 1 0 0\n0 0 1 0\n0 0 0 1\n",
+    )
+    .unwrap();
+    expect_error(&[png.to_str().unwrap()], "doublings of the store's root cube");
     // Unknown format: no guessing.
     let odd = root.path().join("scan.xyz");
     std::fs::write(&odd, "1 2 3").unwrap();
@@ -641,8 +647,8 @@ fn numbers_out_of_range_are_refused_before_anything_is_written() {
     );
 }
 
-/// Depth images whose geometry does not match: a 320x240 frame with the 640x480 intrinsics
-/// beside it (principal point at its corner), and PFM headers with a NaN or fractional size or
+/// Depth images whose geometry does not match: 320x240 and 640x400 frames with the 640x480
+/// intrinsics beside them (principal point at the corner, or a tenth off centre), and PFM headers with a NaN or fractional size or
 /// a NaN scale, are refused naming the file.
 #[test]
 fn images_of_the_wrong_geometry_are_refused() {
@@ -659,23 +665,27 @@ fn images_of_the_wrong_geometry_are_refused() {
         frames.join("frame-000000.pose.txt"),
     )
     .unwrap();
-    let small = DepthImage {
-        width: 320,
-        height: 240,
-        depth: vec![1.5; 320 * 240],
-    };
-    write_png16(&frames.join("frame-000000.depth.png"), &small, 0.001);
-    let store = dir.path().join("store");
-    let out = octstore(
-        &["ingest", store.to_str().unwrap(), frames.to_str().unwrap(), "--quiet"],
-        &[],
-    );
-    assert!(!out.status.success());
-    let err = stderr(&out);
-    assert!(
-        err.contains("frame-000000.depth.png") && err.contains("lies far from its centre"),
-        "{err}"
-    );
+    // A quarter-size frame (principal point at its corner) and a 640x400 crop (40 pixels, a
+    // tenth of its height, off its centre).
+    for (width, height) in [(320u32, 240u32), (640, 400)] {
+        let small = DepthImage {
+            width,
+            height,
+            depth: vec![1.5; (width * height) as usize],
+        };
+        write_png16(&frames.join("frame-000000.depth.png"), &small, 0.001);
+        let store = dir.path().join(format!("store-{width}x{height}"));
+        let out = octstore(
+            &["ingest", store.to_str().unwrap(), frames.to_str().unwrap(), "--quiet"],
+            &[],
+        );
+        assert!(!out.status.success(), "{width}x{height} was ingested");
+        let err = stderr(&out);
+        assert!(
+            err.contains("frame-000000.depth.png") && err.contains("lies far from its centre"),
+            "{width}x{height}: {err}"
+        );
+    }
 
     for (header, expected) in [
         ("Pf\nnan 3\n-1.0\n", "bad PFM width 'nan'"),

@@ -392,7 +392,8 @@ fn histogram_catalog(path: &std::path::Path) -> (RawStates, MapSets) {
         .unwrap()
         .map(|e| {
             let (k, v) = e.unwrap();
-            (k.value().1, v.value().to_vec())
+            let key = k.value();
+            (key.1, catalog::unseal("unit_state", &key, v.value()).unwrap().to_vec())
         })
         .collect();
     let meta = txn.open_table(META).unwrap();
@@ -402,7 +403,8 @@ fn histogram_catalog(path: &std::path::Path) -> (RawStates, MapSets) {
         .map(|e| e.unwrap())
         .map_while(|(k, v)| {
             let digest = catalog::map_set_of_key(k.value())?;
-            Some((digest, catalog::decode::<Vec<u64>>("meta", v.value()).unwrap()))
+            let ids = catalog::unseal_decode::<_, Vec<u64>>("meta", k.value(), v.value()).unwrap();
+            Some((digest, ids))
         })
         .collect();
     (states, sets)
@@ -467,7 +469,8 @@ fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
                 .unwrap()
                 .map(|entry| {
                     let (id, value) = entry.unwrap();
-                    (id.value(), value.value().to_vec())
+                    let payload = catalog::unseal("depth_maps", &id.value(), value.value()).unwrap();
+                    (id.value(), payload.to_vec())
                 })
                 .collect();
             for (id, mut value) in records {

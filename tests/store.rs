@@ -381,9 +381,11 @@ fn readers_open_the_store_while_a_writer_commits_and_keep_their_pinned_version()
         pinned_digest,
         "the writer's run is not committed yet"
     );
-    // Another process reads too.
+    // Other processes read too: `info`, and `verify`, which once opened the store as a writer.
     let info = octstore(&["info", path, "--json"], &[]);
     assert!(info.status.success(), "{}", stderr(&info));
+    let verify = octstore(&["verify", path], &[]);
+    assert!(verify.status.success(), "{}", stderr(&verify));
     // A second writer is still refused.
     let second = octstore(&["debug-synthetic", path], &[]);
     assert!(
@@ -403,4 +405,120 @@ fn readers_open_the_store_while_a_writer_commits_and_keep_their_pinned_version()
     let newer = reader.latest().unwrap();
     assert!(newer.version() > version, "{} vs {version}", newer.version());
     assert_ne!(newer.digest(exercise::NAME), pinned_digest);
+}
+
+/// Flips one byte inside every copy of `needle` in the store's `catalog.redb` (redb copies
+/// pages on write, so older copies may remain in free pages); returns how many it flipped.
+fn flip_in_catalog(store: &std::path::Path, needle: &[u8], offset: usize) -> usize {
+    let path = store.join("catalog.redb");
+    let mut bytes = std::fs::read(&path).unwrap();
+    let mut flipped = 0;
+    let mut at = 0;
+    while let Some(found) = bytes
+        .get(at..)
+        .and_then(|rest| rest.windows(needle.len()).position(|w| w == needle))
+    {
+        bytes[at + found + offset] ^= 0x10;
+        flipped += 1;
+        at += found + needle.len();
+    }
+    std::fs::write(&path, bytes).unwrap();
+    flipped
+}
+
+/// One flipped byte in a live catalog value (a version record; the root cube's minimum, which
+/// would shift every extracted vertex) is a corruption error that names the table and the key,
+/// on every read and in `verify`, never a wrong answer.
+#[test]
+fn a_flipped_catalog_value_is_a_corruption_error_naming_table_and_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    Store::create(&store)
+        .unwrap()
+        .run_stage(&stage(2, 5), &options(2))
+        .unwrap();
+    assert!(flip_in_catalog(&store, b"2 unit(s)", 0) > 0);
+    let opened = Store::open_read_only(&store).unwrap();
+    let error = opened.log().expect_err("a flipped version record was read").to_string();
+    assert!(error.contains("versions") && error.contains("key 1"), "{error}");
+    let report = opened.verify(&[]).unwrap();
+    assert!(
+        report
+            .problems
+            .iter()
+            .any(|p| p.contains("versions") && p.contains("key 1")),
+        "{:?}",
+        report.problems
+    );
+    drop(opened);
+
+    // The scene of a real ingest: its root minimum's bytes, flipped, stop extraction and verify.
+    let kitchen = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/7scenes-redkitchen");
+    let frame = kitchen.join("frame-000000.depth.png");
+    let ingested = dir.path().join("ingested");
+    let out = octstore(
+        &[
+            "ingest",
+            ingested.to_str().unwrap(),
+            frame.to_str().unwrap(),
+            "--max-depth",
+            "6",
+            "--quiet",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let scene = octstore::stages::ingest::read_scene(&Store::open(&ingested).unwrap())
+        .unwrap()
+        .unwrap();
+    let bytes = octstore::store::catalog::encode(&scene);
+    assert!(flip_in_catalog(&ingested, &bytes, 3) > 0);
+    for args in [vec!["verify"], vec!["solve", "--until", "octree"], vec!["info"]] {
+        let mut all = args.clone();
+        all.push(ingested.to_str().unwrap());
+        let out = octstore(&all, &[]);
+        assert!(!out.status.success(), "{args:?} read a flipped scene");
+        let text = format!("{}{}", stdout(&out), stderr(&out));
+        assert!(text.contains("meta") && text.contains("'scene'"), "{args:?}: {text}");
+    }
+}
+
+/// A reader in another process pins its version: `gc` keeps it while the reader lives and
+/// collects it afterwards; a snapshot that holds no pin (the writer's own) and whose files gc
+/// removed says that its version was collected instead of reporting a missing file.
+#[test]
+fn gc_keeps_versions_readers_have_open_and_a_collected_one_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let store = Store::create(dir.path()).unwrap();
+        store.run_stage(&stage(3, 1), &options(2)).unwrap();
+        store.run_stage(&stage(2, 2), &options(2)).unwrap();
+    }
+    let path = dir.path().to_str().unwrap();
+    let reader = Store::open_read_only(dir.path()).unwrap();
+    let pinned = reader.snapshot(1).unwrap();
+    let gc = octstore(&["gc", path, "--keep", "1"], &[]);
+    assert!(gc.status.success(), "{}", stderr(&gc));
+    for (name, _) in pinned.segments(exercise::NAME) {
+        pinned.open_segment(name).unwrap().reader().unwrap().verify().unwrap();
+    }
+    drop(pinned);
+    let gc = octstore(&["gc", path, "--keep", "1"], &[]);
+    assert!(gc.status.success(), "{}", stderr(&gc));
+    assert!(matches!(
+        reader.snapshot(1),
+        Err(StoreError::VersionGone { version: 1, horizon: 2 })
+    ));
+    drop(reader);
+
+    let store = Store::open(dir.path()).unwrap();
+    store.run_stage(&stage(2, 3), &options(2)).unwrap();
+    let unpinned = store.snapshot(2).unwrap();
+    store.gc(1).unwrap();
+    let (name, _) = &unpinned.segments(exercise::NAME)[0];
+    let error = unpinned.open_segment(name).err().map(|e| e.to_string());
+    assert_eq!(
+        error.as_deref(),
+        Some("version 2 was garbage-collected (the oldest kept version is 3)")
+    );
 }

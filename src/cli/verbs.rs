@@ -17,7 +17,7 @@ use crate::mesh::{View, read_mesh, render_view};
 use crate::pipeline::{self, DemoOptions, save_png};
 use crate::stages::exercise::ExerciseStage;
 use crate::stages::extract::ExtractOptions;
-use crate::stages::ingest::{IngestOptions, read_scene};
+use crate::stages::ingest::{IngestOptions, scene_at};
 use crate::store::Store;
 
 pub(super) fn ingest(global: &GlobalOptions, args: IngestArgs) -> Result<()> {
@@ -146,7 +146,7 @@ pub(super) fn query(args: QueryArgs) -> Result<()> {
         println!("{value}");
     } else {
         // Under SSD u is a signed distance in units of the root side: say it in world units.
-        let signed_distance = match (method, read_scene(&store)?) {
+        let signed_distance = match (method, scene_at(&store, snapshot.version())?) {
             (Some("ssd" | "hybrid"), Some(scene)) => {
                 u.map(|u| format!(", signed distance {:.6}", f64::from(u) * scene.root_side))
             }
@@ -267,8 +267,10 @@ pub(super) fn info_verb(args: InfoArgs) -> Result<()> {
 }
 
 pub(super) fn verify(args: VerifyArgs) -> Result<ExitCode> {
-    // Writable: recovers the catalog after a crash and removes crash debris first.
-    let store = Store::open(&args.store)?;
+    // A reader, so it runs beside a writer; writable only when the catalog needs recovery
+    // after a crash. Crash debris (files no commit references) is not checked: the next
+    // writable open removes it.
+    let store = Store::open_for_reading(&args.store)?;
     let report = store.verify(&[crate::stages::octree::verify_octree])?;
     for problem in &report.problems {
         eprintln!("error: {problem}");

@@ -137,6 +137,25 @@ impl CubeKey {
         self.corner_full_resolution().iter().all(|c| c & low_mask == 0)
     }
 
+    /// The same cube keyed in a root of twice the side in which the old root is the child
+    /// `octant` (per axis 0 or 1): depth + 1, and each full-resolution coordinate becomes
+    /// `octant << 31 | c >> 1`. Exact, and order-preserving over any set of keys, because a
+    /// cube above [`MAX_DEPTH`] has a zero lowest coordinate bit. `None` at [`MAX_DEPTH`].
+    pub fn in_doubled_root(self, octant: [u32; 3]) -> Option<CubeKey> {
+        let depth = self.depth();
+        if depth >= MAX_DEPTH {
+            return None;
+        }
+        let [x, y, z] = self.corner_full_resolution();
+        let widen = |c: u32, o: u32| ((o & 1) << 31) | (c >> 1);
+        Some(CubeKey::from_full_resolution(
+            depth + 1,
+            widen(x, octant[0]),
+            widen(y, octant[1]),
+            widen(z, octant[2]),
+        ))
+    }
+
     /// The parent cube; `None` for the root.
     pub fn parent(self) -> Option<CubeKey> {
         let depth = self.depth();
@@ -260,6 +279,33 @@ mod tests {
                 prop_assert!(parent.is_ancestor_or_self_of(key));
                 prop_assert!(key <= parent.subtree_last());
             }
+        }
+
+        #[test]
+        fn doubling_the_root_keeps_cubes_order_and_ancestry(
+            depths in proptest::array::uniform2(0u8..32),
+            coords in proptest::array::uniform6(any::<u32>()),
+            octant in proptest::array::uniform3(0u32..2),
+        ) {
+            let key = |depth: u8, c: &[u32]| {
+                let mask = if depth == 0 { 0 } else { u32::MAX >> (32 - u32::from(depth)) };
+                CubeKey::new(depth, c[0] & mask, c[1] & mask, c[2] & mask)
+            };
+            let (a, b) = (key(depths[0], &coords[..3]), key(depths[1], &coords[3..]));
+            let (ga, gb) = (a.in_doubled_root(octant).unwrap(), b.in_doubled_root(octant).unwrap());
+            prop_assert!(ga.is_well_formed() && gb.is_well_formed());
+            prop_assert_eq!(ga.depth(), a.depth() + 1);
+            prop_assert_eq!(ga.cmp(&gb), a.cmp(&b));
+            prop_assert_eq!(ga.is_ancestor_or_self_of(gb), a.is_ancestor_or_self_of(b));
+            // The old root is the new root's child `octant`, and every cube lies inside it.
+            let old_root = CubeKey::new(0, 0, 0, 0).in_doubled_root(octant).unwrap();
+            prop_assert_eq!(old_root, CubeKey::new(1, octant[0], octant[1], octant[2]));
+            prop_assert!(old_root.is_ancestor_or_self_of(ga));
+            // Same position inside the old root's cube: coordinates at the new depth, less
+            // the octant's offset, are the old ones.
+            let offset = |o: u32| o << a.depth();
+            let [x, y, z] = ga.coords();
+            prop_assert_eq!([x - offset(octant[0]), y - offset(octant[1]), z - offset(octant[2])], a.coords());
         }
 
         #[test]

@@ -40,6 +40,61 @@ impl Scene {
         }
     }
 
+    /// The root of twice the side in which this root is the child `octant` (per axis 0: the
+    /// old root is the lower half, 1: the upper half), one level deeper, so cube sides at every
+    /// key depth + 1 equal the old ones ([`CubeKey::in_doubled_root`]). `None` when
+    /// `max_depth` is already the keys' limit.
+    pub fn doubled(&self, octant: [u32; 3]) -> Option<Scene> {
+        if self.max_depth >= MAX_DEPTH {
+            return None;
+        }
+        let mut root_min = self.root_min;
+        for (min, o) in root_min.iter_mut().zip(octant) {
+            if o == 1 {
+                *min -= self.root_side;
+            }
+        }
+        Some(Scene {
+            root_min,
+            root_side: self.root_side * 2.0,
+            max_depth: self.max_depth + 1,
+        })
+    }
+
+    /// Whether the box `[lo, hi]` lies inside the root cube (its far faces included).
+    pub fn contains_box(&self, lo: DVec3, hi: DVec3) -> bool {
+        let max = self.min() + DVec3::splat(self.root_side);
+        lo.cmpge(self.min()).all() && hi.cmple(max).all()
+    }
+
+    /// The doublings that grow this root until it holds `[lo, hi]` widened by `margin` of the
+    /// box's largest extent on every side (the first ingest's rule, `Scene::around`): per
+    /// doubling, on each axis the root grows towards the side the widened box passes by more.
+    /// Empty when the root already holds `[lo, hi]` itself (the margin only shapes growth, it
+    /// does not trigger it). `None` when more than `limit` doublings, or more than the keys'
+    /// depth limit, would be needed.
+    pub fn growth_to_hold(&self, lo: DVec3, hi: DVec3, margin: f64, limit: usize) -> Option<Vec<[u32; 3]>> {
+        if self.contains_box(lo, hi) {
+            return Some(Vec::new());
+        }
+        let widen = (hi - lo).max_element().max(0.0) * margin;
+        let (lo, hi) = (lo - DVec3::splat(widen), hi + DVec3::splat(widen));
+        let mut scene = *self;
+        let mut octants = Vec::new();
+        while !scene.contains_box(lo, hi) {
+            if octants.len() >= limit {
+                return None;
+            }
+            let max = scene.min() + DVec3::splat(scene.root_side);
+            let below = scene.min() - lo;
+            let above = hi - max;
+            let octant = [0, 1, 2].map(|axis| u32::from(below[axis] > above[axis] && below[axis] > 0.0));
+            scene = scene.doubled(octant)?;
+            octants.push(octant);
+        }
+        Some(octants)
+    }
+
     /// r_root of eq. 4: half the root's side.
     pub fn root_radius(&self) -> f64 {
         self.root_side * 0.5
@@ -118,6 +173,53 @@ mod tests {
                 "r {r} d {d} cube {cube_radius}"
             );
         }
+    }
+
+    #[test]
+    fn a_doubled_root_keeps_every_cube_where_it_was() {
+        let scene = Scene::around(DVec3::new(-3.0, 1.0, 2.0), DVec3::new(5.0, 2.0, 4.0), 0.1, 12);
+        let p = DVec3::new(1.2345, 1.5, 3.1);
+        for octant in [[0, 0, 0], [1, 0, 1], [1, 1, 1]] {
+            let grown = scene.doubled(octant).unwrap();
+            assert_eq!(grown.max_depth, 13);
+            for depth in [0u8, 3, 12] {
+                let key = scene.key_at(p, depth);
+                let moved = key.in_doubled_root(octant).unwrap();
+                assert_eq!(grown.key_at(p, depth + 1), moved, "octant {octant:?} depth {depth}");
+                assert_eq!(grown.cube_side(depth + 1), scene.cube_side(depth));
+                let shift = (grown.cube_center(moved) - scene.cube_center(key)).abs().max_element();
+                assert!(shift < 1e-12 * scene.root_side, "{shift}");
+            }
+        }
+        assert!(Scene { max_depth: 32, ..scene }.doubled([0, 0, 0]).is_none());
+    }
+
+    #[test]
+    fn growth_reaches_towards_the_new_samples_only_when_they_leave_the_root() {
+        let scene = Scene {
+            root_min: [0.0; 3],
+            root_side: 1.0,
+            max_depth: 10,
+        };
+        let inside = scene.growth_to_hold(DVec3::splat(0.1), DVec3::splat(0.9), 0.1, 8);
+        assert_eq!(inside, Some(Vec::new()));
+        // Below on x only: one doubling, the old root the upper half in x.
+        let octants = scene
+            .growth_to_hold(DVec3::new(-0.5, 0.2, 0.2), DVec3::new(0.5, 0.8, 0.8), 0.1, 8)
+            .unwrap();
+        assert_eq!(octants, vec![[1, 0, 0]]);
+        // Far above: several doublings, each growing upwards.
+        let octants = scene
+            .growth_to_hold(DVec3::splat(0.7), DVec3::splat(6.5), 0.1, 8)
+            .unwrap();
+        assert_eq!(octants.len(), 3);
+        let mut grown = scene;
+        for octant in &octants {
+            grown = grown.doubled(*octant).unwrap();
+        }
+        assert!(grown.contains_box(DVec3::splat(0.7), DVec3::splat(6.5)));
+        assert_eq!(grown.root_min, [0.0; 3]);
+        assert_eq!(scene.growth_to_hold(DVec3::splat(0.5), DVec3::splat(1e6), 0.1, 8), None);
     }
 
     #[test]

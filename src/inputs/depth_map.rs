@@ -9,6 +9,10 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DMat4, DVec3};
 use serde::{Deserialize, Serialize};
 
+/// How far from an image's centre its principal point may lie, as a fraction of the image's
+/// width or height (`DepthMapSource::check_intrinsics`).
+pub const PRINCIPAL_POINT_REACH: f64 = 0.08;
+
 /// Errors of reading inputs: each names the file and the problem.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -433,7 +437,8 @@ impl DepthMapSource {
         }
     }
 
-    /// Checks that the image size fits the intrinsics.
+    /// Checks that the image size fits the intrinsics: positive focal lengths, and a principal
+    /// point within [`PRINCIPAL_POINT_REACH`] of the image's size from its centre.
     pub fn check_intrinsics(&self) -> Result<(), InputError> {
         if let Projection::Pinhole { fx, fy, cx, cy } = self.projection {
             let (w, h) = (f64::from(self.width), f64::from(self.height));
@@ -443,10 +448,11 @@ impl DepthMapSource {
                     format!("focal lengths must be positive (fx {fx}, fy {fy})"),
                 ));
             }
-            // Real principal points lie within a few per cent of the centre; one in the outer
-            // quarters means intrinsics of another image size (640x480 ones on a 320x240 frame
-            // put it at the corner).
-            if (cx - w / 2.0).abs() > w / 4.0 || (cy - h / 2.0).abs() > h / 4.0 {
+            // Real principal points lie within a few per cent of the centre (TUM's Freiburg 1
+            // camera, the farthest we know of: 3.2 % of the height); one farther than
+            // PRINCIPAL_POINT_REACH means intrinsics of another image size (640x480 ones put it
+            // at a 320x240 frame's corner, and a tenth of the height off a 640x400 crop's centre).
+            if (cx - w / 2.0).abs() > w * PRINCIPAL_POINT_REACH || (cy - h / 2.0).abs() > h * PRINCIPAL_POINT_REACH {
                 return Err(bad(
                     &self.path,
                     format!(

@@ -48,11 +48,11 @@ use crate::gpu::{DeviceChoice, Gpu};
 use crate::inputs::{DiscoverOptions, discover};
 use crate::stages::extract::{ExtractOptions, MeshSummary, extract_to_file};
 use crate::stages::histograms::HistogramsStage;
-use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps};
+use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps, scene_at};
 use crate::stages::octree::{OctreeStage, effective_leaf_cubes};
 use crate::stages::samples::SamplesStage;
 use crate::stages::solve::{LevelStage, Method, SolveParams};
-use crate::stages::{OCTREE, octree_max_depth};
+use crate::stages::{INGEST, OCTREE, octree_max_depth};
 use crate::store::{RunOptions, RunReport, Store};
 
 /// How far `solve` goes.
@@ -112,8 +112,22 @@ pub fn ingest(
     options: &IngestOptions,
     run: &RunOptions,
 ) -> Result<RunReport> {
+    let started = std::time::Instant::now();
     let sources = discover(inputs, discover_options)?;
     let stage = IngestStage::prepare(store, sources, options)?;
+    if stage.new_depth_maps() == 0 {
+        // Not a stage run at all: the catalog stays byte for byte as it was (a run, even an
+        // empty one, would record its inputs).
+        return Ok(RunReport {
+            stage: INGEST.to_string(),
+            version: None,
+            units: 0,
+            resumed_units: 0,
+            rows: 0,
+            seconds: started.elapsed().as_secs_f64(),
+            summary: "up to date: every depth map is already in the store".into(),
+        });
+    }
     Ok(store.run_stage(&stage, run)?)
 }
 
@@ -141,9 +155,15 @@ pub fn solve_with_gpu(
         let scratch = store.scratch_dir(OCTREE)?;
         let leaf_cubes = effective_leaf_cubes(options.leaf_cubes, options.memory_budget, options.run.threads);
         let stage = OctreeStage::new(scene, leaf_cubes, options.memory_budget / 4, scratch.clone());
-        on_report(&store.run_stage(&stage, &options.run)?);
-        // Scratch files are rebuilt by any later run; a failure to remove them costs only disk.
-        let _ = std::fs::remove_dir_all(scratch);
+        let report = store.run_stage(&stage, &options.run);
+        // Scratch files are rebuilt by any later run, so they go whether the run finished or
+        // failed (a full disk most of all); a failure to remove them costs only disk.
+        let _ = std::fs::remove_dir_all(&scratch);
+        if let Some(parent) = scratch.parent() {
+            // Only if empty: another stage's scratch may live there.
+            let _ = std::fs::remove_dir(parent);
+        }
+        on_report(&report?);
     }
     if options.until >= SolveUntil::Solution && options.method.ssd().is_some() {
         // Before the histograms: a store ingested without sample moments fails in seconds.
@@ -184,12 +204,14 @@ pub fn open_gpu(choice: DeviceChoice) -> Result<Option<Arc<Gpu>>> {
 /// Extracts the surface of the latest solved version (or of `version`) into `output`: PLY, or
 /// OBJ by extension; streamed leaf by leaf unless a region or decimation asks for the whole.
 pub fn extract(store: &Store, output: &Path, options: &ExtractOptions, version: Option<u64>) -> Result<MeshSummary> {
-    let scene = required_scene(store, "extract")?;
     let snapshot = match version {
         Some(v) => store.snapshot(v)?,
         None => store.latest()?,
     };
     crate::query::ensure_solution_is_current(&snapshot)?;
-    let finest = octree_max_depth(store)?;
+    // The snapshot's own scene and finest level: a later ingest may have grown the root.
+    let scene =
+        scene_at(store, snapshot.version())?.ok_or_else(|| PipelineError::NotIngested { step: "extract".into() })?;
+    let finest = crate::query::IndicatorField::finest_level(&snapshot).map_or_else(|| octree_max_depth(store), Ok)?;
     Ok(extract_to_file(&snapshot, &scene, finest, options, output)?)
 }

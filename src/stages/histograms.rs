@@ -219,7 +219,7 @@ impl MapSets {
         let meta = txn.open_table(META)?;
         let key = catalog::map_set_key(digest);
         let ids: Vec<u64> = match meta.get(key.as_str())? {
-            Some(v) => catalog::decode("meta", v.value())?,
+            Some(v) => catalog::unseal_decode("meta", key.as_str(), v.value())?,
             None => {
                 return Err(StoreError::CatalogCorruption {
                     table: "meta",
@@ -243,7 +243,11 @@ fn unit_state(base: &Snapshot<'_>, key: CubeKey) -> Result<Option<HistogramState
     let txn = base.store().catalog().begin_read()?;
     let table = txn.open_table(UNIT_STATE)?;
     match table.get((HISTOGRAMS, key))? {
-        Some(v) => Ok(Some(catalog::decode("unit_state", v.value())?)),
+        Some(v) => Ok(Some(catalog::unseal_decode(
+            "unit_state",
+            &(HISTOGRAMS, key),
+            v.value(),
+        )?)),
         None => Ok(None),
     }
 }
@@ -446,11 +450,17 @@ impl Stage for HistogramsStage {
             for (digest, ids) in extra.map_sets {
                 let key = catalog::map_set_key(digest);
                 if meta.get(key.as_str())?.is_none() {
-                    meta.insert(key.as_str(), catalog::encode(&ids).as_slice())?;
+                    meta.insert(
+                        key.as_str(),
+                        catalog::seal_encode("meta", key.as_str(), &ids).as_slice(),
+                    )?;
                 }
             }
             for (key, state, unit_votes) in extra.members {
-                table.insert((HISTOGRAMS, key), catalog::encode(&state).as_slice())?;
+                table.insert(
+                    (HISTOGRAMS, key),
+                    catalog::seal_encode("unit_state", &(HISTOGRAMS, key), &state).as_slice(),
+                )?;
                 votes += unit_votes;
             }
         }
@@ -467,7 +477,7 @@ impl Stage for HistogramsStage {
             let (key, value) = entry?;
             let key = key.value().1;
             if leaves.as_ref().is_none_or(|leaves| leaves.contains(&key)) {
-                let state: HistogramState = catalog::decode("unit_state", value.value())?;
+                let state: HistogramState = catalog::unseal_decode("unit_state", &(HISTOGRAMS, key), value.value())?;
                 referenced.insert(state.map_set);
             } else {
                 orphans.push(key);

@@ -25,12 +25,10 @@ pub const META_OCTREE_MAX_DEPTH: &str = "octree_max_depth";
 
 /// Deepest level of the latest octree.
 pub fn octree_max_depth(store: &crate::store::Store) -> crate::store::Result<u8> {
-    use redb::ReadableTable;
     let txn = store.catalog().begin_read()?;
     let meta = txn.open_table(crate::store::catalog::META)?;
-    let value = meta
-        .get(META_OCTREE_MAX_DEPTH)?
-        .map(|v| v.value().first().copied().unwrap_or(0));
+    let value =
+        crate::store::catalog::meta_bytes(&meta, META_OCTREE_MAX_DEPTH)?.map(|v| v.first().copied().unwrap_or(0));
     value.ok_or_else(|| crate::store::StoreError::Stage {
         stage: OCTREE.into(),
         unit: "-".into(),

@@ -10,7 +10,7 @@ use super::StoreError;
 use crate::format::key::CubeKeyColumn;
 
 /// Version of the catalog schema written by this build.
-pub const CATALOG_FORMAT_VERSION: u32 = 3;
+pub const CATALOG_FORMAT_VERSION: u32 = 4;
 /// The oldest catalog version this build opens; a writable open migrates it (`migrate`).
 pub const OLDEST_CATALOG_FORMAT_VERSION: u32 = 1;
 
@@ -141,6 +141,196 @@ pub(crate) fn migrate_v2(txn: &redb::WriteTransaction) -> Result<(), StoreError>
     Ok(())
 }
 
+/// Last bytes of every sealed catalog value (catalog version 4): the 8-byte checksum is
+/// followed by these. A value without them was written by an older build.
+pub const SEAL_MAGIC: [u8; 4] = *b"OCS\x04";
+/// Bytes a seal adds to a value: the checksum (u64 LE) and [`SEAL_MAGIC`].
+pub const SEAL_BYTES: usize = 12;
+
+/// A catalog key as the seal's checksum covers it (the bytes of `canonical_dump`), and as an
+/// error names it.
+pub trait CatalogKey {
+    /// The key's bytes: UTF-8 for names, big-endian for numbers, `name 0 number` for pairs.
+    fn key_bytes(&self) -> Vec<u8>;
+    /// The key as a corruption error names it.
+    fn describe(&self) -> String;
+}
+
+impl CatalogKey for str {
+    fn key_bytes(&self) -> Vec<u8> {
+        self.as_bytes().to_vec()
+    }
+    fn describe(&self) -> String {
+        format!("'{self}'")
+    }
+}
+
+impl<T: CatalogKey + ?Sized> CatalogKey for &T {
+    fn key_bytes(&self) -> Vec<u8> {
+        (**self).key_bytes()
+    }
+    fn describe(&self) -> String {
+        (**self).describe()
+    }
+}
+
+impl CatalogKey for u64 {
+    fn key_bytes(&self) -> Vec<u8> {
+        self.to_be_bytes().to_vec()
+    }
+    fn describe(&self) -> String {
+        self.to_string()
+    }
+}
+
+impl CatalogKey for (&str, u64) {
+    fn key_bytes(&self) -> Vec<u8> {
+        let mut bytes = self.0.as_bytes().to_vec();
+        bytes.push(0);
+        bytes.extend_from_slice(&self.1.to_be_bytes());
+        bytes
+    }
+    fn describe(&self) -> String {
+        format!("('{}', {})", self.0, self.1)
+    }
+}
+
+impl CatalogKey for (&str, crate::format::CubeKey) {
+    fn key_bytes(&self) -> Vec<u8> {
+        let mut bytes = self.0.as_bytes().to_vec();
+        bytes.push(0);
+        bytes.extend_from_slice(&self.1.to_be_bytes());
+        bytes
+    }
+    fn describe(&self) -> String {
+        format!("('{}', {:?})", self.0, self.1)
+    }
+}
+
+/// xxh3-64 of the table's name, a zero byte, the key's length (u64 LE) and bytes, and the
+/// payload: a value moved to another key or table fails as a flipped one does.
+fn seal_checksum(table: &str, key: &[u8], payload: &[u8]) -> u64 {
+    let mut hasher = xxhash_rust::xxh3::Xxh3::new();
+    hasher.update(table.as_bytes());
+    hasher.update(&[0]);
+    hasher.update(&(key.len() as u64).to_le_bytes());
+    hasher.update(key);
+    hasher.update(payload);
+    hasher.digest()
+}
+
+/// `payload` sealed for `table` under `key`: payload, checksum, [`SEAL_MAGIC`].
+pub fn seal<K: CatalogKey + ?Sized>(table: &str, key: &K, payload: &[u8]) -> Vec<u8> {
+    let mut sealed = Vec::with_capacity(payload.len() + SEAL_BYTES);
+    sealed.extend_from_slice(payload);
+    sealed.extend_from_slice(&seal_checksum(table, &key.key_bytes(), payload).to_le_bytes());
+    sealed.extend_from_slice(&SEAL_MAGIC);
+    sealed
+}
+
+/// [`encode`] then [`seal`].
+pub fn seal_encode<K: CatalogKey + ?Sized, T: Serialize>(table: &str, key: &K, value: &T) -> Vec<u8> {
+    seal(table, key, &encode(value))
+}
+
+/// Whether `value` carries a seal (it may still fail its checksum).
+pub fn is_sealed(value: &[u8]) -> bool {
+    value.len() >= SEAL_BYTES && value.ends_with(&SEAL_MAGIC)
+}
+
+/// The payload of a value read from `table` under `key`. A sealed value whose checksum fails is
+/// a corruption error naming the table and the key. A value without a seal is returned whole:
+/// catalogs before version 4 have none, and in a version-4 catalog the payload then carries
+/// the 12 seal bytes, which every decoder refuses (`verify` also reports it as unsealed).
+pub fn unseal<'v, K: CatalogKey + ?Sized>(
+    table: &'static str,
+    key: &K,
+    value: &'v [u8],
+) -> Result<&'v [u8], StoreError> {
+    if !is_sealed(value) {
+        return Ok(value);
+    }
+    let (payload, seal) = value.split_at(value.len() - SEAL_BYTES);
+    let (checksum, _) = seal.split_at(8);
+    let expected = u64::from_le_bytes(checksum.try_into().unwrap_or_default());
+    if seal_checksum(table, &key.key_bytes(), payload) != expected {
+        return Err(StoreError::CatalogCorruption {
+            table,
+            reason: format!("the value at key {} fails its checksum", key.describe()),
+        });
+    }
+    Ok(payload)
+}
+
+/// [`unseal`] then [`decode`].
+pub fn unseal_decode<K: CatalogKey + ?Sized, T: DeserializeOwned>(
+    table: &'static str,
+    key: &K,
+    value: &[u8],
+) -> Result<T, StoreError> {
+    decode(table, unseal(table, key, value)?)
+}
+
+/// Checks one value strictly, as `verify` does in a version-4 catalog: sealed and intact.
+pub fn check_sealed<K: CatalogKey + ?Sized>(table: &'static str, key: &K, value: &[u8]) -> Result<(), StoreError> {
+    if !is_sealed(value) {
+        return Err(StoreError::CatalogCorruption {
+            table,
+            reason: format!("the value at key {} has no seal", key.describe()),
+        });
+    }
+    unseal(table, key, value).map(|_| ())
+}
+
+/// The payload of META's entry `key`, unsealed.
+pub fn meta_bytes(
+    table: &impl ReadableTable<&'static str, &'static [u8]>,
+    key: &str,
+) -> Result<Option<Vec<u8>>, StoreError> {
+    match table.get(key)? {
+        None => Ok(None),
+        Some(guard) => Ok(Some(unseal("meta", key, guard.value())?.to_vec())),
+    }
+}
+
+/// Catalog version 3 -> 4, in `txn`: every value of every table but `version_times` gets its
+/// seal (values some earlier step of the same migration already sealed are left as they are).
+pub(crate) fn migrate_v3(txn: &redb::WriteTransaction) -> Result<(), StoreError> {
+    // `own` turns a borrowed key into an owned one, `lend` an owned one back into the table's
+    // key type.
+    macro_rules! seal_table {
+        ($def:expr, $name:literal, |$o:ident| $own:expr, |$l:ident| $lend:expr) => {{
+            let mut table = txn.open_table($def)?;
+            let mut unsealed = Vec::new();
+            for entry in table.iter()? {
+                let (k, v) = entry?;
+                if !is_sealed(v.value()) {
+                    let $o = k.value();
+                    unsealed.push(($own, seal($name, &$o, v.value())));
+                }
+            }
+            for (owned, value) in &unsealed {
+                let $l = owned;
+                table.insert($lend, value.as_slice())?;
+            }
+        }};
+    }
+    seal_table!(META, "meta", |k| k.to_string(), |k| k.as_str());
+    seal_table!(VERSIONS, "versions", |k| k, |k| *k);
+    seal_table!(DEPTH_MAPS, "depth_maps", |k| k, |k| *k);
+    seal_table!(SEGMENTS, "segments", |k| k.to_string(), |k| k.as_str());
+    seal_table!(STAGE_RUNS, "stage_runs", |k| k.to_string(), |k| k.as_str());
+    seal_table!(UNITS_DONE, "units_done", |k| (k.0.to_string(), k.1), |k| (
+        k.0.as_str(),
+        k.1
+    ));
+    seal_table!(UNIT_STATE, "unit_state", |k| (k.0.to_string(), k.1), |k| (
+        k.0.as_str(),
+        k.1
+    ));
+    Ok(())
+}
+
 fn bincode_config() -> impl bincode::config::Config {
     bincode::config::standard()
         .with_little_endian()
@@ -152,9 +342,19 @@ pub fn encode<T: Serialize>(value: &T) -> Vec<u8> {
     bincode::serde::encode_to_vec(value, bincode_config()).unwrap_or_default()
 }
 
+/// The most bytes one decoded value may claim. A damaged length prefix (a string or list of
+/// 10^18 elements) is then an error before anything is allocated, not an aborted process;
+/// real values stay far below it (a histograms run's parameters list every depth map id, 8
+/// bytes each).
+const DECODE_LIMIT: usize = 256 << 20;
+
 pub fn decode<T: DeserializeOwned>(table: &'static str, bytes: &[u8]) -> Result<T, StoreError> {
+    let config = bincode::config::standard()
+        .with_little_endian()
+        .with_fixed_int_encoding()
+        .with_limit::<DECODE_LIMIT>();
     let (value, used) =
-        bincode::serde::decode_from_slice(bytes, bincode_config()).map_err(|e| StoreError::CatalogCorruption {
+        bincode::serde::decode_from_slice(bytes, config).map_err(|e| StoreError::CatalogCorruption {
             table,
             reason: e.to_string(),
         })?;
@@ -244,13 +444,45 @@ pub fn meta_u64(table: &impl ReadableTable<&'static str, &'static [u8]>, key: &s
     match table.get(key)? {
         None => Ok(None),
         Some(guard) => {
-            let bytes: [u8; 8] = guard.value().try_into().map_err(|_| StoreError::CatalogCorruption {
+            let payload = unseal("meta", key, guard.value())?;
+            let bytes: [u8; 8] = payload.try_into().map_err(|_| StoreError::CatalogCorruption {
                 table: "meta",
                 reason: format!("'{key}' is not 8 bytes"),
             })?;
             Ok(Some(u64::from_le_bytes(bytes)))
         }
     }
+}
+
+/// Every value of every table but `version_times` that is not sealed or fails its seal (a
+/// version-4 catalog), one line per value naming the table and the key.
+pub fn sealing_problems(db: &impl ReadableDatabase) -> Result<Vec<String>, StoreError> {
+    let txn = db.begin_read()?;
+    let mut problems = Vec::new();
+    macro_rules! check {
+        ($def:expr, $name:literal) => {{
+            match txn.open_table($def) {
+                Ok(table) => {
+                    for entry in table.iter()? {
+                        let (k, v) = entry?;
+                        if let Err(error) = check_sealed($name, &k.value(), v.value()) {
+                            problems.push(format!("catalog: {error}"));
+                        }
+                    }
+                }
+                Err(redb::TableError::TableDoesNotExist(_)) => {}
+                Err(e) => return Err(e.into()),
+            }
+        }};
+    }
+    check!(META, "meta");
+    check!(VERSIONS, "versions");
+    check!(DEPTH_MAPS, "depth_maps");
+    check!(SEGMENTS, "segments");
+    check!(STAGE_RUNS, "stage_runs");
+    check!(UNITS_DONE, "units_done");
+    check!(UNIT_STATE, "unit_state");
+    Ok(problems)
 }
 
 /// A canonical byte dump of every table but `version_times`, in table then key order. Two stores

@@ -179,7 +179,10 @@ impl Store {
         let txn = self.catalog().begin_read()?;
         let meta = txn.open_table(META)?;
         let value = meta.get(plan_key(stage).as_str())?;
-        value.map(|v| catalog::decode("meta", v.value())).transpose()
+        let key = plan_key(stage);
+        value
+            .map(|v| catalog::unseal_decode("meta", key.as_str(), v.value()))
+            .transpose()
     }
 
     /// Plans a cluster run of `stage` in `chunks` chunks and records it (replacing an earlier
@@ -230,8 +233,10 @@ impl Store {
         }
         fs::create_dir_all(&current).map_err(io_error("create directory", &current))?;
         let txn = db.begin_write()?;
-        txn.open_table(META)?
-            .insert(plan_key(name).as_str(), catalog::encode(plan).as_slice())?;
+        txn.open_table(META)?.insert(
+            plan_key(name).as_str(),
+            catalog::seal_encode("meta", plan_key(name).as_str(), plan).as_slice(),
+        )?;
         txn.commit()?;
         Ok(())
     }

@@ -14,6 +14,7 @@ pub mod catalog;
 pub mod cluster;
 #[doc(hidden)]
 pub mod failpoint;
+mod pins;
 pub mod runner;
 pub mod snapshot;
 pub mod verify;
@@ -208,6 +209,14 @@ impl Catalog {
             Catalog::ReadOnly(db) => db.begin_read()?,
         })
     }
+
+    /// Values that are unsealed or fail their seal ([`catalog::sealing_problems`]).
+    pub fn sealing_problems(&self) -> Result<Vec<String>> {
+        match self {
+            Catalog::Writable(db) => catalog::sealing_problems(db),
+            Catalog::ReadOnly(db) => catalog::sealing_problems(db),
+        }
+    }
 }
 
 /// An open store. One process at a time may hold it writable; read-only handles may be opened
@@ -292,16 +301,20 @@ impl Store {
             let txn = db.begin_write()?;
             {
                 let mut meta = txn.open_table(META)?;
-                meta.insert(META_FORMAT_VERSION, CATALOG_FORMAT_VERSION.to_le_bytes().as_slice())?;
-                meta.insert(META_CURRENT_VERSION, 0u64.to_le_bytes().as_slice())?;
-                meta.insert(META_GC_HORIZON, 0u64.to_le_bytes().as_slice())?;
+                for (key, value) in [
+                    (META_FORMAT_VERSION, CATALOG_FORMAT_VERSION.to_le_bytes().to_vec()),
+                    (META_CURRENT_VERSION, 0u64.to_le_bytes().to_vec()),
+                    (META_GC_HORIZON, 0u64.to_le_bytes().to_vec()),
+                ] {
+                    meta.insert(key, catalog::seal("meta", key, &value).as_slice())?;
+                }
                 let record = VersionRecord {
                     parent: 0,
                     kind: "create".into(),
                     summary: "empty store".into(),
                 };
                 txn.open_table(VERSIONS)?
-                    .insert(0, catalog::encode(&record).as_slice())?;
+                    .insert(0, catalog::seal_encode("versions", &0u64, &record).as_slice())?;
                 txn.open_table(VERSION_TIMES)?.insert(0, unix_millis())?;
                 // Create every table so read-only opens find them.
                 txn.open_table(SEGMENTS)?;
@@ -407,8 +420,13 @@ impl Store {
         if found < 3 {
             catalog::migrate_v2(&txn)?;
         }
-        txn.open_table(META)?
-            .insert(META_FORMAT_VERSION, CATALOG_FORMAT_VERSION.to_le_bytes().as_slice())?;
+        if found < 4 {
+            catalog::migrate_v3(&txn)?;
+        }
+        txn.open_table(META)?.insert(
+            META_FORMAT_VERSION,
+            catalog::seal("meta", META_FORMAT_VERSION, &CATALOG_FORMAT_VERSION.to_le_bytes()).as_slice(),
+        )?;
         txn.commit()?;
         Ok(())
     }
@@ -425,9 +443,9 @@ impl Store {
             path: self.root.clone(),
             reason: format!("catalog has no meta table ({e})"),
         })?;
-        let found = match meta.get(META_FORMAT_VERSION)? {
+        let found = match catalog::meta_bytes(&meta, META_FORMAT_VERSION)? {
             Some(v) => v
-                .value()
+                .as_slice()
                 .try_into()
                 .map(u32::from_le_bytes)
                 .map_err(|_| StoreError::CatalogCorruption {
@@ -501,6 +519,13 @@ impl Store {
         self.poisoned.load(Ordering::SeqCst)
     }
 
+    /// The oldest version `gc` kept readable.
+    pub fn gc_horizon(&self) -> Result<u64> {
+        let txn = self.catalog.begin_read()?;
+        let meta = txn.open_table(META)?;
+        Ok(catalog::meta_u64(&meta, META_GC_HORIZON)?.unwrap_or(0))
+    }
+
     /// The latest committed version.
     pub fn current_version(&self) -> Result<u64> {
         let txn = self.catalog.begin_read()?;
@@ -529,7 +554,7 @@ impl Store {
         let mut out = Vec::new();
         for entry in versions.iter()? {
             let (k, v) = entry?;
-            let record: VersionRecord = catalog::decode("versions", v.value())?;
+            let record: VersionRecord = catalog::unseal_decode("versions", &k.value(), v.value())?;
             let time = times.get(k.value())?.map(|t| t.value());
             out.push((k.value(), record, time));
         }
@@ -682,20 +707,32 @@ impl Store {
     pub fn gc(&self, keep: u64) -> Result<(usize, u64)> {
         let db = self.writable()?;
         let current = self.current_version()?;
-        let horizon = current.saturating_sub(keep.max(1) - 1);
+        let mut horizon = current.saturating_sub(keep.max(1) - 1);
+        // Versions that readers in other processes have open stay.
+        let pinned = pins::live_pinned_versions(&self.root)
+            .map_err(io_error("list reader pins", &self.root.join(pins::PINS_DIR)))?;
+        if let Some(&oldest) = pinned.first()
+            && oldest < horizon
+        {
+            tracing::warn!("gc: keeping versions from {oldest} on: a reader has version {oldest} open");
+            horizon = oldest;
+        }
+        // Never back: versions behind an earlier horizon have lost their files.
+        horizon = horizon.max(self.gc_horizon()?);
         let txn = db.begin_write()?;
         let mut doomed = Vec::new();
         {
             let runs = txn.open_table(STAGE_RUNS)?;
             let mut pending_targets = Vec::new();
             for entry in runs.iter()? {
-                let run: catalog::StageRun = catalog::decode("stage_runs", entry?.1.value())?;
+                let (name, value) = entry?;
+                let run: catalog::StageRun = catalog::unseal_decode("stage_runs", name.value(), value.value())?;
                 pending_targets.push(run.target_version);
             }
             let mut segments = txn.open_table(SEGMENTS)?;
             for entry in segments.iter()? {
                 let (name, value) = entry?;
-                let record: catalog::SegmentRecord = catalog::decode("segments", value.value())?;
+                let record: catalog::SegmentRecord = catalog::unseal_decode("segments", name.value(), value.value())?;
                 let dead = record.dropped.is_some_and(|d| d <= horizon);
                 let abandoned = record.created > current && !pending_targets.contains(&record.created);
                 if dead || abandoned {
@@ -706,7 +743,10 @@ impl Store {
                 segments.remove(name.as_str())?;
             }
             let mut meta = txn.open_table(META)?;
-            meta.insert(META_GC_HORIZON, horizon.to_le_bytes().as_slice())?;
+            meta.insert(
+                META_GC_HORIZON,
+                catalog::seal("meta", META_GC_HORIZON, &horizon.to_le_bytes()).as_slice(),
+            )?;
         }
         txn.commit()?;
         // Files go only after the commit: a crash in between leaves debris, removed on open.

@@ -207,7 +207,10 @@ impl Store {
                     .iter()?
                     .map(|e| {
                         let (k, v) = e?;
-                        Ok((k.value().to_string(), catalog::decode("stage_runs", v.value())?))
+                        Ok((
+                            k.value().to_string(),
+                            catalog::unseal_decode("stage_runs", k.value(), v.value())?,
+                        ))
                     })
                     .collect::<Result<_>>()?;
                 for (other, run) in existing {
@@ -235,7 +238,7 @@ impl Store {
                         params: params.clone(),
                         units: plan.units.len() as u64,
                     };
-                    runs.insert(name, catalog::encode(&run).as_slice())?;
+                    runs.insert(name, catalog::seal_encode("stage_runs", name, &run).as_slice())?;
                 }
             }
             {
@@ -374,14 +377,19 @@ impl Store {
         {
             let mut table = txn.open_table(SEGMENTS)?;
             for (name, record) in &segments {
-                table.insert(name.as_str(), catalog::encode(record).as_slice())?;
+                table.insert(
+                    name.as_str(),
+                    catalog::seal_encode("segments", name.as_str(), record).as_slice(),
+                )?;
             }
             let record = UnitRecord {
                 segments: segments.into_iter().map(|(n, _)| n).collect(),
                 extra,
             };
-            txn.open_table(UNITS_DONE)?
-                .insert((stage, unit), catalog::encode(&record).as_slice())?;
+            txn.open_table(UNITS_DONE)?.insert(
+                (stage, unit),
+                catalog::seal_encode("units_done", &(stage, unit), &record).as_slice(),
+            )?;
         }
         txn.commit()?;
         failpoint::hit("unit.after_commit");
@@ -405,7 +413,10 @@ impl Store {
                 .range((name, 0)..=(name, u64::MAX))?
                 .map(|e| {
                     let (k, v) = e?;
-                    Ok((k.value().1, catalog::decode("units_done", v.value())?))
+                    Ok((
+                        k.value().1,
+                        catalog::unseal_decode("units_done", &k.value(), v.value())?,
+                    ))
                 })
                 .collect::<Result<_>>()?
         };
@@ -417,7 +428,7 @@ impl Store {
             let mut updates = Vec::new();
             for entry in segments.iter()? {
                 let (file, value) = entry?;
-                let mut record: SegmentRecord = catalog::decode("segments", value.value())?;
+                let mut record: SegmentRecord = catalog::unseal_decode("segments", file.value(), value.value())?;
                 if record.stage != name {
                     continue;
                 }
@@ -438,11 +449,17 @@ impl Store {
             }
             dropped = dropped.max(updates.len());
             for (file, record) in updates {
-                segments.insert(file.as_str(), catalog::encode(&record).as_slice())?;
+                segments.insert(
+                    file.as_str(),
+                    catalog::seal_encode("segments", file.as_str(), &record).as_slice(),
+                )?;
             }
         }
         let fingerprint_key = stage_fingerprint_key(name);
-        txn.open_table(META)?.insert(fingerprint_key.as_str(), fingerprint)?;
+        txn.open_table(META)?.insert(
+            fingerprint_key.as_str(),
+            catalog::seal("meta", fingerprint_key.as_str(), fingerprint).as_slice(),
+        )?;
         if units.is_empty() && dropped == 0 {
             // Nothing changed: no new version.
             txn.open_table(STAGE_RUNS)?.remove(name)?;
@@ -470,10 +487,12 @@ impl Store {
                 summary: summary.clone(),
             };
             txn.open_table(VERSIONS)?
-                .insert(target, catalog::encode(&record).as_slice())?;
+                .insert(target, catalog::seal_encode("versions", &target, &record).as_slice())?;
             txn.open_table(VERSION_TIMES)?.insert(target, super::unix_millis())?;
-            txn.open_table(META)?
-                .insert(META_CURRENT_VERSION, target.to_le_bytes().as_slice())?;
+            txn.open_table(META)?.insert(
+                META_CURRENT_VERSION,
+                catalog::seal("meta", META_CURRENT_VERSION, &target.to_le_bytes()).as_slice(),
+            )?;
         }
         txn.commit()?;
         Ok(RunReport {
@@ -497,9 +516,7 @@ impl Store {
     pub fn stage_fingerprint(&self, stage: &str) -> Result<Option<Vec<u8>>> {
         let txn = self.catalog().begin_read()?;
         let meta = txn.open_table(META)?;
-        Ok(meta
-            .get(stage_fingerprint_key(stage).as_str())?
-            .map(|v| v.value().to_vec()))
+        catalog::meta_bytes(&meta, stage_fingerprint_key(stage).as_str())
     }
 
     /// Drops a run in progress: its records, then its files.
@@ -543,7 +560,10 @@ pub(crate) fn discard_run(txn: &WriteTransaction, stage: &str) -> Result<()> {
         .range((stage, 0)..=(stage, u64::MAX))?
         .map(|e| {
             let (k, v) = e?;
-            Ok((k.value().1, catalog::decode("units_done", v.value())?))
+            Ok((
+                k.value().1,
+                catalog::unseal_decode("units_done", &k.value(), v.value())?,
+            ))
         })
         .collect::<Result<_>>()?;
     for (unit, record) in units {

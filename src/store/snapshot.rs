@@ -21,6 +21,8 @@ pub struct Snapshot<'s> {
     record: VersionRecord,
     /// Visible segments per stage, ordered by (first key, unit, part).
     stages: BTreeMap<String, Vec<(String, SegmentRecord)>>,
+    /// A read-only store's pin on `version`, so that `gc` in a writer keeps its segments.
+    _pin: Option<super::pins::ReaderPin>,
 }
 
 impl<'s> Snapshot<'s> {
@@ -38,13 +40,13 @@ impl<'s> Snapshot<'s> {
         }
         let versions = txn.open_table(VERSIONS)?;
         let record = match versions.get(version)? {
-            Some(bytes) => catalog::decode("versions", bytes.value())?,
+            Some(bytes) => catalog::unseal_decode("versions", &version, bytes.value())?,
             None => return Err(StoreError::NoSuchVersion { version, latest }),
         };
         let mut stages: BTreeMap<String, Vec<(String, SegmentRecord)>> = BTreeMap::new();
         for entry in txn.open_table(SEGMENTS)?.iter()? {
             let (name, value) = entry?;
-            let record: SegmentRecord = catalog::decode("segments", value.value())?;
+            let record: SegmentRecord = catalog::unseal_decode("segments", name.value(), value.value())?;
             if record.visible_at(version) {
                 stages
                     .entry(record.stage.clone())
@@ -55,11 +57,27 @@ impl<'s> Snapshot<'s> {
         for segments in stages.values_mut() {
             segments.sort_by_key(|a| (a.1.first_key, a.1.unit, a.1.part));
         }
+        drop(txn);
+        // A writer's own snapshots need no pin: gc runs only in the writer.
+        let pin = match store.catalog() {
+            super::Catalog::ReadOnly(_) => {
+                let pin = super::pins::pin(store.root(), version);
+                // A gc that committed between the read above and the pin did not see it.
+                let txn = store.catalog().begin_read()?;
+                let horizon = catalog::meta_u64(&txn.open_table(META)?, META_GC_HORIZON)?.unwrap_or(0);
+                if version < horizon {
+                    return Err(StoreError::VersionGone { version, horizon });
+                }
+                pin
+            }
+            super::Catalog::Writable(_) => None,
+        };
         Ok(Snapshot {
             store,
             version,
             record,
             stages,
+            _pin: pin,
         })
     }
 
@@ -125,7 +143,18 @@ impl<'s> Snapshot<'s> {
                 table: "segments",
                 reason: format!("segment {name} is not visible at version {}", self.version),
             })?;
-        SegmentFile::open(self.store.segment_path(name), &record)
+        SegmentFile::open(self.store.segment_path(name), &record).map_err(|error| {
+            // A missing file of an unpinned snapshot: say so if gc collected the version.
+            let missing =
+                matches!(&error, StoreError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound);
+            match self.store.gc_horizon() {
+                Ok(horizon) if missing && self.version < horizon => StoreError::VersionGone {
+                    version: self.version,
+                    horizon,
+                },
+                _ => error,
+            }
+        })
     }
 }
 

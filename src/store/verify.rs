@@ -117,6 +117,16 @@ impl Store {
     /// Checks every segment the catalog references (all kept versions and runs in progress),
     /// then the stage checks on the latest version.
     pub fn verify(&self, checks: &[StageCheck]) -> Result<VerifyReport> {
+        // Catalog values first: nothing else can be trusted past a damaged one.
+        if self.catalog_format_version()? >= 4 {
+            let problems = self.catalog().sealing_problems()?;
+            if !problems.is_empty() {
+                return Ok(VerifyReport {
+                    problems,
+                    ..VerifyReport::default()
+                });
+            }
+        }
         let records: Vec<(String, SegmentRecord)> = {
             let txn = self.catalog().begin_read()?;
             let table = txn.open_table(SEGMENTS)?;
@@ -124,7 +134,10 @@ impl Store {
                 .iter()?
                 .map(|e| {
                     let (k, v) = e?;
-                    Ok((k.value().to_string(), catalog::decode("segments", v.value())?))
+                    Ok((
+                        k.value().to_string(),
+                        catalog::unseal_decode("segments", k.value(), v.value())?,
+                    ))
                 })
                 .collect::<Result<_>>()?
         };

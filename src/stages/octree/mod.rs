@@ -781,11 +781,16 @@ impl Stage for OctreeStage {
         for key in old {
             table.remove((OCTREE, key))?;
         }
-        txn.open_table(crate::store::catalog::META)?
-            .insert(crate::stages::META_OCTREE_MAX_DEPTH, [prepared.finest].as_slice())?;
+        txn.open_table(crate::store::catalog::META)?.insert(
+            crate::stages::META_OCTREE_MAX_DEPTH,
+            catalog::seal("meta", crate::stages::META_OCTREE_MAX_DEPTH, &[prepared.finest]).as_slice(),
+        )?;
         for unit in prepared.units.iter().filter(|u| !u.top) {
             let entry = (unit.ranges.first().map(|r| r.0).unwrap_or(0), unit.cubes());
-            table.insert((OCTREE, unit.key), catalog::encode(&entry).as_slice())?;
+            table.insert(
+                (OCTREE, unit.key),
+                catalog::seal_encode("unit_state", &(OCTREE, unit.key), &entry).as_slice(),
+            )?;
         }
         Ok(format!(
             "{} requested cubes -> {} cubes (balanced, complete); {} treetop leaves; {} unit(s) rewritten",

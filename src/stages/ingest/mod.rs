@@ -3,7 +3,8 @@
 //! One ingest is one version; it is committed unit by unit (a unit is one depth map), so a
 //! killed ingest resumes. Depth maps are identified by a hash of their content (pixels, pose,
 //! intrinsics, kind, weight), which makes the input order irrelevant and a repeated ingest of
-//! the same files a no-op.
+//! the same files a no-op. Depth maps that see beyond the root grow it (`growth.rs`): the
+//! ingest then also re-keys every earlier run, one unit per run, in the same version.
 
 use std::collections::BTreeSet;
 
@@ -12,6 +13,13 @@ use rayon::prelude::*;
 use redb::{ReadableTable, WriteTransaction};
 use serde::{Deserialize, Serialize};
 use xxhash_rust::xxh3::Xxh3;
+
+mod growth;
+
+pub use growth::{
+    GROWTH_MARGIN, MAX_DOUBLINGS_PER_INGEST, META_ROOT_FIXED, META_SCENE_UNTIL_PREFIX, RADIUS_SUM, root_is_fixed,
+    scene_at, scene_until_key,
+};
 
 use super::INGEST;
 use super::samples::{Moments, moment_columns};
@@ -356,8 +364,14 @@ impl Default for IngestOptions {
 }
 
 pub struct IngestStage {
+    /// The scene the new maps are keyed in (grown, if they needed it).
     scene: Scene,
     scene_is_new: bool,
+    /// Given with `--root` at the first ingest: recorded so that the root never grows.
+    root_is_fixed: bool,
+    /// The store's scene before this ingest and the doublings (octants) that grew it into
+    /// `scene`; `None` when the root did not grow.
+    growth: Option<(Scene, Vec<[u32; 3]>)>,
     /// New depth maps, ordered by id.
     maps: Vec<(u64, DepthMapSource)>,
 }
@@ -379,7 +393,7 @@ pub fn read_scene(store: &Store) -> Result<Option<Scene>> {
     let txn = store.catalog().begin_read()?;
     let meta = txn.open_table(META)?;
     match meta.get(META_SCENE)? {
-        Some(v) => Ok(Some(catalog::decode("meta", v.value())?)),
+        Some(v) => Ok(Some(catalog::unseal_decode("meta", META_SCENE, v.value())?)),
         None => Ok(None),
     }
 }
@@ -400,7 +414,7 @@ pub fn registered_depth_maps(store: &Store) -> Result<Vec<(u64, DepthMapRecord)>
             let record = if version < 3 {
                 catalog::decode("depth_maps", &catalog::depth_map_record_v2_to_v3(v.value())?)?
             } else {
-                catalog::decode("depth_maps", v.value())?
+                catalog::unseal_decode("depth_maps", &k.value(), v.value())?
             };
             Ok((k.value(), record))
         })
@@ -483,11 +497,39 @@ impl IngestStage {
                 (scene, true)
             }
         };
+        let root_is_fixed = if scene_is_new {
+            options.root.is_some()
+        } else {
+            root_is_fixed(store)?
+        };
+        let mut growth = None;
+        let mut scene = scene;
+        if !scene_is_new && !root_is_fixed && !maps.is_empty() {
+            let octants = growth::growth_for(&scene, &maps)?;
+            if !octants.is_empty() {
+                let old = scene;
+                for octant in &octants {
+                    scene = scene.doubled(*octant).ok_or_else(|| StoreError::Stage {
+                        stage: INGEST.into(),
+                        unit: "new depth maps".into(),
+                        message: "the root cannot grow past the keys' depth limit".into(),
+                    })?;
+                }
+                growth = Some((old, octants));
+            }
+        }
         Ok(IngestStage {
             scene,
             scene_is_new,
+            root_is_fixed,
+            growth,
             maps,
         })
+    }
+
+    /// The scene before this ingest and the doublings that grew it, if the root grew.
+    pub fn growth(&self) -> Option<&(Scene, Vec<[u32; 3]>)> {
+        self.growth.as_ref()
     }
 
     pub fn scene(&self) -> &Scene {
@@ -535,8 +577,15 @@ impl IngestStage {
             return Err(crate::inputs::bad(
                 &source.path,
                 format!(
-                    "{consistent_outside} of {} samples (not counting isolated spikes) lie outside the store's root cube (min {:?}, side {}); create a new store whose first ingest includes this depth map, or give --root / a larger --root-margin",
-                    stats.samples, self.scene.root_min, self.scene.root_side
+                    "{consistent_outside} of {} samples (not counting isolated spikes) lie outside the store's root cube (min {:?}, side {}){}",
+                    stats.samples,
+                    self.scene.root_min,
+                    self.scene.root_side,
+                    if self.root_is_fixed {
+                        ", which was fixed by --root at the store's first ingest; create a new store with a root that holds this depth map"
+                    } else {
+                        "; check the map's pose and depth scale, or give a larger --root-margin to a new store"
+                    }
                 ),
             ));
         }
@@ -571,7 +620,7 @@ impl IngestStage {
         stats.cubes = keys.len() as u64;
         let mut columns = vec![
             Column::keys(keys),
-            Column::new("radius_sum", 1, ColumnValues::U64(sums)),
+            Column::new(RADIUS_SUM, 1, ColumnValues::U64(sums)),
             Column::new("radius_count", 1, ColumnValues::U32(counts)),
             Column::new(SPIKE_COUNT, 1, ColumnValues::U32(spike_counts)),
         ];
@@ -596,22 +645,38 @@ impl Stage for IngestStage {
         catalog::encode(&(maps, self.scene))
     }
 
-    fn plan(&self, _base: &Snapshot<'_>) -> Result<Plan> {
+    fn plan(&self, base: &Snapshot<'_>) -> Result<Plan> {
+        let mut units: Vec<UnitSpec> = self
+            .maps
+            .iter()
+            .enumerate()
+            .map(|(index, (_, source))| UnitSpec {
+                id: index as u64,
+                label: source.path.display().to_string(),
+            })
+            .collect();
+        if self.growth.is_none() {
+            return Ok(Plan {
+                units,
+                replace: Replace::Nothing,
+            });
+        }
+        // Every earlier run is re-keyed into the grown root (units after the new maps').
+        let runs = base.segments(INGEST);
+        units.extend(runs.iter().enumerate().map(|(index, (name, _))| UnitSpec {
+            id: (self.maps.len() + index) as u64,
+            label: format!("re-key {name}"),
+        }));
         Ok(Plan {
-            units: self
-                .maps
-                .iter()
-                .enumerate()
-                .map(|(index, (_, source))| UnitSpec {
-                    id: index as u64,
-                    label: source.path.display().to_string(),
-                })
-                .collect(),
-            replace: Replace::Nothing,
+            units,
+            replace: Replace::Names(runs.iter().map(|(name, _)| name.clone()).collect()),
         })
     }
 
-    fn run_unit(&self, _base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput> {
+    fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput> {
+        if let Some(run) = (unit.id as usize).checked_sub(self.maps.len()) {
+            return self.rekey_unit(base, run, unit);
+        }
         let (id, source) = self.maps.get(unit.id as usize).ok_or_else(|| StoreError::Stage {
             stage: INGEST.into(),
             unit: unit.label.clone(),
@@ -636,7 +701,12 @@ impl Stage for IngestStage {
     fn finish(&self, txn: &WriteTransaction, base: &Snapshot<'_>, units: &[(u64, UnitRecord)]) -> Result<String> {
         let mut table = txn.open_table(DEPTH_MAPS)?;
         let mut total = SampleStats::default();
-        for (_, record) in units {
+        let mut rekeyed = 0usize;
+        for (id, record) in units {
+            if *id >= self.maps.len() as u64 {
+                rekeyed += 1;
+                continue;
+            }
             let extra: IngestUnitExtra = catalog::decode("units_done", &record.extra)?;
             let source = self
                 .maps
@@ -653,15 +723,47 @@ impl Stage for IngestStage {
                 stats: extra.stats,
                 added_in: base.version() + 1,
             };
-            table.insert(extra.id, catalog::encode(&record).as_slice())?;
+            table.insert(
+                extra.id,
+                catalog::seal_encode("depth_maps", &extra.id, &record).as_slice(),
+            )?;
         }
+        let mut meta = txn.open_table(META)?;
         if self.scene_is_new {
-            txn.open_table(META)?
-                .insert(META_SCENE, catalog::encode(&self.scene).as_slice())?;
+            meta.insert(
+                META_SCENE,
+                catalog::seal_encode("meta", META_SCENE, &self.scene).as_slice(),
+            )?;
+            if self.root_is_fixed {
+                meta.insert(
+                    META_ROOT_FIXED,
+                    catalog::seal("meta", META_ROOT_FIXED, &[1u8]).as_slice(),
+                )?;
+            }
         }
+        let grown = match &self.growth {
+            Some((old, octants)) => {
+                meta.insert(
+                    META_SCENE,
+                    catalog::seal_encode("meta", META_SCENE, &self.scene).as_slice(),
+                )?;
+                let until = scene_until_key(base.version() + 1);
+                meta.insert(
+                    until.as_str(),
+                    catalog::seal_encode("meta", until.as_str(), old).as_slice(),
+                )?;
+                format!(
+                    "; root grown {} time(s) to min {:?}, side {} ({rekeyed} earlier run(s) re-keyed)",
+                    octants.len(),
+                    self.scene.root_min,
+                    self.scene.root_side
+                )
+            }
+            None => String::new(),
+        };
         Ok(format!(
-            "{} depth map(s): {} samples, {} cubes; skipped {} invalid, {} absurd, {} isolated of {} pixels, {} outside the root",
-            units.len(),
+            "{} depth map(s): {} samples, {} cubes; skipped {} invalid, {} absurd, {} isolated of {} pixels, {} outside the root{grown}",
+            units.len() - rekeyed,
             total.samples,
             total.cubes,
             total.invalid,
@@ -673,195 +775,25 @@ impl Stage for IngestStage {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn camera(width: u32, height: u32) -> DepthMapSource {
-        let (cx, cy) = (f64::from(width) / 2.0, f64::from(height) / 2.0);
-        DepthMapSource::test_pinhole(
-            "plane.pfm",
-            (width, height),
-            [100.0, 100.0, cx, cy],
-            glam::DMat4::IDENTITY,
-        )
-    }
-
-    /// A wall at depth 1 seen head-on, with one pixel in ten replaced by a depth between 0.2 and
-    /// 2.0 (the synthetic outlier model): the spikes would push the 99.9 % quantile of z to
-    /// about 1.9; without them the box ends at the wall.
-    #[test]
-    fn spikes_do_not_size_the_root() {
-        let (w, h) = (64u32, 48u32);
-        let source = camera(w, h);
-        let mut state = 7u64;
-        let depth: Vec<f32> = (0..w * h)
-            .map(|_| {
-                if crate::kernels::random::uniform(&mut state) < 0.1 {
-                    (0.2 + 1.8 * crate::kernels::random::uniform(&mut state)) as f32
-                } else {
-                    1.0
-                }
-            })
-            .collect();
-        let image = DepthImage {
-            width: w,
-            height: h,
-            depth,
+impl IngestStage {
+    /// Unit `run` of the re-keying that a grown root needs: the base version's ingest run of
+    /// that index, keyed into the grown root.
+    fn rekey_unit(&self, base: &Snapshot<'_>, run: usize, unit: &UnitSpec) -> Result<UnitOutput> {
+        let (Some((_, octants)), Some((name, _))) = (&self.growth, base.segments(INGEST).get(run)) else {
+            return Err(StoreError::Stage {
+                stage: INGEST.into(),
+                unit: unit.label.clone(),
+                message: "unit out of range".into(),
+            });
         };
-        let all = robust_bounds(&back_project(&source, &image).points).unwrap();
-        assert!(all.1.z > 1.5, "the outliers reach far behind the wall: {all:?}");
-        let kept = bounds_sample(&back_project(&source, &image), usize::MAX);
-        let (lo, hi) = robust_bounds(&kept).unwrap();
-        // Only spikes within the spacing band (8 footprints = 8 % of the depth at f = 100) can
-        // pass, and they sit next to the wall anyway.
-        assert!(
-            (0.9..=1.0).contains(&lo.z) && (1.0..=1.1).contains(&hi.z),
-            "{lo:?} {hi:?}"
-        );
-        // The wall's own extent survives: x spans about +-0.32 at depth 1.
-        assert!(lo.x < -0.3 && hi.x > 0.3, "{lo:?} {hi:?}");
-        assert!(kept.len() as f64 > 0.85 * f64::from(w * h), "kept {}", kept.len());
-    }
-
-    /// The normals of a wall slanted 40 degrees about the camera's y axis, seen by a camera
-    /// turned about the world's z axis: the wall's normal in world coordinates, facing the
-    /// camera, with pixel areas of the squared sample spacing; a depth edge does not tilt them.
-    #[test]
-    fn normals_follow_the_depth_gradient_and_face_the_camera() {
-        let (w, h) = (64u32, 48u32);
-        let turn = glam::DMat4::from_rotation_z(0.7);
-        let source = DepthMapSource::test_pinhole("wall.pfm", (w, h), [100.0, 100.0, 32.0, 24.0], turn);
-        let slope = 40f64.to_radians().tan();
-        // The plane z = 1 + slope x in camera coordinates, and a step of 0.5 at column 40.
-        let depth: Vec<f32> = (0..w * h)
-            .map(|index| {
-                let x = (f64::from(index % w) - 32.0) / 100.0;
-                let step = if index % w >= 40 { 0.5 } else { 0.0 };
-                (1.0 / (1.0 - slope * x) + step) as f32
-            })
-            .collect();
-        let samples = back_project(
-            &source,
-            &DepthImage {
-                width: w,
-                height: h,
-                depth,
-            },
-        );
-        let expected = (turn.transform_vector3(DVec3::new(slope, 0.0, -1.0))).normalize();
-        let mut checked = 0;
-        for ((p, n), area) in samples.points.iter().zip(&samples.normals).zip(&samples.areas) {
-            let camera = turn.inverse().transform_point3(*p);
-            // Column 39 lies beside the step: its normal must come from its left neighbour.
-            if (camera.x / camera.z * 100.0 + 32.0).round() <= 39.0 {
-                assert!(n.dot(expected) > 0.9999, "{n:?} vs {expected:?}");
-                assert!(*area > 0.0 && *area < 0.03 * 0.03);
-                checked += 1;
-            }
-        }
-        assert!(checked > 1000, "{checked}");
-    }
-
-    /// A wall slanted 75 degrees from head-on is no spike (except the few pixels where it
-    /// runs off towards grazing view), and a map of pure noise still gives a box.
-    #[test]
-    fn slanted_surfaces_and_pure_noise_still_bound_the_scene() {
-        let (w, h) = (64u32, 48u32);
-        let source = camera(w, h);
-        let slope = 75f64.to_radians().tan();
-        let depth: Vec<f32> = (0..w * h)
-            .map(|index| {
-                let x = (f64::from(index % w) - f64::from(w) / 2.0) / 100.0;
-                (1.0 / (1.0 - slope * x)).abs() as f32
-            })
-            .map(|d| if d < 5.0 { d } else { f32::NAN })
-            .collect();
-        let image = DepthImage {
-            width: w,
-            height: h,
-            depth,
-        };
-        let kept = bounds_sample(&back_project(&source, &image), usize::MAX);
-        let samples = back_project(&source, &image).points.len();
-        assert!(kept.len() * 100 >= samples * 99, "kept {} of {samples}", kept.len());
-
-        let mut state = 3u64;
-        let noise: Vec<f32> = (0..w * h)
-            .map(|_| (0.2 + 1.8 * crate::kernels::random::uniform(&mut state)) as f32)
-            .collect();
-        let image = DepthImage {
-            width: w,
-            height: h,
-            depth: noise,
-        };
-        assert!(!bounds_sample(&back_project(&source, &image), 100).is_empty());
-    }
-
-    /// A wall at depths 1 to 3 (f = 100: samples 1 to 3 cm apart, footprint radii 5 to 15 mm):
-    /// the footprint rule keeps the half spacing; a noise model raises a radius to its floor
-    /// where that is larger, but to at most its footprint cap.
-    #[test]
-    fn noise_models_raise_radii_to_their_floor_within_the_cap() {
-        let (w, h) = (64u32, 48u32);
-        let depth: Vec<f32> = (0..w * h)
-            .map(|index| 1.0 + 2.0 * (index / w) as f32 / h as f32)
-            .collect();
-        let image = DepthImage {
-            width: w,
-            height: h,
-            depth,
-        };
-        let footprint = back_project(&camera(w, h), &image);
-        let noise = DepthNoise::Axial {
-            constant: 0.0,
-            quadratic: 0.01,
-            offset: 1.0,
-            sigmas: 2.0,
-            footprints: 1.5,
-        };
-        let noisy = back_project(&DepthMapSource { noise, ..camera(w, h) }, &image);
-        assert_eq!(footprint.points, noisy.points);
-        let (mut kept, mut raised, mut capped) = (0, 0, 0);
-        for ((p, before), after) in footprint.points.iter().zip(&footprint.radii).zip(&noisy.radii) {
-            let floor = 2.0 * (0.01 * (p.z - 1.0).powi(2));
-            let expected = before.max(floor.min(1.5 * before));
-            assert!((after - expected).abs() < 1e-12, "z {} {before} {after}", p.z);
-            if floor <= *before {
-                kept += 1;
-            } else if floor < 1.5 * before {
-                raised += 1;
-            } else {
-                capped += 1;
-            }
-        }
-        // The footprint wins near the camera, the floor a little farther, the cap far away
-        // (sigma grows with the square of depth, the footprint linearly).
-        assert!(kept > 100 && raised > 100 && capped > 100, "{kept} {raised} {capped}");
-    }
-
-    /// The noise model is recorded with a depth map but is not part of its identity.
-    #[test]
-    fn the_noise_model_is_not_part_of_a_depth_maps_identity() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("plane.pfm");
-        let image = DepthImage {
-            width: 4,
-            height: 3,
-            depth: vec![1.0; 12],
-        };
-        crate::inputs::write_pfm(&path, &image).unwrap();
-        let source = DepthMapSource { path, ..camera(4, 3) };
-        let noisy = DepthMapSource {
-            noise: DepthNoise::STRUCTURED_LIGHT,
-            ..source.clone()
-        };
-        let heavier = DepthMapSource {
-            weight: 2.0,
-            ..source.clone()
-        };
-        let id = depth_map_id(&source).unwrap();
-        assert_eq!(depth_map_id(&noisy).unwrap(), id);
-        assert_ne!(depth_map_id(&heavier).unwrap(), id);
+        let file = base.open_segment(name)?;
+        Ok(UnitOutput {
+            segments: vec![growth::rekeyed_run(&file, octants)?],
+            extra: Vec::new(),
+            block_rows: RUN_BLOCK_ROWS,
+        })
     }
 }
+
+#[cfg(test)]
+mod tests;
