@@ -6,7 +6,7 @@ use clap::{Args, Parser, Subcommand};
 
 use super::parse::{
     parse_depth_noise, parse_margin, parse_memory_budget, parse_noise_sigmas, parse_point, parse_ratio, parse_region,
-    parse_root, parse_ssd_tolerance, parse_ssd_weight, parse_tolerance, parse_weight,
+    parse_iterations, parse_root, parse_ssd_tolerance, parse_ssd_weight, parse_tolerance, parse_weight,
 };
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
@@ -58,8 +58,8 @@ pub struct SolverArgs {
     /// Weight of the histogram data term.
     #[arg(long, default_value_t = SolveParams::default().lambda, value_parser = parse_weight)]
     lambda: f32,
-    /// The most primal-dual iterations a unit runs at each level.
-    #[arg(long, default_value_t = SolveParams::default().iterations)]
+    /// The most primal-dual iterations a unit runs at each level (at least 1).
+    #[arg(long, default_value_t = SolveParams::default().iterations, value_parser = parse_iterations)]
     iterations: u32,
     /// A unit stops iterating at the first check (every 25 iterations) where its energy moved
     /// by at most this fraction; 0 runs all --iterations.
@@ -304,8 +304,8 @@ pub struct DemoArgs {
     /// Output folder: depth maps, the store, demo.ply.
     #[arg(long, default_value = "octstore-demo")]
     pub out: PathBuf,
-    /// Primal-dual iterations per level.
-    #[arg(long, default_value_t = 100)]
+    /// Primal-dual iterations per level (at least 1).
+    #[arg(long, default_value_t = 100, value_parser = parse_iterations)]
     pub iterations: u32,
     /// Where the histogram votes and the TGV iterations run (as for `solve`).
     #[arg(long, value_enum, default_value = "auto")]

@@ -122,6 +122,15 @@ pub(crate) fn parse_ratio(text: &str) -> Result<f32, ArgumentError> {
 }
 
 /// A finite fraction in [0, 1).
+/// An iteration cap of at least 1: with none, a level would be its starting guess, labelled
+/// solved.
+pub(crate) fn parse_iterations(text: &str) -> Result<u32, ArgumentError> {
+    match text.trim().parse::<u32>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(ArgumentError(format!("'{text}' is not an iteration count of at least 1"))),
+    }
+}
+
 pub(crate) fn parse_tolerance(text: &str) -> Result<f32, ArgumentError> {
     match text.trim().parse::<f32>() {
         Ok(t) if (0.0..1.0).contains(&t) => Ok(t),
