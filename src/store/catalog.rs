@@ -183,12 +183,17 @@ impl CatalogKey for u64 {
     }
 }
 
+/// A (name, number) key's bytes: the name, a zero byte, the number big-endian.
+fn pair_key_bytes(name: &str, big_endian: &[u8]) -> Vec<u8> {
+    let mut bytes = name.as_bytes().to_vec();
+    bytes.push(0);
+    bytes.extend_from_slice(big_endian);
+    bytes
+}
+
 impl CatalogKey for (&str, u64) {
     fn key_bytes(&self) -> Vec<u8> {
-        let mut bytes = self.0.as_bytes().to_vec();
-        bytes.push(0);
-        bytes.extend_from_slice(&self.1.to_be_bytes());
-        bytes
+        pair_key_bytes(self.0, &self.1.to_be_bytes())
     }
     fn describe(&self) -> String {
         format!("('{}', {})", self.0, self.1)
@@ -197,10 +202,7 @@ impl CatalogKey for (&str, u64) {
 
 impl CatalogKey for (&str, crate::format::CubeKey) {
     fn key_bytes(&self) -> Vec<u8> {
-        let mut bytes = self.0.as_bytes().to_vec();
-        bytes.push(0);
-        bytes.extend_from_slice(&self.1.to_be_bytes());
-        bytes
+        pair_key_bytes(self.0, &self.1.to_be_bytes())
     }
     fn describe(&self) -> String {
         format!("('{}', {:?})", self.0, self.1)
@@ -512,22 +514,12 @@ pub fn canonical_dump(db: &impl ReadableDatabase) -> Result<Vec<u8>, StoreError>
             }
         }};
     }
-    dump!(META, |k: &str| k.as_bytes().to_vec());
-    dump!(VERSIONS, |k: u64| k.to_be_bytes().to_vec());
-    dump!(DEPTH_MAPS, |k: u64| k.to_be_bytes().to_vec());
-    dump!(SEGMENTS, |k: &str| k.as_bytes().to_vec());
-    dump!(STAGE_RUNS, |k: &str| k.as_bytes().to_vec());
-    dump!(UNITS_DONE, |k: (&str, u64)| {
-        let mut v = k.0.as_bytes().to_vec();
-        v.push(0);
-        v.extend_from_slice(&k.1.to_be_bytes());
-        v
-    });
-    dump!(UNIT_STATE, |k: (&str, crate::format::CubeKey)| {
-        let mut v = k.0.as_bytes().to_vec();
-        v.push(0);
-        v.extend_from_slice(&k.1.to_be_bytes());
-        v
-    });
+    dump!(META, |k: &str| k.key_bytes());
+    dump!(VERSIONS, |k: u64| k.key_bytes());
+    dump!(DEPTH_MAPS, |k: u64| k.key_bytes());
+    dump!(SEGMENTS, |k: &str| k.key_bytes());
+    dump!(STAGE_RUNS, |k: &str| k.key_bytes());
+    dump!(UNITS_DONE, |k: (&str, u64)| k.key_bytes());
+    dump!(UNIT_STATE, |k: (&str, crate::format::CubeKey)| k.key_bytes());
     Ok(out)
 }
