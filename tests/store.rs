@@ -481,6 +481,27 @@ fn a_flipped_catalog_value_is_a_corruption_error_naming_table_and_key() {
         let text = format!("{}{}", stdout(&out), stderr(&out));
         assert!(text.contains("meta") && text.contains("'scene'"), "{args:?}: {text}");
     }
+
+    // A flip in redb's table directory renames a table, which would read as empty (a store
+    // without depth maps): verify names the stranger.
+    let renamed = dir.path().join("renamed");
+    let out = octstore(
+        &[
+            "ingest",
+            renamed.to_str().unwrap(),
+            frame.to_str().unwrap(),
+            "--max-depth",
+            "6",
+            "--quiet",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(flip_in_catalog(&renamed, b"depth_maps", 5) > 0);
+    let out = octstore(&["verify", renamed.to_str().unwrap()], &[]);
+    assert!(!out.status.success(), "verify passed a renamed table");
+    // '_' ^ 0x10 is 'O'.
+    assert!(stderr(&out).contains("unknown table 'depthOmaps'"), "{}", stderr(&out));
 }
 
 /// A reader in another process pins its version: `gc` keeps it while the reader lives and

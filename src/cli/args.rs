@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use clap::{Args, Parser, Subcommand};
 
 use super::parse::{
-    parse_depth_noise, parse_margin, parse_memory_budget, parse_noise_sigmas, parse_point, parse_ratio, parse_region,
-    parse_iterations, parse_root, parse_ssd_tolerance, parse_ssd_weight, parse_tolerance, parse_weight,
+    parse_depth_noise, parse_iterations, parse_margin, parse_memory_budget, parse_noise_sigmas, parse_point,
+    parse_ratio, parse_region, parse_root, parse_ssd_tolerance, parse_ssd_weight, parse_tolerance, parse_weight,
 };
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;

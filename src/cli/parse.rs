@@ -127,7 +127,9 @@ pub(crate) fn parse_ratio(text: &str) -> Result<f32, ArgumentError> {
 pub(crate) fn parse_iterations(text: &str) -> Result<u32, ArgumentError> {
     match text.trim().parse::<u32>() {
         Ok(n) if n >= 1 => Ok(n),
-        _ => Err(ArgumentError(format!("'{text}' is not an iteration count of at least 1"))),
+        _ => Err(ArgumentError(format!(
+            "'{text}' is not an iteration count of at least 1"
+        ))),
     }
 }
 

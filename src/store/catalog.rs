@@ -461,6 +461,24 @@ pub fn meta_u64(table: &impl ReadableTable<&'static str, &'static [u8]>, key: &s
 pub fn sealing_problems(db: &impl ReadableDatabase) -> Result<Vec<String>, StoreError> {
     let txn = db.begin_read()?;
     let mut problems = Vec::new();
+    // A flipped byte in redb's table directory renames a table: the store would read as if
+    // the table were empty (no depth maps, no segments).
+    const KNOWN: [&str; 8] = [
+        "meta",
+        "versions",
+        "version_times",
+        "segments",
+        "stage_runs",
+        "units_done",
+        "unit_state",
+        "depth_maps",
+    ];
+    for table in txn.list_tables()? {
+        let name = redb::TableHandle::name(&table);
+        if !KNOWN.contains(&name) {
+            problems.push(format!("catalog: an unknown table '{name}' (a damaged table name?)"));
+        }
+    }
     macro_rules! check {
         ($def:expr, $name:literal) => {{
             match txn.open_table($def) {
