@@ -625,7 +625,10 @@ fn numbers_out_of_range_are_refused_before_anything_is_written() {
         ),
         (vec!["solve", s, "--alpha0", "inf"], "not a finite weight"),
         (vec!["solve", s, "--leaf-cubes", "0"], "0 is not in 64.."),
-        (vec!["solve", s, "--iterations", "0"], "not an iteration count of at least 1"),
+        (
+            vec!["solve", s, "--iterations", "0"],
+            "not an iteration count of at least 1",
+        ),
     ] {
         let out = octstore(&args, &[]);
         assert!(!out.status.success(), "{args:?} succeeded");
