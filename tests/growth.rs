@@ -73,6 +73,10 @@ fn a_kitchen_store_grows_to_take_frames_beyond_its_root() {
     let grown = dir.path().join("grown");
     ingest(&grown, &FIRST, &["--max-depth", "8"]);
     let first = read_scene(&octstore::Store::open(&grown).unwrap()).unwrap().unwrap();
+    // The surface before growth, and the version it was solved in.
+    let before = solve_and_extract(&grown);
+    let before_bytes = std::fs::read(&before).unwrap();
+    let solved = octstore::Store::open(&grown).unwrap().current_version().unwrap();
     let summary = ingest(&grown, &LATER, &[]);
     assert!(summary.contains("root grown"), "{summary}");
 
@@ -82,11 +86,26 @@ fn a_kitchen_store_grows_to_take_frames_beyond_its_root() {
     assert!(doublings >= 1, "{summary}");
     assert_eq!(scene.root_side, first.root_side * f64::from(1u32 << doublings));
     assert_eq!(scene.cube_side(scene.max_depth), first.cube_side(first.max_depth));
-    // The first version keeps the scene its cubes were keyed in.
+    // Earlier versions keep the scene their cubes were keyed in.
     assert_eq!(scene_at(&store, 1).unwrap(), Some(first));
-    assert_eq!(scene_at(&store, 2).unwrap(), Some(scene));
+    assert_eq!(scene_at(&store, solved).unwrap(), Some(first));
+    assert_eq!(scene_at(&store, solved + 1).unwrap(), Some(scene));
     drop(store);
     run(&["verify".into(), grown.display().to_string()]);
+    // The pre-growth version still extracts to the very same mesh.
+    let again = dir.path().join("before-again.ply");
+    run(&[
+        "extract".into(),
+        grown.display().to_string(),
+        "--version".into(),
+        solved.to_string(),
+        "-o".into(),
+        again.display().to_string(),
+    ]);
+    assert!(
+        std::fs::read(&again).unwrap() == before_bytes,
+        "version {solved} reads differently after growth"
+    );
 
     // A batch build of the six frames in the grown root (same cubes, so the same surface up
     // to the rounding of re-keyed radius sums).
