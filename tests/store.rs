@@ -426,6 +426,24 @@ fn flip_in_catalog(store: &std::path::Path, needle: &[u8], offset: usize) -> usi
     flipped
 }
 
+/// A store holding RedKitchen's frame 0 at `--max-depth 6`, made by the CLI.
+fn ingest_one_kitchen_frame(store: &std::path::Path) {
+    let frame = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/7scenes-redkitchen/frame-000000.depth.png");
+    let out = octstore(
+        &[
+            "ingest",
+            store.to_str().unwrap(),
+            frame.to_str().unwrap(),
+            "--max-depth",
+            "6",
+            "--quiet",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+}
+
 /// One flipped byte in a live catalog value (a version record; the root cube's minimum, which
 /// would shift every extracted vertex) is a corruption error that names the table and the key,
 /// on every read and in `verify`, never a wrong answer.
@@ -453,21 +471,8 @@ fn a_flipped_catalog_value_is_a_corruption_error_naming_table_and_key() {
     drop(opened);
 
     // The scene of a real ingest: its root minimum's bytes, flipped, stop extraction and verify.
-    let kitchen = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/7scenes-redkitchen");
-    let frame = kitchen.join("frame-000000.depth.png");
     let ingested = dir.path().join("ingested");
-    let out = octstore(
-        &[
-            "ingest",
-            ingested.to_str().unwrap(),
-            frame.to_str().unwrap(),
-            "--max-depth",
-            "6",
-            "--quiet",
-        ],
-        &[],
-    );
-    assert!(out.status.success(), "{}", stderr(&out));
+    ingest_one_kitchen_frame(&ingested);
     let scene = octstore::stages::ingest::read_scene(&Store::open(&ingested).unwrap())
         .unwrap()
         .unwrap();
@@ -485,18 +490,7 @@ fn a_flipped_catalog_value_is_a_corruption_error_naming_table_and_key() {
     // A flip in redb's table directory renames a table, which would read as empty (a store
     // without depth maps): verify names the stranger.
     let renamed = dir.path().join("renamed");
-    let out = octstore(
-        &[
-            "ingest",
-            renamed.to_str().unwrap(),
-            frame.to_str().unwrap(),
-            "--max-depth",
-            "6",
-            "--quiet",
-        ],
-        &[],
-    );
-    assert!(out.status.success(), "{}", stderr(&out));
+    ingest_one_kitchen_frame(&renamed);
     assert!(flip_in_catalog(&renamed, b"depth_maps", 5) > 0);
     let out = octstore(&["verify", renamed.to_str().unwrap()], &[]);
     assert!(!out.status.success(), "verify passed a renamed table");
