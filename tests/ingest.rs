@@ -63,6 +63,7 @@ fn build(dir: &Path, inputs: &[Vec<PathBuf>], root: Option<([f64; 3], f64)>, max
                 root,
                 root_margin: 0.1,
                 max_depth,
+                ..IngestOptions::default()
             },
         )
         .unwrap();
@@ -134,7 +135,7 @@ fn manifest_formats_and_pose_conventions_back_project_onto_the_surface() {
     assert_eq!(sources[2].weight, 5.0, "LIDAR votes weigh 5 by default");
     assert!(matches!(sources[2].format, ImageFormat::Png16 { .. }));
     for source in &sources {
-        let samples = back_project(source, &source.load().unwrap());
+        let samples = back_project(source, &source.load().unwrap()).unwrap();
         assert!(samples.points.len() > 300, "{}", source.path.display());
         for p in &samples.points {
             let d = spec.signed_distance(*p).abs();
@@ -163,22 +164,6 @@ fn write_npy(path: &Path, image: &DepthImage) {
         out.extend_from_slice(&d.to_le_bytes());
     }
     std::fs::write(path, out).unwrap();
-}
-
-fn write_png16(path: &Path, image: &DepthImage, scale: f64) {
-    let pixels: Vec<u16> = image
-        .depth
-        .iter()
-        .map(|d| {
-            if d.is_finite() {
-                (f64::from(*d) / scale).round() as u16
-            } else {
-                0
-            }
-        })
-        .collect();
-    let buffer = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(image.width, image.height, pixels).unwrap();
-    buffer.save(path).unwrap();
 }
 
 #[test]
@@ -282,7 +267,7 @@ fn invalid_depths_are_skipped_and_counted() {
         noise: octstore::inputs::DepthNoise::Footprint,
     };
     let loaded = source.load().unwrap();
-    let samples = back_project(&source, &loaded);
+    let samples = back_project(&source, &loaded).unwrap();
     assert_eq!(samples.stats.absurd, 1, "{:?}", samples.stats);
     let invalid_expected = loaded.depth.iter().filter(|d| !d.is_finite()).count() as u64;
     assert_eq!(samples.stats.invalid, invalid_expected);

@@ -99,7 +99,7 @@ fn colmap_workspaces_binary_and_text_back_project_onto_the_surface() {
                 panic!("pinhole expected");
             };
             assert_eq!((cx, cy), (24.0, 18.0));
-            let samples = back_project(source, &source.load().unwrap());
+            let samples = back_project(source, &source.load().unwrap()).unwrap();
             assert!(samples.points.len() > 300, "{}", source.path.display());
             for p in &samples.points {
                 let d = surface_distance(&spec, *p);
@@ -173,8 +173,10 @@ fn bad_colmap_workspaces_name_the_file_and_the_problem() {
     let depth = dir.path().join("stereo/depth_maps/img-000.jpg.geometric.bin");
     let bytes = std::fs::read(&depth).unwrap();
     std::fs::write(&depth, &bytes[..100]).unwrap();
-    let sources = discover(&[dir.path().to_path_buf()], &DiscoverOptions::default()).unwrap();
-    let err = sources[0].load().err().unwrap().to_string();
+    // Caught at discovery: the header's size is checked against the file's length.
+    let err = discover(&[dir.path().to_path_buf()], &DiscoverOptions::default())
+        .unwrap_err()
+        .to_string();
     assert!(
         err.contains("img-000.jpg.geometric.bin") && err.contains("truncated"),
         "{err}"
@@ -331,7 +333,7 @@ fn lidar_scans_from_ptx_and_e57_agree_and_back_project_onto_the_surface() {
         // A return sits on its pixel's central ray: off the surface by at most about its range
         // times the grid's step, more only at grazing angles.
         let step = std::f64::consts::TAU / f64::from(a.width);
-        let samples = back_project(a, &image_a);
+        let samples = back_project(a, &image_a).unwrap();
         let origin = pose.w_axis.truncate();
         let mut relative: Vec<f64> = samples
             .points

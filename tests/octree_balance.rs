@@ -30,11 +30,14 @@ impl Stage for Runs {
         let keys = self.0[unit.id as usize].clone();
         let n = keys.len();
         Ok(UnitOutput {
-            segments: vec![vec![
-                Column::keys(keys),
-                Column::new("radius_sum", 1, ColumnValues::U64(vec![7; n])),
-                Column::new("radius_count", 1, ColumnValues::U32(vec![1; n])),
-            ]],
+            segments: vec![
+                vec![
+                    Column::keys(keys),
+                    Column::new("radius_sum", 1, ColumnValues::U64(vec![7; n])),
+                    Column::new("radius_count", 1, ColumnValues::U32(vec![1; n])),
+                ]
+                .into(),
+            ],
             extra: Vec::new(),
             block_rows: 16,
         })

@@ -57,6 +57,7 @@ fn pipeline(
             root: None,
             root_margin: 0.2,
             max_depth,
+            ..IngestOptions::default()
         },
     )
     .unwrap();
@@ -335,6 +336,7 @@ fn sphere_maps(root: &std::path::Path, cameras: usize) -> (Vec<octstore::inputs:
         root: Some(([-4.0, -4.0, -4.0], 8.0)),
         root_margin: 0.0,
         max_depth: 6,
+        ..IngestOptions::default()
     };
     (all, fixed)
 }

@@ -43,6 +43,7 @@ fn ingested_sphere(dir: &std::path::Path, max_depth: u8) -> Store {
         root: None,
         root_margin: 0.2,
         max_depth,
+        ..IngestOptions::default()
     };
     ingest(&store, &[manifest], &DiscoverOptions::default(), &options, &run(2)).unwrap();
     store

@@ -34,6 +34,7 @@ pub(super) fn ingest(global: &GlobalOptions, args: IngestArgs) -> Result<()> {
         root: args.root,
         root_margin: args.root_margin,
         max_depth: args.max_depth,
+        memory_budget: global.memory_budget,
     };
     let report = pipeline::ingest(
         &store,

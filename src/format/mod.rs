@@ -10,7 +10,7 @@ pub mod segment;
 mod world;
 
 pub use key::{CubeKey, MAX_DEPTH};
-pub use segment::{Column, ColumnValues, ElementType, SegmentReader, SegmentSummary};
+pub use segment::{Column, ColumnShape, ColumnValues, ElementType, SegmentReader, SegmentSummary};
 pub use world::{BoundingBox, META_SCENE, RADIUS_FRACTION_BITS, Scene};
 
 #[cfg(target_endian = "big")]

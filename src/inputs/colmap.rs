@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 
 use super::depth_map::{DepthImage, DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
+use super::image_files::FloatLayout;
 
 /// One camera of `cameras.bin` / `cameras.txt`; only undistorted pinhole models are usable.
 #[derive(Clone, Debug, PartialEq)]
@@ -337,8 +338,8 @@ fn depth_header(path: &Path, bytes: &[u8]) -> Result<(u32, u32, u32, usize), Inp
     Ok((width as u32, height as u32, channels as u32, pos))
 }
 
-/// Size of a COLMAP depth map from its header.
-pub fn colmap_depth_size(path: &Path) -> Result<(u32, u32), InputError> {
+/// Where a COLMAP depth map's floats lie: little-endian, row-major after the text header.
+pub fn colmap_depth_layout(path: &Path) -> Result<FloatLayout, InputError> {
     use std::io::Read;
     let mut head = Vec::with_capacity(64);
     std::fs::File::open(path)
@@ -347,24 +348,15 @@ pub fn colmap_depth_size(path: &Path) -> Result<(u32, u32), InputError> {
             file: path.to_path_buf(),
             source,
         })?;
-    let (width, height, _, _) = depth_header(path, &head)?;
-    Ok((width, height))
-}
-
-/// Reads a COLMAP depth map: float32 little-endian, row-major after the text header; values
-/// that are not finite and positive are invalid.
-pub fn read_colmap_depth(path: &Path) -> Result<DepthImage, InputError> {
-    let bytes = read_bytes(path)?;
-    let (width, height, _, start) = depth_header(path, &bytes)?;
-    let count = width as usize * height as usize;
-    let data = bytes
-        .get(start..start + count * 4)
-        .ok_or_else(|| bad(path, format!("truncated COLMAP depth map: {count} floats expected")))?;
-    Ok(DepthImage {
+    let (width, height, _, start) = depth_header(path, &head)?;
+    FloatLayout {
         width,
         height,
-        depth: super::image_files::depths_from_f32_le(data),
-    })
+        data_start: start as u64,
+        little_endian: true,
+        bottom_up: false,
+    }
+    .check_length(path, "COLMAP depth map")
 }
 
 /// Writes a COLMAP depth map (tests and tools produce inputs with it).
@@ -417,7 +409,7 @@ pub fn workspace(dir: &Path) -> Result<Vec<DepthMapSource>, InputError> {
             )
         })?;
         let (fx, fy, cx, cy) = pinhole(&sparse, image.camera_id, camera)?;
-        let (width, height) = colmap_depth_size(&depth_path)?;
+        let FloatLayout { width, height, .. } = colmap_depth_layout(&depth_path)?;
         if camera.width == 0 || camera.height == 0 {
             return Err(bad(&sparse, format!("camera {} has zero size", image.camera_id)));
         }

@@ -10,7 +10,7 @@ use super::colmap;
 use super::depth_map::{
     DEFAULT_NOISE_SIGMAS, DepthMapSource, DepthNoise, ImageFormat, InputError, Kind, Projection, bad, check_pose,
 };
-use super::image_files::{read_npy, read_pfm};
+use super::image_files::{npy_layout, pfm_layout};
 use super::lidar;
 use super::tum;
 
@@ -528,14 +528,9 @@ fn image_size(path: &Path, format: &ImageFormat) -> Result<(u32, u32), InputErro
         ImageFormat::Png16 { .. } => {
             image::image_dimensions(path).map_err(|e| bad(path, format!("unreadable PNG: {e}")))
         }
-        ImageFormat::Pfm | ImageFormat::NpyF32 => {
-            let image = match format {
-                ImageFormat::Pfm => read_pfm(path)?,
-                _ => read_npy(path)?,
-            };
-            Ok((image.width, image.height))
-        }
-        ImageFormat::ColmapBin => colmap::colmap_depth_size(path),
+        ImageFormat::Pfm => pfm_layout(path).map(|l| (l.width, l.height)),
+        ImageFormat::NpyF32 => npy_layout(path).map(|l| (l.width, l.height)),
+        ImageFormat::ColmapBin => colmap::colmap_depth_layout(path).map(|l| (l.width, l.height)),
         ImageFormat::Ptx { .. } | ImageFormat::E57 { .. } => Err(bad(
             path,
             "the size of a LIDAR scan's grid is decided when it is discovered, not read from a header",

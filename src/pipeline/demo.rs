@@ -86,6 +86,7 @@ pub fn demo(options: &DemoOptions, mut on_report: impl FnMut(&RunReport)) -> Res
         root: None,
         root_margin: 0.05,
         max_depth: DEMO_MAX_DEPTH,
+        memory_budget: options.memory_budget,
     };
     on_report(&ingest(
         &store,

@@ -128,7 +128,14 @@ pub fn ingest(
             summary: "up to date: every depth map is already in the store".into(),
         });
     }
-    Ok(store.run_stage(&stage, run)?)
+    let report = store.run_stage(&stage, run);
+    // Spilled runs are unlinked files: the folder is empty once the run ends, either way.
+    let scratch = store.scratch_path(INGEST);
+    let _ = std::fs::remove_dir(&scratch);
+    if let Some(parent) = scratch.parent() {
+        let _ = std::fs::remove_dir(parent);
+    }
+    Ok(report?)
 }
 
 /// Runs the pending stages up to `options.until`: the octree, (for SSD) the samples, the

@@ -108,7 +108,7 @@ impl Stage for ExerciseStage {
             std::thread::sleep(std::time::Duration::from_millis(self.delay_ms));
         }
         Ok(UnitOutput {
-            segments: vec![self.unit_columns(unit.id)],
+            segments: vec![self.unit_columns(unit.id).into()],
             extra: Vec::new(),
             block_rows: 0,
         })

@@ -428,11 +428,14 @@ impl Stage for HistogramsStage {
                 },
                 voter.votes,
             ));
-            segments.push(vec![
-                Column::keys(voter.keys),
-                Column::new("hist", BINS as u16, ColumnValues::F32(voter.hist)),
-                Column::new("distance", 2, ColumnValues::F32(voter.distance)),
-            ]);
+            segments.push(
+                vec![
+                    Column::keys(voter.keys),
+                    Column::new("hist", BINS as u16, ColumnValues::F32(voter.hist)),
+                    Column::new("distance", 2, ColumnValues::F32(voter.distance)),
+                ]
+                .into(),
+            );
         }
         Ok(UnitOutput {
             segments,

@@ -321,7 +321,7 @@ impl Stage for SamplesStage {
         let mut columns = vec![Column::keys(keys)];
         columns.extend(moment_columns(&sums));
         Ok(UnitOutput {
-            segments: vec![columns],
+            segments: vec![columns.into()],
             extra: catalog::encode(&with_samples),
             block_rows: 0,
         })

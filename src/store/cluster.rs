@@ -316,9 +316,9 @@ impl Store {
                 .ok_or_else(|| cluster_error(name, format!("unit {unit}"), "not part of the stage's plan"))?;
             let output = stage.run_unit(&base, spec)?;
             let mut segments = Vec::with_capacity(output.segments.len());
-            for (part, columns) in output.segments.iter().enumerate() {
+            for (part, content) in output.segments.into_iter().enumerate() {
                 let file = super::runner::segment_name(name, plan.target(), unit, part);
-                let summary = self.write_segment_in(&dir, &file, columns, output.block_rows)?;
+                let summary = self.write_segment_in(&dir, &file, content, output.block_rows)?;
                 let record = SegmentRecord::written(name, unit, part, &summary, plan.target());
                 segments.push((file, record));
             }

@@ -17,6 +17,7 @@ pub mod failpoint;
 mod pins;
 pub mod runner;
 pub mod snapshot;
+mod spill;
 pub mod verify;
 
 use std::fs::{self, File};
@@ -26,8 +27,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use redb::{ReadableDatabase, ReadableTable};
 
-use crate::format::segment::{DEFAULT_BLOCK_ROWS, encode_segment_with_block_rows};
-use crate::format::{Column, DecodeError, SegmentSummary};
+use crate::format::segment::{DEFAULT_BLOCK_ROWS, encode_segment_streamed, encode_segment_with_block_rows};
+use crate::format::{DecodeError, SegmentSummary};
 use catalog::{
     CATALOG_FORMAT_VERSION, META, META_CURRENT_VERSION, META_FORMAT_VERSION, META_GC_HORIZON, SEGMENTS, STAGE_RUNS,
     UNIT_STATE, UNITS_DONE, VERSION_TIMES, VERSIONS, VersionRecord,
@@ -35,6 +36,7 @@ use catalog::{
 pub use failpoint::IoFaults;
 pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSpec};
 pub use snapshot::{SegmentFile, Snapshot};
+pub use spill::{SegmentContent, SegmentSpill};
 
 /// The catalog's file name inside a store folder.
 pub const CATALOG_FILE: &str = "catalog.redb";
@@ -485,12 +487,17 @@ impl Store {
 
     /// A stage's scratch folder, created empty.
     pub fn scratch_dir(&self, stage: &str) -> Result<PathBuf> {
-        let dir = self.root.join(SCRATCH_DIR).join(stage);
+        let dir = self.scratch_path(stage);
         if dir.exists() {
             fs::remove_dir_all(&dir).map_err(io_error("remove scratch", &dir))?;
         }
         fs::create_dir_all(&dir).map_err(io_error("create scratch", &dir))?;
         Ok(dir)
+    }
+
+    /// Where `stage` keeps scratch files (not created).
+    pub fn scratch_path(&self, stage: &str) -> PathBuf {
+        self.root.join(SCRATCH_DIR).join(stage)
     }
 
     /// Whether this handle was opened read-only.
@@ -571,11 +578,16 @@ impl Store {
 
     /// Writes one segment through the commit protocol's file steps: temporary name, fsync,
     /// rename, directory fsync. The caller then records it in a catalog transaction.
-    pub(crate) fn write_segment_file(&self, name: &str, columns: &[Column], block_rows: u32) -> Result<SegmentSummary> {
+    pub(crate) fn write_segment_file(
+        &self,
+        name: &str,
+        content: SegmentContent,
+        block_rows: u32,
+    ) -> Result<SegmentSummary> {
         self.writable()?;
         let final_path = self.segment_path(name);
         let temp_path = self.segment_path(&format!("{name}{TEMP_SUFFIX}"));
-        self.write_segment_at(&temp_path, &final_path, columns, block_rows)
+        self.write_segment_at(&temp_path, &final_path, content, block_rows)
     }
 
     /// Writes a segment into `dir` (a cluster chunk folder) through a temporary name unique to
@@ -585,7 +597,7 @@ impl Store {
         &self,
         dir: &Path,
         name: &str,
-        columns: &[Column],
+        content: SegmentContent,
         block_rows: u32,
     ) -> Result<SegmentSummary> {
         let temp_name = format!(
@@ -597,17 +609,17 @@ impl Store {
             |c: char| !c.is_ascii_alphanumeric() && c != '.' && c != '-' && c != '_',
             "",
         );
-        self.write_segment_at(&dir.join(temp_name), &dir.join(name), columns, block_rows)
+        self.write_segment_at(&dir.join(temp_name), &dir.join(name), content, block_rows)
     }
 
     fn write_segment_at(
         &self,
         temp_path: &Path,
         final_path: &Path,
-        columns: &[Column],
+        content: SegmentContent,
         block_rows: u32,
     ) -> Result<SegmentSummary> {
-        let result = self.write_segment_steps(temp_path, final_path, columns, block_rows);
+        let result = self.write_segment_steps(temp_path, final_path, content, block_rows);
         if result.is_err() {
             // Best effort: debris left here is also removed on the next open.
             let _ = fs::remove_file(temp_path);
@@ -619,7 +631,7 @@ impl Store {
         &self,
         temp_path: &Path,
         final_path: &Path,
-        columns: &[Column],
+        content: SegmentContent,
         block_rows: u32,
     ) -> Result<SegmentSummary> {
         let file = File::create(temp_path).map_err(io_error("create", temp_path))?;
@@ -635,7 +647,15 @@ impl Store {
         } else {
             block_rows
         };
-        let summary = encode_segment_with_block_rows(columns, block_rows, &mut writer).map_err(|e| match e {
+        let encoded = match content {
+            SegmentContent::Columns(columns) => encode_segment_with_block_rows(&columns, block_rows, &mut writer),
+            SegmentContent::Spilled(spill) => {
+                let (shapes, rows, mut sources) =
+                    spill.into_sources().map_err(io_error("read scratch of", temp_path))?;
+                encode_segment_streamed(&shapes, rows, &mut sources, block_rows, &mut writer)
+            }
+        };
+        let summary = encoded.map_err(|e| match e {
             crate::format::EncodeError::Io(source) => StoreError::Io {
                 action: "write",
                 path: temp_path.to_path_buf(),

@@ -20,8 +20,7 @@ use super::catalog::{
     self, META, META_CURRENT_VERSION, SEGMENTS, STAGE_RUNS, SegmentRecord, StageRun, UNITS_DONE, UnitRecord,
     VERSION_TIMES, VERSIONS, VersionRecord,
 };
-use super::{Result, Snapshot, Store, StoreError, failpoint};
-use crate::format::Column;
+use super::{Result, SegmentContent, Snapshot, Store, StoreError, failpoint};
 
 /// One unit of work of a stage run.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -57,8 +56,9 @@ pub struct Plan {
 /// handed to [`Stage::finish`].
 #[derive(Default)]
 pub struct UnitOutput {
-    /// One segment per entry, each as its columns (the key column first).
-    pub segments: Vec<Vec<Column>>,
+    /// One segment per entry, each as its columns (the key column first), in memory or
+    /// spilled to scratch files.
+    pub segments: Vec<SegmentContent>,
     /// Stage-specific bytes recorded with the unit (its catalog state).
     pub extra: Vec<u8>,
     /// Rows per compressed block of the unit's segments (0: the format's default).
@@ -356,9 +356,9 @@ impl Store {
     ) -> Result<ProducedUnit> {
         let output = stage.run_unit(base, unit)?;
         let mut written = Vec::with_capacity(output.segments.len());
-        for (part, columns) in output.segments.iter().enumerate() {
+        for (part, content) in output.segments.into_iter().enumerate() {
             let file = segment_name(stage.name(), target, unit.id, part);
-            let summary = self.write_segment_file(&file, columns, output.block_rows)?;
+            let summary = self.write_segment_file(&file, content, output.block_rows)?;
             let record = SegmentRecord::written(stage.name(), unit.id, part, &summary, target);
             written.push((file, record));
         }

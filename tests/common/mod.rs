@@ -167,3 +167,20 @@ impl KillTrials<'_> {
         );
     }
 }
+
+/// Writes `image` as a 16-bit grey PNG in units of `scale` (invalid depths as 0).
+pub fn write_png16(path: &Path, image: &octstore::inputs::DepthImage, scale: f64) {
+    let pixels: Vec<u16> = image
+        .depth
+        .iter()
+        .map(|d| {
+            if d.is_finite() {
+                (f64::from(*d) / scale).round() as u16
+            } else {
+                0
+            }
+        })
+        .collect();
+    let buffer = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(image.width, image.height, pixels).unwrap();
+    buffer.save(path).unwrap();
+}

@@ -12,7 +12,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 use redb::ReadableTable;
 
-use super::{back_project, bounds_sample, input_error, robust_bounds};
+use super::{bounds_sample, input_error, map_samples, robust_bounds};
 use crate::format::{Column, ColumnValues, META_SCENE, Scene};
 use crate::inputs::DepthMapSource;
 use crate::store::catalog::{self, META};
@@ -66,12 +66,12 @@ pub fn root_is_fixed(store: &Store) -> Result<bool> {
 /// The doublings that let `scene` hold every new map's samples: the union of each map's robust
 /// box (0.1 % to 99.9 % per axis, spikes left out, as the first ingest sizes its root), so a
 /// map that sees a far corner is not trimmed away by the others.
-pub fn growth_for(scene: &Scene, maps: &[(u64, DepthMapSource)]) -> Result<Vec<[u32; 3]>> {
+pub fn growth_for(scene: &Scene, maps: &[(u64, DepthMapSource)], map_memory: u64) -> Result<Vec<[u32; 3]>> {
     let boxes: Vec<Option<(DVec3, DVec3)>> = maps
         .par_iter()
         .map(|(_, source)| {
-            let image = source.load().map_err(input_error)?;
-            Ok(robust_bounds(&bounds_sample(&back_project(source, &image), 20_000)))
+            let sample = bounds_sample(map_samples(source, map_memory)?, 20_000).map_err(input_error)?;
+            Ok(robust_bounds(&sample))
         })
         .collect::<Result<_>>()?;
     let Some((lo, hi)) = boxes

@@ -14,7 +14,13 @@ use redb::{ReadableTable, WriteTransaction};
 use serde::{Deserialize, Serialize};
 use xxhash_rust::xxh3::Xxh3;
 
+mod back_projection;
+mod cube_runs;
 mod growth;
+
+pub use back_projection::{
+    DepthRowSource, ImageRows, Sample, SampleStream, Samples, back_project, bounds_sample, open_rows, robust_bounds,
+};
 
 pub use growth::{
     GROWTH_MARGIN, MAX_DOUBLINGS_PER_INGEST, META_ROOT_FIXED, META_SCENE_UNTIL_PREFIX, RADIUS_SUM, root_is_fixed,
@@ -22,11 +28,12 @@ pub use growth::{
 };
 
 use super::INGEST;
-use super::samples::{Moments, moment_columns};
-use crate::format::{Column, ColumnValues, CubeKey, META_SCENE, Scene};
-use crate::inputs::{DepthImage, DepthMapSource, DepthNoise, InputError, Projection};
+use super::samples::Moments;
+use crate::format::{META_SCENE, Scene};
+use crate::inputs::{DepthMapSource, DepthNoise, InputError, Projection};
 use crate::store::catalog::{self, META, UnitRecord};
-use crate::store::{Plan, Replace, Result, Snapshot, Stage, Store, StoreError, UnitOutput, UnitSpec};
+use crate::store::{Plan, Replace, Result, SegmentContent, Snapshot, Stage, Store, StoreError, UnitOutput, UnitSpec};
+use cube_runs::CubeRuns;
 
 pub use crate::store::catalog::DEPTH_MAPS;
 
@@ -36,9 +43,6 @@ pub const RUN_BLOCK_ROWS: u32 = 1024;
 /// The column of ingest runs and octree segments that counts, per cube, the spikes among the
 /// samples that spawned it (format-spec.md, "Columns used by stages").
 pub const SPIKE_COUNT: &str = "spike_count";
-
-/// A depth is absurd when it exceeds this multiple of the map's median depth.
-const ABSURD_DEPTH_FACTOR: f32 = 1.0e4;
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 pub struct DepthMapRecord {
@@ -74,225 +78,6 @@ impl SampleStats {
         self.isolated += o.isolated;
         self.outside += o.outside;
     }
-}
-
-/// Back-projected samples of one depth map: world positions and radii r_x (paper 4.1: half
-/// the 3D distance to the neighbouring samples; the nearest valid 4-neighbour here, which is
-/// robust at depth discontinuities), widened by the map's noise model (`DepthNoise::radius`).
-pub struct Samples {
-    pub points: Vec<DVec3>,
-    pub radii: Vec<f64>,
-    /// Whether each sample is a spike: fewer than two of its 4-neighbours lie within
-    /// `SPIKE_SPACING` pixel footprints.
-    pub spikes: Vec<bool>,
-    /// World-frame unit normals from the local depth gradient, oriented towards the camera;
-    /// zero where no neighbour on one of the axes is valid.
-    pub normals: Vec<DVec3>,
-    /// The surface area each sample stands for: the squared distance to its nearest valid
-    /// 4-neighbour (world units).
-    pub areas: Vec<f64>,
-    pub stats: SampleStats,
-}
-
-pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Samples {
-    let grid = CameraGrid::new(source, image);
-    let mut stats = grid.stats;
-    let pose = source.pose();
-    let pixel_angle = source.pixel_angle();
-    // Sized for every pixel up front: grown by doubling, the three columns were copied about
-    // twice over and their fresh pages faulted in again (a sixth of ingest's time).
-    let valid = grid.points.iter().filter(|p| p.is_some()).count();
-    let mut points = Vec::with_capacity(valid);
-    let mut radii = Vec::with_capacity(valid);
-    let mut spikes = Vec::with_capacity(valid);
-    let mut normals = Vec::with_capacity(valid);
-    let mut areas = Vec::with_capacity(valid);
-    let rotation = glam::DMat3::from_mat4(pose);
-    for j in 0..grid.height {
-        for i in 0..grid.width {
-            let Some(p) = grid.at(i, j) else { continue };
-            let reach = SPIKE_SPACING * pixel_angle * p.length();
-            let (mut nearest, mut close) = (f64::INFINITY, 0);
-            for q in grid.neighbours(i, j) {
-                let distance = (q - p).length();
-                nearest = nearest.min(distance);
-                close += usize::from(distance <= reach);
-            }
-            if !nearest.is_finite() || nearest <= 0.0 {
-                stats.isolated += 1;
-                continue;
-            }
-            let depth = match source.projection {
-                Projection::Pinhole { .. } => p.z,
-                Projection::Spherical => p.length(),
-            };
-            points.push(pose.transform_point3(p));
-            radii.push(source.noise.radius(nearest * 0.5, depth));
-            spikes.push(close < 2);
-            normals.push(
-                grid.normal(i, j, p)
-                    .map_or(DVec3::ZERO, |n| (rotation * n).normalize_or_zero()),
-            );
-            areas.push(nearest * nearest);
-        }
-    }
-    stats.samples = points.len() as u64;
-    Samples {
-        points,
-        radii,
-        spikes,
-        normals,
-        areas,
-        stats,
-    }
-}
-
-/// A depth map's valid pixels as camera-frame points, with their 4-neighbourhoods (wrapping
-/// around horizontally for spherical maps).
-struct CameraGrid {
-    width: usize,
-    height: usize,
-    wraps: bool,
-    points: Vec<Option<DVec3>>,
-    stats: SampleStats,
-}
-
-impl CameraGrid {
-    fn new(source: &DepthMapSource, image: &DepthImage) -> CameraGrid {
-        let (width, height) = (image.width as usize, image.height as usize);
-        let mut stats = SampleStats {
-            pixels: (width * height) as u64,
-            ..SampleStats::default()
-        };
-        let mut valid: Vec<f32> = image
-            .depth
-            .iter()
-            .copied()
-            .filter(|d| d.is_finite() && *d > 0.0)
-            .collect();
-        stats.invalid = stats.pixels - valid.len() as u64;
-        let median = if valid.is_empty() {
-            0.0
-        } else {
-            let mid = valid.len() / 2;
-            *valid.select_nth_unstable_by(mid, f32::total_cmp).1
-        };
-        let limit = median * ABSURD_DEPTH_FACTOR;
-        let points = (0..width * height)
-            .map(|index| {
-                let d = image.depth.get(index).copied().unwrap_or(f32::NAN);
-                if !(d.is_finite() && d > 0.0) || d > limit {
-                    return None;
-                }
-                let (i, j) = ((index % width) as f64, (index / width) as f64);
-                Some(source.ray(i, j) * f64::from(d))
-            })
-            .collect();
-        stats.absurd = image
-            .depth
-            .iter()
-            .filter(|d| d.is_finite() && **d > 0.0 && **d > limit)
-            .count() as u64;
-        CameraGrid {
-            width,
-            height,
-            wraps: matches!(source.projection, crate::inputs::Projection::Spherical),
-            points,
-            stats,
-        }
-    }
-
-    fn at(&self, i: usize, j: usize) -> Option<DVec3> {
-        self.points.get(j * self.width + i).copied().flatten()
-    }
-
-    /// The valid ones among the left, right, upper and lower neighbours of pixel (i, j).
-    fn neighbours(&self, i: usize, j: usize) -> impl Iterator<Item = DVec3> + '_ {
-        self.neighbour_pixels(i, j)
-            .into_iter()
-            .filter_map(|(ni, nj)| self.at(ni?, nj?))
-    }
-
-    /// The camera-frame normal at pixel (i, j), whose point is `p`: the cross product of the
-    /// depth gradient along the rows and along the columns, each taken towards the neighbour
-    /// nearer to `p` (a difference across a depth edge would tilt it), oriented towards the
-    /// camera. `None` when an axis has no valid neighbour.
-    fn normal(&self, i: usize, j: usize, p: DVec3) -> Option<DVec3> {
-        let [left, right, up, down] = self.neighbour_pixels(i, j).map(|(ni, nj)| self.at(ni?, nj?));
-        let along = |before: Option<DVec3>, after: Option<DVec3>| match (before, after) {
-            (Some(b), Some(a)) if (a - p).length() <= (p - b).length() => Some(a - p),
-            (Some(b), _) => Some(p - b),
-            (None, Some(a)) => Some(a - p),
-            (None, None) => None,
-        };
-        let n = along(left, right)?.cross(along(up, down)?).normalize_or_zero();
-        if n == DVec3::ZERO {
-            return None;
-        }
-        Some(if n.dot(p) > 0.0 { -n } else { n })
-    }
-
-    /// Left, right, upper and lower neighbours of pixel (i, j), wrapping around horizontally
-    /// for spherical maps; a `None` coordinate lies outside the image.
-    fn neighbour_pixels(&self, i: usize, j: usize) -> [(Option<usize>, Option<usize>); 4] {
-        let left = i
-            .checked_sub(1)
-            .or(if self.wraps { self.width.checked_sub(1) } else { None });
-        let right = if i + 1 < self.width {
-            Some(i + 1)
-        } else if self.wraps {
-            Some(0)
-        } else {
-            None
-        };
-        let up = j.checked_sub(1);
-        let down = if j + 1 < self.height { Some(j + 1) } else { None };
-        [(left, Some(j)), (right, Some(j)), (Some(i), up), (Some(i), down)]
-    }
-}
-
-/// A sample with fewer than two 4-neighbours within this many pixel footprints is a spike (an
-/// isolated wrong depth, or a pair of them). Surfaces seen at up to about 80 degrees from
-/// head-on keep their neighbours within it; random outlier depths almost never have two.
-/// Spikes do not size the root, and spikes outside the root are dropped without complaint.
-const SPIKE_SPACING: f64 = 8.0;
-
-/// Up to about `count` of a map's samples, evenly strided, for sizing the root cube. Spikes
-/// are left out: a few percent of wild depths would otherwise stretch the root far beyond the
-/// scene and cost every cube resolution (with `--max-depth` fixed, the finest cube grows with
-/// the root). Spikes still spawn cubes and vote like any other sample inside the root.
-pub fn bounds_sample(samples: &Samples, count: usize) -> Vec<DVec3> {
-    let consistent: Vec<DVec3> = samples
-        .points
-        .iter()
-        .zip(&samples.spikes)
-        .filter(|(_, spike)| !**spike)
-        .map(|(p, _)| *p)
-        .collect();
-    // A map of nothing but spikes (pure noise) still bounds the scene through all its samples.
-    let chosen = if consistent.is_empty() {
-        samples.points.clone()
-    } else {
-        consistent
-    };
-    let step = (chosen.len() / count.max(1)).max(1);
-    chosen.into_iter().step_by(step).collect()
-}
-
-/// A box robust to stray points: per axis, the 0.1 % and 99.9 % quantiles. None without points.
-pub fn robust_bounds(points: &[DVec3]) -> Option<(DVec3, DVec3)> {
-    if points.is_empty() {
-        return None;
-    }
-    let quantile = |axis: usize, q: f64| -> f64 {
-        let mut v: Vec<f64> = points.iter().map(|p| p[axis]).collect();
-        v.sort_by(f64::total_cmp);
-        let index = ((v.len() - 1) as f64 * q).round() as usize;
-        v.get(index).copied().unwrap_or(0.0)
-    };
-    let lo = DVec3::new(quantile(0, 0.001), quantile(1, 0.001), quantile(2, 0.001));
-    let hi = DVec3::new(quantile(0, 0.999), quantile(1, 0.999), quantile(2, 0.999));
-    Some((lo, hi))
 }
 
 /// Content id of a depth map: xxh3 of its file bytes and its registration (path excluded).
@@ -351,6 +136,8 @@ pub struct IngestOptions {
     /// Margin around the first ingest's bounding box, as a fraction of its largest extent.
     pub root_margin: f64,
     pub max_depth: u8,
+    /// The memory the ingest may use, shared by the depth maps read at once.
+    pub memory_budget: u64,
 }
 
 impl Default for IngestOptions {
@@ -359,8 +146,16 @@ impl Default for IngestOptions {
             root: None,
             root_margin: 0.1,
             max_depth: 24,
+            memory_budget: 1 << 30,
         }
     }
+}
+
+/// Memory for one depth map in flight: a worker reads one while up to one more finished map
+/// per worker waits for its commit (`store::runner`), so each gets a share of half the
+/// budget per worker.
+fn memory_per_map(budget: u64) -> u64 {
+    budget / (2 * rayon::current_num_threads().max(1) as u64)
 }
 
 pub struct IngestStage {
@@ -374,6 +169,11 @@ pub struct IngestStage {
     growth: Option<(Scene, Vec<[u32; 3]>)>,
     /// New depth maps, ordered by id.
     maps: Vec<(u64, DepthMapSource)>,
+    /// Memory for one depth map in flight ([`memory_per_map`]).
+    map_memory: u64,
+    /// Where maps too large for `map_memory` spill their runs (scratch files are unlinked at
+    /// creation, so nothing outlives the process).
+    scratch: std::path::PathBuf,
 }
 
 /// The error as the stage's, with the file as its unit (named once).
@@ -474,13 +274,13 @@ impl IngestStage {
                         max_depth: options.max_depth,
                     },
                     None => {
+                        let map_memory = memory_per_map(options.memory_budget);
                         let per_map: Vec<Vec<DVec3>> = maps
                             .par_iter()
                             .map(|(_, source)| {
-                                let image = source.load().map_err(input_error)?;
                                 // At most ~200,000 points in total, whatever the number of maps.
                                 let per_map = (200_000 / maps.len().max(1)).max(64);
-                                Ok(bounds_sample(&back_project(source, &image), per_map))
+                                bounds_sample(map_samples(source, map_memory)?, per_map).map_err(input_error)
                             })
                             .collect::<Result<_>>()?;
                         let points: Vec<DVec3> = per_map.into_iter().flatten().collect();
@@ -505,7 +305,7 @@ impl IngestStage {
         let mut growth = None;
         let mut scene = scene;
         if !scene_is_new && !root_is_fixed && !maps.is_empty() {
-            let octants = growth::growth_for(&scene, &maps)?;
+            let octants = growth::growth_for(&scene, &maps, memory_per_map(options.memory_budget))?;
             if !octants.is_empty() {
                 let old = scene;
                 for octant in &octants {
@@ -524,6 +324,8 @@ impl IngestStage {
             root_is_fixed,
             growth,
             maps,
+            map_memory: memory_per_map(options.memory_budget),
+            scratch: store.scratch_path(INGEST),
         })
     }
 
@@ -540,41 +342,48 @@ impl IngestStage {
         self.maps.len()
     }
 
-    /// Cubes of one depth map, merged by key: (keys, radius sums, counts, spike counts, and
-    /// the SSD solver's sample moments, `stages::samples`).
-    pub fn cubes(&self, source: &DepthMapSource) -> std::result::Result<(Vec<Column>, SampleStats), InputError> {
-        let image = source.load()?;
-        let samples = back_project(source, &image);
-        let mut stats = samples.stats;
-        let mut entries: Vec<(CubeKey, u64, bool, Moments)> = Vec::with_capacity(samples.points.len());
+    /// One depth map's cubes, merged by key, as one segment (keys, radius sums, counts, spike
+    /// counts, and the SSD solver's sample moments, `stages::samples`); `None` without cubes.
+    /// Memory stays within the map's share of the budget whatever its size: rows are read a
+    /// few at a time and cube entries spill to sorted runs (`cube_runs.rs`).
+    pub fn cubes(&self, source: &DepthMapSource) -> Result<(Option<SegmentContent>, SampleStats)> {
+        let stream = map_samples(source, self.map_memory / 4)?;
+        let capacity = (self.map_memory * 3 / 4 / cube_runs::BYTES_PER_ENTRY).max(1 << 12) as usize;
+        let mut runs = CubeRuns::new(&self.scratch, capacity, stream.valid_pixels() as usize);
         // Consistent samples outside the root mean the map sees beyond the scene the store was
         // sized for; spikes outside it are noise.
-        let mut consistent_outside = 0u64;
+        let (mut outside, mut consistent_outside) = (0u64, 0u64);
         let weight = f64::from(source.weight);
-        for (((p, r), spike), (normal, area)) in samples
-            .points
-            .iter()
-            .zip(&samples.radii)
-            .zip(&samples.spikes)
-            .zip(samples.normals.iter().zip(&samples.areas))
-        {
-            if !self.scene.contains(*p) {
-                stats.outside += 1;
-                consistent_outside += u64::from(!*spike);
-                continue;
-            }
-            let depth = self.scene.depth_for_radius(*r);
-            let key = self.scene.key_at(*p, depth);
-            // Spikes and samples without a normal say nothing SSD can use.
-            let moments = if *spike || *normal == DVec3::ZERO {
-                Moments::default()
-            } else {
-                Moments::of_sample(&self.scene, key, *p, area * weight, *normal)
-            };
-            entries.push((key, self.scene.quantize_radius(*r), *spike, moments));
+        let mut failure = None;
+        let mut stats = stream
+            .for_each(|sample| {
+                if failure.is_some() {
+                    return;
+                }
+                if !self.scene.contains(sample.point) {
+                    outside += 1;
+                    consistent_outside += u64::from(!sample.spike);
+                    return;
+                }
+                let depth = self.scene.depth_for_radius(sample.radius);
+                let key = self.scene.key_at(sample.point, depth);
+                // Spikes and samples without a normal say nothing SSD can use.
+                let moments = if sample.spike || sample.normal == DVec3::ZERO {
+                    Moments::default()
+                } else {
+                    Moments::of_sample(&self.scene, key, sample.point, sample.area * weight, sample.normal)
+                };
+                if let Err(e) = runs.push((key, self.scene.quantize_radius(sample.radius), sample.spike, moments)) {
+                    failure = Some(e);
+                }
+            })
+            .map_err(input_error)?;
+        if let Some(e) = failure {
+            return Err(e);
         }
+        stats.outside = outside;
         if consistent_outside * 100 > stats.samples.max(1) {
-            return Err(crate::inputs::bad(
+            return Err(input_error(crate::inputs::bad(
                 &source.path,
                 format!(
                     "{consistent_outside} of {} samples (not counting isolated spikes) lie outside the store's root cube (min {:?}, side {}){}",
@@ -587,46 +396,18 @@ impl IngestStage {
                         "; check the map's pose and depth scale, or give a larger --root-margin to a new store"
                     }
                 ),
-            ));
+            )));
         }
-        // By key alone: entries of one key are summed, in any order.
-        entries.sort_unstable_by_key(|(key, _, _, _)| *key);
-        let mut keys: Vec<CubeKey> = Vec::new();
-        let mut sums: Vec<u64> = Vec::new();
-        let mut counts: Vec<u32> = Vec::new();
-        let mut spike_counts: Vec<u32> = Vec::new();
-        let mut moments: Vec<Moments> = Vec::new();
-        for (key, r, spike, m) in entries {
-            if keys.last() == Some(&key) {
-                if let (Some(s), Some(c), Some(sc), Some(sm)) = (
-                    sums.last_mut(),
-                    counts.last_mut(),
-                    spike_counts.last_mut(),
-                    moments.last_mut(),
-                ) {
-                    *s += r;
-                    *c += 1;
-                    *sc += u32::from(spike);
-                    sm.add(&m);
-                }
-            } else {
-                keys.push(key);
-                sums.push(r);
-                counts.push(1);
-                spike_counts.push(u32::from(spike));
-                moments.push(m);
-            }
-        }
-        stats.cubes = keys.len() as u64;
-        let mut columns = vec![
-            Column::keys(keys),
-            Column::new(RADIUS_SUM, 1, ColumnValues::U64(sums)),
-            Column::new("radius_count", 1, ColumnValues::U32(counts)),
-            Column::new(SPIKE_COUNT, 1, ColumnValues::U32(spike_counts)),
-        ];
-        columns.extend(moment_columns(&moments));
-        Ok((columns, stats))
+        let (content, cubes) = runs.finish()?;
+        stats.cubes = cubes;
+        Ok((content, stats))
     }
+}
+
+/// `source`'s samples, its rows in memory when they take at most `memory` bytes.
+fn map_samples(source: &DepthMapSource, memory: u64) -> Result<SampleStream<'_>> {
+    let rows = open_rows(source, memory).map_err(input_error)?;
+    SampleStream::new(source, rows).map_err(input_error)
 }
 
 #[derive(Serialize, Deserialize)]
@@ -682,18 +463,10 @@ impl Stage for IngestStage {
             unit: unit.label.clone(),
             message: "unit out of range".into(),
         })?;
-        let (columns, stats) = self.cubes(source).map_err(input_error)?;
-        let extra = catalog::encode(&IngestUnitExtra { id: *id, stats });
-        if stats.cubes == 0 {
-            return Ok(UnitOutput {
-                segments: Vec::new(),
-                extra,
-                block_rows: RUN_BLOCK_ROWS,
-            });
-        }
+        let (content, stats) = self.cubes(source)?;
         Ok(UnitOutput {
-            segments: vec![columns],
-            extra,
+            segments: content.into_iter().collect(),
+            extra: catalog::encode(&IngestUnitExtra { id: *id, stats }),
             block_rows: RUN_BLOCK_ROWS,
         })
     }
@@ -788,7 +561,7 @@ impl IngestStage {
         };
         let file = base.open_segment(name)?;
         Ok(UnitOutput {
-            segments: vec![growth::rekeyed_run(&file, octants)?],
+            segments: vec![growth::rekeyed_run(&file, octants)?.into()],
             extra: Vec::new(),
             block_rows: RUN_BLOCK_ROWS,
         })

@@ -1,6 +1,16 @@
 //! Back-projection, root sizing, normals and the noise model of `ingest`.
 
 use super::*;
+use crate::inputs::DepthImage;
+
+/// The root-sizing sample of an image in memory.
+fn sample_of(source: &DepthMapSource, image: &DepthImage, count: usize) -> Vec<DVec3> {
+    bounds_sample(
+        SampleStream::new(source, Box::new(ImageRows::new(image))).unwrap(),
+        count,
+    )
+    .unwrap()
+}
 
 fn camera(width: u32, height: u32) -> DepthMapSource {
     let (cx, cy) = (f64::from(width) / 2.0, f64::from(height) / 2.0);
@@ -34,9 +44,9 @@ fn spikes_do_not_size_the_root() {
         height: h,
         depth,
     };
-    let all = robust_bounds(&back_project(&source, &image).points).unwrap();
+    let all = robust_bounds(&back_project(&source, &image).unwrap().points).unwrap();
     assert!(all.1.z > 1.5, "the outliers reach far behind the wall: {all:?}");
-    let kept = bounds_sample(&back_project(&source, &image), usize::MAX);
+    let kept = sample_of(&source, &image, usize::MAX);
     let (lo, hi) = robust_bounds(&kept).unwrap();
     // Only spikes within the spacing band (8 footprints = 8 % of the depth at f = 100) can
     // pass, and they sit next to the wall anyway.
@@ -73,7 +83,8 @@ fn normals_follow_the_depth_gradient_and_face_the_camera() {
             height: h,
             depth,
         },
-    );
+    )
+    .unwrap();
     let expected = (turn.transform_vector3(DVec3::new(slope, 0.0, -1.0))).normalize();
     let mut checked = 0;
     for ((p, n), area) in samples.points.iter().zip(&samples.normals).zip(&samples.areas) {
@@ -107,8 +118,8 @@ fn slanted_surfaces_and_pure_noise_still_bound_the_scene() {
         height: h,
         depth,
     };
-    let kept = bounds_sample(&back_project(&source, &image), usize::MAX);
-    let samples = back_project(&source, &image).points.len();
+    let kept = sample_of(&source, &image, usize::MAX);
+    let samples = back_project(&source, &image).unwrap().points.len();
     assert!(kept.len() * 100 >= samples * 99, "kept {} of {samples}", kept.len());
 
     let mut state = 3u64;
@@ -120,7 +131,7 @@ fn slanted_surfaces_and_pure_noise_still_bound_the_scene() {
         height: h,
         depth: noise,
     };
-    assert!(!bounds_sample(&back_project(&source, &image), 100).is_empty());
+    assert!(!sample_of(&source, &image, 100).is_empty());
 }
 
 /// A wall at depths 1 to 3 (f = 100: samples 1 to 3 cm apart, footprint radii 5 to 15 mm):
@@ -137,7 +148,7 @@ fn noise_models_raise_radii_to_their_floor_within_the_cap() {
         height: h,
         depth,
     };
-    let footprint = back_project(&camera(w, h), &image);
+    let footprint = back_project(&camera(w, h), &image).unwrap();
     let noise = DepthNoise::Axial {
         constant: 0.0,
         quadratic: 0.01,
@@ -145,7 +156,7 @@ fn noise_models_raise_radii_to_their_floor_within_the_cap() {
         sigmas: 2.0,
         footprints: 1.5,
     };
-    let noisy = back_project(&DepthMapSource { noise, ..camera(w, h) }, &image);
+    let noisy = back_project(&DepthMapSource { noise, ..camera(w, h) }, &image).unwrap();
     assert_eq!(footprint.points, noisy.points);
     let (mut kept, mut raised, mut capped) = (0, 0, 0);
     for ((p, before), after) in footprint.points.iter().zip(&footprint.radii).zip(&noisy.radii) {

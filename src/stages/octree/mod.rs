@@ -763,7 +763,7 @@ impl Stage for OctreeStage {
             top: leaf.top,
         };
         Ok(UnitOutput {
-            segments: vec![columns_of(&records)],
+            segments: vec![columns_of(&records).into()],
             extra: catalog::encode(&extra),
             block_rows: 0,
         })

@@ -695,15 +695,18 @@ impl Stage for LevelStage {
             q: state.q,
         };
         Ok(UnitOutput {
-            segments: vec![columns_of(
-                &values,
-                ObservedColumns {
-                    seen,
-                    sampled,
-                    offset,
-                    measured,
-                },
-            )],
+            segments: vec![
+                columns_of(
+                    &values,
+                    ObservedColumns {
+                        seen,
+                        sampled,
+                        offset,
+                        measured,
+                    },
+                )
+                .into(),
+            ],
             extra: catalog::encode(&LevelUnitExtra {
                 cubes: values.keys.len() as u64,
                 energy_before: solved.energy_before,

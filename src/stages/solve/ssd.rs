@@ -261,7 +261,7 @@ impl LevelStage {
         let code = if let Method::Hybrid(_) = self.method { 2 } else { 1 };
         columns.push(Column::new(METHOD_COLUMN, 1, ColumnValues::U32(vec![code; n])));
         Ok(UnitOutput {
-            segments: vec![columns],
+            segments: vec![columns.into()],
             extra: catalog::encode(&LevelUnitExtra {
                 cubes: n as u64,
                 energy_before: solved.energy_before,

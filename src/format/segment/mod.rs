@@ -8,13 +8,11 @@
 
 #![deny(clippy::unwrap_used, clippy::expect_used, clippy::indexing_slicing)]
 
-use std::io::Write;
-
 use xxhash_rust::xxh3::{Xxh3, xxh3_64};
 
 use super::bytes::ByteReader;
 use super::key::CubeKey;
-use super::{DecodeError, EncodeError, SegmentPart};
+use super::{DecodeError, SegmentPart};
 
 /// First and last eight bytes of every segment file.
 pub const MAGIC: [u8; 8] = *b"OCTSEG\x00\x01";
@@ -44,6 +42,10 @@ pub const KEY_COLUMN: &str = "key";
 
 const MAX_COLUMNS: usize = 255;
 const MAX_NAME_LEN: usize = 255;
+
+mod encoder;
+
+pub use encoder::{ColumnShape, encode_segment, encode_segment_streamed, encode_segment_with_block_rows};
 
 /// Element type of a column (its code in the directory).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -119,7 +121,8 @@ impl ColumnValues {
         self.len() == 0
     }
 
-    fn as_bytes(&self) -> &[u8] {
+    /// The values' raw bytes, as a block holds them before compression.
+    pub fn as_bytes(&self) -> &[u8] {
         match self {
             ColumnValues::Key(v) => bytemuck::cast_slice(v),
             ColumnValues::F32(v) => bytemuck::cast_slice(v),
@@ -202,167 +205,6 @@ pub fn content_digest(columns: &[Column]) -> u64 {
         );
     }
     hasher.digest()
-}
-
-fn validate(columns: &[Column]) -> Result<&[CubeKey], EncodeError> {
-    let invalid = |msg: String| Err(EncodeError::Invalid(msg));
-    let Some(first) = columns.first() else {
-        return invalid("a segment needs at least the key column".into());
-    };
-    let ColumnValues::Key(keys) = &first.values else {
-        return invalid("the first column must hold cube keys".into());
-    };
-    if first.name != KEY_COLUMN || first.width != 1 {
-        return invalid(format!("the first column must be '{KEY_COLUMN}' of width 1"));
-    }
-    if keys.is_empty() {
-        return invalid("a segment holds at least one row".into());
-    }
-    if columns.len() > MAX_COLUMNS {
-        return invalid(format!("{} columns, at most {MAX_COLUMNS}", columns.len()));
-    }
-    if let Some(pair) = keys.windows(2).find(|w| w.first() >= w.get(1)) {
-        return invalid(format!("keys are not strictly increasing: {pair:?}"));
-    }
-    let mut names = std::collections::BTreeSet::new();
-    for column in columns {
-        if column.name.is_empty() || column.name.len() > MAX_NAME_LEN {
-            return invalid(format!("column name '{}' must be 1..=255 bytes", column.name));
-        }
-        if !names.insert(column.name.as_str()) {
-            return invalid(format!("column '{}' appears twice", column.name));
-        }
-        if column.width == 0 {
-            return invalid(format!("column '{}' has width 0", column.name));
-        }
-        if column.values.len() != keys.len() * usize::from(column.width) {
-            return invalid(format!(
-                "column '{}' holds {} values, expected {} rows x width {}",
-                column.name,
-                column.values.len(),
-                keys.len(),
-                column.width
-            ));
-        }
-    }
-    Ok(keys)
-}
-
-/// Writes `columns` as one segment to `out`, streaming block by block.
-pub fn encode_segment<W: Write>(columns: &[Column], out: &mut W) -> Result<SegmentSummary, EncodeError> {
-    encode_segment_with_block_rows(columns, DEFAULT_BLOCK_ROWS, out)
-}
-
-struct HashingWriter<'w, W: Write> {
-    inner: &'w mut W,
-    hasher: Xxh3,
-    written: u64,
-}
-
-impl<W: Write> HashingWriter<'_, W> {
-    fn put(&mut self, bytes: &[u8]) -> std::io::Result<()> {
-        self.inner.write_all(bytes)?;
-        self.hasher.update(bytes);
-        self.written += bytes.len() as u64;
-        Ok(())
-    }
-}
-
-/// [`encode_segment`] with `block_rows` rows per block (tests use small blocks).
-pub fn encode_segment_with_block_rows<W: Write>(
-    columns: &[Column],
-    block_rows: u32,
-    out: &mut W,
-) -> Result<SegmentSummary, EncodeError> {
-    let keys = validate(columns)?;
-    let block_rows = block_rows.max(1) as usize;
-    let rows = keys.len();
-    let block_count = rows.div_ceil(block_rows);
-
-    let mut w = HashingWriter {
-        inner: out,
-        hasher: Xxh3::new(),
-        written: 0,
-    };
-    w.put(&MAGIC)?;
-    w.put(&FORMAT_VERSION.to_le_bytes())?;
-    w.put(&0u32.to_le_bytes())?;
-
-    let mut compressor = zstd::bulk::Compressor::new(ZSTD_LEVEL).map_err(EncodeError::Compression)?;
-    let mut content = Xxh3::new();
-    // Per column, per block: (offset, compressed length, checksum).
-    let mut chunks: Vec<Vec<(u64, u32, u64)>> = Vec::with_capacity(columns.len());
-    for column in columns {
-        let raw = column.values.as_bytes();
-        content_digest_update(
-            &mut content,
-            &column.name,
-            column.values.element_type(),
-            column.width,
-            raw,
-        );
-        let row_bytes = usize::from(column.width) * column.values.element_type().size();
-        let mut entries = Vec::with_capacity(block_count);
-        for chunk in raw.chunks(block_rows * row_bytes) {
-            let compressed = compressor.compress(chunk).map_err(EncodeError::Compression)?;
-            let len = u32::try_from(compressed.len())
-                .map_err(|_| EncodeError::Invalid("compressed block larger than 4 GiB".into()))?;
-            entries.push((w.written, len, xxh3_64(&compressed)));
-            w.put(&compressed)?;
-        }
-        chunks.push(entries);
-    }
-
-    let mut dir = Vec::new();
-    dir.extend_from_slice(&(block_count as u32).to_le_bytes());
-    for block in keys.chunks(block_rows) {
-        let (first, last) = match (block.first(), block.last()) {
-            (Some(f), Some(l)) => (*f, *l),
-            _ => return Err(EncodeError::Invalid("empty block".into())),
-        };
-        dir.extend_from_slice(&(block.len() as u32).to_le_bytes());
-        dir.extend_from_slice(&first.raw().to_le_bytes());
-        dir.extend_from_slice(&last.raw().to_le_bytes());
-    }
-    dir.extend_from_slice(&(columns.len() as u16).to_le_bytes());
-    for (column, entries) in columns.iter().zip(&chunks) {
-        dir.push(column.name.len() as u8);
-        dir.extend_from_slice(column.name.as_bytes());
-        dir.push(column.values.element_type() as u8);
-        dir.extend_from_slice(&column.width.to_le_bytes());
-        for (offset, len, checksum) in entries {
-            dir.extend_from_slice(&offset.to_le_bytes());
-            dir.extend_from_slice(&len.to_le_bytes());
-            dir.extend_from_slice(&checksum.to_le_bytes());
-        }
-    }
-    let dir_offset = w.written;
-    w.put(&dir)?;
-
-    let mut footer = Vec::with_capacity(FOOTER_LEN);
-    footer.extend_from_slice(&dir_offset.to_le_bytes());
-    footer.extend_from_slice(&(dir.len() as u64).to_le_bytes());
-    footer.extend_from_slice(&(rows as u64).to_le_bytes());
-    footer.extend_from_slice(&xxh3_64(&dir).to_le_bytes());
-    footer.extend_from_slice(&(block_rows as u32).to_le_bytes());
-    footer.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-    let footer_checksum = xxh3_64(&footer);
-    footer.extend_from_slice(&footer_checksum.to_le_bytes());
-    footer.extend_from_slice(&MAGIC);
-    w.put(&footer)?;
-
-    let (first_key, last_key) = match (keys.first(), keys.last()) {
-        (Some(f), Some(l)) => (*f, *l),
-        _ => return Err(EncodeError::Invalid("empty segment".into())),
-    };
-    Ok(SegmentSummary {
-        rows: rows as u64,
-        bytes: w.written,
-        file_checksum: w.hasher.digest(),
-        content_digest: content.digest(),
-        first_key,
-        last_key,
-    })
 }
 
 #[derive(Clone, Copy, Debug)]

@@ -1,0 +1,275 @@
+//! Writing segments: from columns in memory, or streamed from one reader per column (a
+//! segment far larger than memory in one block's worth of it). Both write the same bytes for
+//! the same rows; the layout is specified in `format-spec.md` ("Segment files").
+
+#![deny(clippy::unwrap_used, clippy::expect_used, clippy::indexing_slicing)]
+
+use std::io::{Read, Write};
+
+use xxhash_rust::xxh3::{Xxh3, xxh3_64};
+
+use super::{
+    Column, ColumnValues, DEFAULT_BLOCK_ROWS, ElementType, FOOTER_LEN, FORMAT_VERSION, KEY_COLUMN, MAGIC, MAX_COLUMNS,
+    MAX_NAME_LEN, SegmentSummary, ZSTD_LEVEL,
+};
+use crate::format::{CubeKey, EncodeError};
+
+/// The key column of `columns` after checking the shapes, lengths and key order.
+fn validate(columns: &[Column]) -> Result<&[CubeKey], EncodeError> {
+    let invalid = |msg: String| Err(EncodeError::Invalid(msg));
+    let Some(ColumnValues::Key(keys)) = columns.first().map(|c| &c.values) else {
+        return invalid("the first column must hold cube keys".into());
+    };
+    let shapes: Vec<ColumnShape> = columns.iter().map(ColumnShape::of).collect();
+    validate_shapes(&shapes, keys.len() as u64, columns.len())?;
+    if let Some(pair) = keys.windows(2).find(|w| w.first() >= w.get(1)) {
+        return invalid(format!("keys are not strictly increasing: {pair:?}"));
+    }
+    for column in columns {
+        if column.values.len() != keys.len() * usize::from(column.width) {
+            return invalid(format!(
+                "column '{}' holds {} values, expected {} rows x width {}",
+                column.name,
+                column.values.len(),
+                keys.len(),
+                column.width
+            ));
+        }
+    }
+    Ok(keys)
+}
+
+/// Writes `columns` as one segment to `out`, streaming block by block.
+pub fn encode_segment<W: Write>(columns: &[Column], out: &mut W) -> Result<SegmentSummary, EncodeError> {
+    encode_segment_with_block_rows(columns, DEFAULT_BLOCK_ROWS, out)
+}
+
+struct HashingWriter<'w, W: Write> {
+    inner: &'w mut W,
+    hasher: Xxh3,
+    written: u64,
+}
+
+impl<W: Write> HashingWriter<'_, W> {
+    fn put(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.inner.write_all(bytes)?;
+        self.hasher.update(bytes);
+        self.written += bytes.len() as u64;
+        Ok(())
+    }
+}
+
+/// [`encode_segment`] with `block_rows` rows per block (tests use small blocks).
+pub fn encode_segment_with_block_rows<W: Write>(
+    columns: &[Column],
+    block_rows: u32,
+    out: &mut W,
+) -> Result<SegmentSummary, EncodeError> {
+    let keys = validate(columns)?;
+    let shapes: Vec<ColumnShape> = columns.iter().map(ColumnShape::of).collect();
+    let mut sources: Vec<&[u8]> = columns.iter().map(|c| c.values.as_bytes()).collect();
+    encode_segment_streamed(&shapes, keys.len() as u64, &mut sources, block_rows, out)
+}
+
+/// A column's name, element type and width: what the streaming encoder needs to know of a
+/// column before its values.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ColumnShape {
+    /// The column's name.
+    pub name: String,
+    /// Its element type.
+    pub element: ElementType,
+    /// Elements per row.
+    pub width: u16,
+}
+
+impl ColumnShape {
+    /// The shape of `column`.
+    pub fn of(column: &Column) -> ColumnShape {
+        ColumnShape {
+            name: column.name.clone(),
+            element: column.values.element_type(),
+            width: column.width,
+        }
+    }
+
+    /// Bytes one row of the column takes.
+    pub fn row_bytes(&self) -> usize {
+        usize::from(self.width) * self.element.size()
+    }
+}
+
+fn validate_shapes(shapes: &[ColumnShape], rows: u64, sources: usize) -> Result<(), EncodeError> {
+    let invalid = |msg: String| Err(EncodeError::Invalid(msg));
+    let Some(first) = shapes.first() else {
+        return invalid("a segment needs at least the key column".into());
+    };
+    if first.name != KEY_COLUMN || first.width != 1 || first.element != ElementType::Key {
+        return invalid(format!(
+            "the first column must be '{KEY_COLUMN}' of width 1 holding cube keys"
+        ));
+    }
+    if rows == 0 {
+        return invalid("a segment holds at least one row".into());
+    }
+    if shapes.len() > MAX_COLUMNS {
+        return invalid(format!("{} columns, at most {MAX_COLUMNS}", shapes.len()));
+    }
+    if sources != shapes.len() {
+        return invalid(format!("{} column shapes but {sources} sources", shapes.len()));
+    }
+    let mut names = std::collections::BTreeSet::new();
+    for shape in shapes {
+        if shape.name.is_empty() || shape.name.len() > MAX_NAME_LEN {
+            return invalid(format!("column name '{}' must be 1..=255 bytes", shape.name));
+        }
+        if !names.insert(shape.name.as_str()) {
+            return invalid(format!("column '{}' appears twice", shape.name));
+        }
+        if shape.width == 0 {
+            return invalid(format!("column '{}' has width 0", shape.name));
+        }
+    }
+    Ok(())
+}
+
+/// Writes one segment of `rows` rows whose columns' raw values (row by row, as
+/// [`ColumnValues`] holds them in memory) are read from `sources`, one source per shape, each
+/// read once from its start: a segment far larger than memory is encoded in one block's worth
+/// of memory. The bytes are exactly those [`encode_segment_with_block_rows`] writes for the
+/// same columns. Keys must be strictly increasing; a source shorter than `rows` rows is an
+/// error.
+pub fn encode_segment_streamed<W: Write, R: Read>(
+    shapes: &[ColumnShape],
+    rows: u64,
+    sources: &mut [R],
+    block_rows: u32,
+    out: &mut W,
+) -> Result<SegmentSummary, EncodeError> {
+    validate_shapes(shapes, rows, sources.len())?;
+    let block_rows = u64::from(block_rows.max(1));
+    let block_count = rows.div_ceil(block_rows);
+    let block_count_u32 = u32::try_from(block_count)
+        .map_err(|_| EncodeError::Invalid(format!("{block_count} blocks, more than a segment can index")))?;
+
+    let mut w = HashingWriter {
+        inner: out,
+        hasher: Xxh3::new(),
+        written: 0,
+    };
+    w.put(&MAGIC)?;
+    w.put(&FORMAT_VERSION.to_le_bytes())?;
+    w.put(&0u32.to_le_bytes())?;
+
+    let mut compressor = zstd::bulk::Compressor::new(ZSTD_LEVEL).map_err(EncodeError::Compression)?;
+    let mut content = Xxh3::new();
+    // Per column, per block: (offset, compressed length, checksum).
+    let mut chunks: Vec<Vec<(u64, u32, u64)>> = Vec::with_capacity(shapes.len());
+    // Per block: (rows, first key, last key), from the key column (the first).
+    let mut blocks: Vec<(u32, CubeKey, CubeKey)> = Vec::with_capacity(block_count as usize);
+    let mut previous_key: Option<CubeKey> = None;
+    let mut raw = Vec::new();
+    for (index, (shape, source)) in shapes.iter().zip(sources.iter_mut()).enumerate() {
+        let row_bytes = shape.row_bytes();
+        let total = usize::try_from(rows)
+            .ok()
+            .and_then(|r| r.checked_mul(row_bytes))
+            .ok_or_else(|| EncodeError::Invalid(format!("column '{}' is too large to address", shape.name)))?;
+        content.update(&(shape.name.len() as u64).to_le_bytes());
+        content.update(shape.name.as_bytes());
+        content.update(&[shape.element as u8]);
+        content.update(&shape.width.to_le_bytes());
+        content.update(&(total as u64).to_le_bytes());
+        let mut entries = Vec::with_capacity(block_count as usize);
+        let mut remaining = rows;
+        while remaining > 0 {
+            let block = remaining.min(block_rows);
+            remaining -= block;
+            raw.resize(block as usize * row_bytes, 0);
+            source.read_exact(&mut raw).map_err(|e| {
+                EncodeError::Invalid(format!("column '{}' ends before its {rows} rows: {e}", shape.name))
+            })?;
+            content.update(&raw);
+            if index == 0 {
+                blocks.push(key_block(&raw, block as u32, &mut previous_key)?);
+            }
+            let compressed = compressor.compress(&raw).map_err(EncodeError::Compression)?;
+            let len = u32::try_from(compressed.len())
+                .map_err(|_| EncodeError::Invalid("compressed block larger than 4 GiB".into()))?;
+            entries.push((w.written, len, xxh3_64(&compressed)));
+            w.put(&compressed)?;
+        }
+        chunks.push(entries);
+    }
+
+    let mut dir = Vec::new();
+    dir.extend_from_slice(&block_count_u32.to_le_bytes());
+    for (rows, first, last) in &blocks {
+        dir.extend_from_slice(&rows.to_le_bytes());
+        dir.extend_from_slice(&first.raw().to_le_bytes());
+        dir.extend_from_slice(&last.raw().to_le_bytes());
+    }
+    dir.extend_from_slice(&(shapes.len() as u16).to_le_bytes());
+    for (shape, entries) in shapes.iter().zip(&chunks) {
+        dir.push(shape.name.len() as u8);
+        dir.extend_from_slice(shape.name.as_bytes());
+        dir.push(shape.element as u8);
+        dir.extend_from_slice(&shape.width.to_le_bytes());
+        for (offset, len, checksum) in entries {
+            dir.extend_from_slice(&offset.to_le_bytes());
+            dir.extend_from_slice(&len.to_le_bytes());
+            dir.extend_from_slice(&checksum.to_le_bytes());
+        }
+    }
+    let dir_offset = w.written;
+    w.put(&dir)?;
+
+    let mut footer = Vec::with_capacity(FOOTER_LEN);
+    footer.extend_from_slice(&dir_offset.to_le_bytes());
+    footer.extend_from_slice(&(dir.len() as u64).to_le_bytes());
+    footer.extend_from_slice(&rows.to_le_bytes());
+    footer.extend_from_slice(&xxh3_64(&dir).to_le_bytes());
+    footer.extend_from_slice(&(block_rows as u32).to_le_bytes());
+    footer.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    let footer_checksum = xxh3_64(&footer);
+    footer.extend_from_slice(&footer_checksum.to_le_bytes());
+    footer.extend_from_slice(&MAGIC);
+    w.put(&footer)?;
+
+    let (first_key, last_key) = match (blocks.first(), blocks.last()) {
+        (Some((_, first, _)), Some((_, _, last))) => (*first, *last),
+        _ => return Err(EncodeError::Invalid("empty segment".into())),
+    };
+    Ok(SegmentSummary {
+        rows,
+        bytes: w.written,
+        file_checksum: w.hasher.digest(),
+        content_digest: content.digest(),
+        first_key,
+        last_key,
+    })
+}
+
+/// One block of the key column as raw bytes: its directory entry, after checking that its keys
+/// continue strictly increasing from `previous`.
+fn key_block(raw: &[u8], rows: u32, previous: &mut Option<CubeKey>) -> Result<(u32, CubeKey, CubeKey), EncodeError> {
+    let mut first = None;
+    for bytes in raw.chunks_exact(size_of::<u128>()) {
+        let mut le = [0u8; size_of::<u128>()];
+        le.copy_from_slice(bytes);
+        let key = CubeKey::from_raw(u128::from_ne_bytes(le));
+        if let Some(before) = *previous
+            && before >= key
+        {
+            return Err(EncodeError::Invalid(format!(
+                "keys are not strictly increasing: {before:?} then {key:?}"
+            )));
+        }
+        first.get_or_insert(key);
+        *previous = Some(key);
+    }
+    match (first, *previous) {
+        (Some(first), Some(last)) => Ok((rows, first, last)),
+        _ => Err(EncodeError::Invalid("empty block".into())),
+    }
+}

@@ -1,0 +1,417 @@
+//! Depth maps to samples, row by row (paper 4.1): a sample's radius, spike flag and normal
+//! need only its 4-neighbours, so a window of three rows of camera-frame points is all the
+//! back-projection holds, whatever the image's size (format-spec.md, "Ingest runs").
+//!
+//! A pass over a map: the exact median of its valid depths (two passes of a radix select over
+//! the depths' bits, for the absurd-depth limit), then one pass that back-projects each row
+//! once its lower neighbour row is read. Small maps are read into memory once and every pass
+//! reads that copy; large ones are decoded again per pass (`inputs::DepthRows`). Either way
+//! the samples, and their order (row-major), are the same.
+
+use glam::{DMat3, DVec3};
+
+use super::SampleStats;
+use crate::inputs::{DepthImage, DepthMapSource, DepthRows, InputError, Projection};
+
+/// A depth is absurd when it exceeds this multiple of the map's median depth.
+const ABSURD_DEPTH_FACTOR: f32 = 1.0e4;
+
+/// A sample with fewer than two 4-neighbours within this many pixel footprints is a spike (an
+/// isolated wrong depth, or a pair of them). Surfaces seen at up to about 80 degrees from
+/// head-on keep their neighbours within it; random outlier depths almost never have two.
+/// Spikes do not size the root, and spikes outside the root are dropped without complaint.
+const SPIKE_SPACING: f64 = 8.0;
+
+/// Depth rows, from the top, in as many passes as needed.
+pub trait DepthRowSource {
+    /// Width in pixels.
+    fn width(&self) -> u32;
+    /// Height in pixels.
+    fn height(&self) -> u32;
+    /// Starts again from the top row.
+    fn rewind(&mut self) -> Result<(), InputError>;
+    /// The next row into `out` (NaN where invalid); `false` after the last.
+    fn next_row(&mut self, out: &mut [f32]) -> Result<bool, InputError>;
+}
+
+impl DepthRowSource for DepthRows<'_> {
+    fn width(&self) -> u32 {
+        DepthRows::width(self)
+    }
+    fn height(&self) -> u32 {
+        DepthRows::height(self)
+    }
+    fn rewind(&mut self) -> Result<(), InputError> {
+        DepthRows::rewind(self)
+    }
+    fn next_row(&mut self, out: &mut [f32]) -> Result<bool, InputError> {
+        DepthRows::next_row(self, out)
+    }
+}
+
+/// The rows of a depth image in memory.
+pub struct ImageRows<I> {
+    image: I,
+    next: u32,
+}
+
+impl<I: std::borrow::Borrow<DepthImage>> ImageRows<I> {
+    pub fn new(image: I) -> Self {
+        ImageRows { image, next: 0 }
+    }
+}
+
+impl<I: std::borrow::Borrow<DepthImage>> DepthRowSource for ImageRows<I> {
+    fn width(&self) -> u32 {
+        self.image.borrow().width
+    }
+    fn height(&self) -> u32 {
+        self.image.borrow().height
+    }
+    fn rewind(&mut self) -> Result<(), InputError> {
+        self.next = 0;
+        Ok(())
+    }
+    fn next_row(&mut self, out: &mut [f32]) -> Result<bool, InputError> {
+        let image = self.image.borrow();
+        if self.next >= image.height {
+            return Ok(false);
+        }
+        let width = image.width as usize;
+        let start = self.next as usize * width;
+        for (o, index) in out.iter_mut().zip(start..start + width) {
+            *o = image.depth.get(index).copied().unwrap_or(f32::NAN);
+        }
+        self.next += 1;
+        Ok(true)
+    }
+}
+
+/// `source`'s rows: read into memory once when its depths take at most `memory` bytes, else
+/// decoded again for each pass.
+pub fn open_rows(source: &DepthMapSource, memory: u64) -> Result<Box<dyn DepthRowSource + '_>, InputError> {
+    let bytes = u64::from(source.width) * u64::from(source.height) * 4;
+    if bytes <= memory {
+        Ok(Box::new(ImageRows::new(source.load()?)))
+    } else {
+        Ok(Box::new(DepthRows::open(source)?))
+    }
+}
+
+/// One back-projected sample: its world position, radius r_x (paper 4.1: half the 3D distance
+/// to the nearest valid 4-neighbour, robust at depth discontinuities, widened by the map's
+/// noise model), whether it is a spike, its world-frame unit normal from the local depth
+/// gradient facing the camera (zero where an axis has no valid neighbour), and the surface area
+/// it stands for (the squared distance to its nearest valid 4-neighbour).
+#[derive(Clone, Copy, Debug)]
+pub struct Sample {
+    pub point: DVec3,
+    pub radius: f64,
+    pub spike: bool,
+    pub normal: DVec3,
+    pub area: f64,
+}
+
+/// A map's samples, produced row by row.
+pub struct SampleStream<'r> {
+    source: &'r DepthMapSource,
+    rows: Box<dyn DepthRowSource + 'r>,
+    /// Depths beyond it are absurd.
+    limit: f32,
+    valid: u64,
+}
+
+impl<'r> SampleStream<'r> {
+    /// Measures the median depth of `rows` (two passes) and stands ready for the samples.
+    pub fn new(source: &'r DepthMapSource, mut rows: Box<dyn DepthRowSource + 'r>) -> Result<Self, InputError> {
+        let (median, valid) = exact_median(rows.as_mut())?;
+        rows.rewind()?;
+        Ok(SampleStream {
+            source,
+            rows,
+            limit: median * ABSURD_DEPTH_FACTOR,
+            valid,
+        })
+    }
+
+    /// Pixels with a valid (finite, positive) depth.
+    pub fn valid_pixels(&self) -> u64 {
+        self.valid
+    }
+
+    /// Calls `each` with every sample, in row-major order, and returns the map's statistics.
+    pub fn for_each(mut self, mut each: impl FnMut(&Sample)) -> Result<SampleStats, InputError> {
+        let (width, height) = (self.rows.width() as usize, self.rows.height() as usize);
+        let mut stats = SampleStats {
+            pixels: (width * height) as u64,
+            invalid: (width * height) as u64 - self.valid,
+            ..SampleStats::default()
+        };
+        let wraps = matches!(self.source.projection, Projection::Spherical);
+        let pose = self.source.pose();
+        let rotation = DMat3::from_mat4(pose);
+        let pixel_angle = self.source.pixel_angle();
+        let mut depth = vec![f32::NAN; width];
+        let mut window = Window {
+            rows: [vec![None; width], vec![None; width], vec![None; width]],
+            width,
+            wraps,
+            has_up: false,
+            has_down: false,
+        };
+        if height > 0 {
+            self.camera_row(0, &mut depth, &mut stats, &mut window.rows[1])?;
+        }
+        for j in 0..height {
+            window.has_up = j > 0;
+            window.has_down = j + 1 < height;
+            if window.has_down {
+                self.camera_row(j + 1, &mut depth, &mut stats, &mut window.rows[2])?;
+            }
+            for i in 0..width {
+                let Some(p) = window.at(Some(i), Some(1)) else { continue };
+                let reach = SPIKE_SPACING * pixel_angle * p.length();
+                let (mut nearest, mut close) = (f64::INFINITY, 0);
+                for q in window.neighbours(i) {
+                    let distance = (q - p).length();
+                    nearest = nearest.min(distance);
+                    close += usize::from(distance <= reach);
+                }
+                if !nearest.is_finite() || nearest <= 0.0 {
+                    stats.isolated += 1;
+                    continue;
+                }
+                let along_ray = match self.source.projection {
+                    Projection::Pinhole { .. } => p.z,
+                    Projection::Spherical => p.length(),
+                };
+                stats.samples += 1;
+                each(&Sample {
+                    point: pose.transform_point3(p),
+                    radius: self.source.noise.radius(nearest * 0.5, along_ray),
+                    spike: close < 2,
+                    normal: window
+                        .normal(i, p)
+                        .map_or(DVec3::ZERO, |n| (rotation * n).normalize_or_zero()),
+                    area: nearest * nearest,
+                });
+            }
+            window.rows.rotate_left(1);
+        }
+        Ok(stats)
+    }
+
+    /// Row `j`'s camera-frame points (`None` where invalid or absurd).
+    fn camera_row(
+        &mut self,
+        j: usize,
+        depth: &mut [f32],
+        stats: &mut SampleStats,
+        out: &mut [Option<DVec3>],
+    ) -> Result<(), InputError> {
+        if !self.rows.next_row(depth)? {
+            return Err(crate::inputs::bad(
+                &self.source.path,
+                format!("depth image ended before row {j}"),
+            ));
+        }
+        for (i, (d, point)) in depth.iter().zip(out.iter_mut()).enumerate() {
+            let valid = d.is_finite() && *d > 0.0;
+            if valid && *d > self.limit {
+                stats.absurd += 1;
+            }
+            *point = if valid && *d <= self.limit {
+                Some(self.source.ray(i as f64, j as f64) * f64::from(*d))
+            } else {
+                None
+            };
+        }
+        Ok(())
+    }
+}
+
+/// The exact median (the element at index n / 2 of the sorted values) of a map's valid depths,
+/// and their count: positive finite floats order as their bits, so a histogram of the upper 16
+/// bits finds the median's bucket and one of the lower 16 bits within it finds the value.
+fn exact_median(rows: &mut dyn DepthRowSource) -> Result<(f32, u64), InputError> {
+    let mut row = vec![f32::NAN; rows.width() as usize];
+    let mut upper = vec![0u64; 1 << 16];
+    let mut valid = 0u64;
+    rows.rewind()?;
+    while rows.next_row(&mut row)? {
+        for d in row.iter().filter(|d| d.is_finite() && **d > 0.0) {
+            if let Some(count) = upper.get_mut((d.to_bits() >> 16) as usize) {
+                *count += 1;
+            }
+            valid += 1;
+        }
+    }
+    if valid == 0 {
+        return Ok((0.0, 0));
+    }
+    let rank = valid / 2;
+    let Some((bucket, before)) = select_bucket(&upper, rank) else {
+        return Ok((0.0, valid));
+    };
+    let mut lower = vec![0u64; 1 << 16];
+    rows.rewind()?;
+    while rows.next_row(&mut row)? {
+        for d in row.iter().filter(|d| d.is_finite() && **d > 0.0) {
+            let bits = d.to_bits();
+            if (bits >> 16) as usize == bucket
+                && let Some(count) = lower.get_mut((bits & 0xffff) as usize)
+            {
+                *count += 1;
+            }
+        }
+    }
+    let Some((low, _)) = select_bucket(&lower, rank - before) else {
+        return Ok((0.0, valid));
+    };
+    Ok((f32::from_bits(((bucket as u32) << 16) | low as u32), valid))
+}
+
+/// The bucket holding the value of rank `rank` and the count before it.
+fn select_bucket(histogram: &[u64], rank: u64) -> Option<(usize, u64)> {
+    let mut before = 0u64;
+    for (bucket, count) in histogram.iter().enumerate() {
+        if before + count > rank {
+            return Some((bucket, before));
+        }
+        before += count;
+    }
+    None
+}
+
+/// Three rows of camera-frame points: above (0), current (1), below (2).
+struct Window {
+    rows: [Vec<Option<DVec3>>; 3],
+    width: usize,
+    /// Spherical maps wrap around horizontally.
+    wraps: bool,
+    has_up: bool,
+    has_down: bool,
+}
+
+impl Window {
+    fn at(&self, i: Option<usize>, row: Option<usize>) -> Option<DVec3> {
+        self.rows.get(row?)?.get(i?).copied().flatten()
+    }
+
+    /// The valid ones among the left, right, upper and lower neighbours of column `i`.
+    fn neighbours(&self, i: usize) -> impl Iterator<Item = DVec3> + '_ {
+        self.neighbour_pixels(i)
+            .into_iter()
+            .filter_map(|(ni, row)| self.at(ni, row))
+    }
+
+    /// The camera-frame normal at column `i` of the current row, whose point is `p`: the cross
+    /// product of the depth gradient along the row and along the column, each taken towards
+    /// the neighbour nearer to `p` (a difference across a depth edge would tilt it), oriented
+    /// towards the camera. `None` when an axis has no valid neighbour.
+    fn normal(&self, i: usize, p: DVec3) -> Option<DVec3> {
+        let [left, right, up, down] = self.neighbour_pixels(i).map(|(ni, row)| self.at(ni, row));
+        let along = |before: Option<DVec3>, after: Option<DVec3>| match (before, after) {
+            (Some(b), Some(a)) if (a - p).length() <= (p - b).length() => Some(a - p),
+            (Some(b), _) => Some(p - b),
+            (None, Some(a)) => Some(a - p),
+            (None, None) => None,
+        };
+        let n = along(left, right)?.cross(along(up, down)?).normalize_or_zero();
+        if n == DVec3::ZERO {
+            return None;
+        }
+        Some(if n.dot(p) > 0.0 { -n } else { n })
+    }
+
+    /// Left, right, upper and lower neighbours of column `i` as (column, window row), wrapping
+    /// around horizontally for spherical maps; `None` outside the image.
+    fn neighbour_pixels(&self, i: usize) -> [(Option<usize>, Option<usize>); 4] {
+        let left = i
+            .checked_sub(1)
+            .or(if self.wraps { self.width.checked_sub(1) } else { None });
+        let right = if i + 1 < self.width {
+            Some(i + 1)
+        } else if self.wraps {
+            Some(0)
+        } else {
+            None
+        };
+        let up = self.has_up.then_some(0);
+        let down = self.has_down.then_some(2);
+        [(left, Some(1)), (right, Some(1)), (Some(i), up), (Some(i), down)]
+    }
+}
+
+/// Back-projected samples of one depth map, as columns.
+pub struct Samples {
+    pub points: Vec<DVec3>,
+    pub radii: Vec<f64>,
+    pub spikes: Vec<bool>,
+    pub normals: Vec<DVec3>,
+    pub areas: Vec<f64>,
+    pub stats: SampleStats,
+}
+
+/// Every sample of a depth image in memory (tests and tools; ingest streams them).
+pub fn back_project(source: &DepthMapSource, image: &DepthImage) -> Result<Samples, InputError> {
+    let stream = SampleStream::new(source, Box::new(ImageRows::new(image)))?;
+    let valid = stream.valid_pixels() as usize;
+    let mut samples = Samples {
+        points: Vec::with_capacity(valid),
+        radii: Vec::with_capacity(valid),
+        spikes: Vec::with_capacity(valid),
+        normals: Vec::with_capacity(valid),
+        areas: Vec::with_capacity(valid),
+        stats: SampleStats::default(),
+    };
+    samples.stats = stream.for_each(|s| {
+        samples.points.push(s.point);
+        samples.radii.push(s.radius);
+        samples.spikes.push(s.spike);
+        samples.normals.push(s.normal);
+        samples.areas.push(s.area);
+    })?;
+    Ok(samples)
+}
+
+/// About `count` of a map's samples, evenly strided over its valid pixels, for sizing the root
+/// cube. Spikes are left out: a few percent of wild depths would otherwise stretch the root far
+/// beyond the scene and cost every cube resolution (with `--max-depth` fixed, the finest cube
+/// grows with the root); a map of nothing but spikes (pure noise) still bounds the scene
+/// through all its samples. Spikes still spawn cubes and vote like any other sample inside the
+/// root.
+pub fn bounds_sample(stream: SampleStream<'_>, count: usize) -> Result<Vec<DVec3>, InputError> {
+    let step = (stream.valid_pixels() / count.max(1) as u64).max(1);
+    let (mut consistent, mut all) = (Vec::new(), Vec::new());
+    let (mut seen_consistent, mut seen) = (0u64, 0u64);
+    stream.for_each(|s| {
+        if seen % step == 0 {
+            all.push(s.point);
+        }
+        seen += 1;
+        if !s.spike {
+            if seen_consistent % step == 0 {
+                consistent.push(s.point);
+            }
+            seen_consistent += 1;
+        }
+    })?;
+    Ok(if consistent.is_empty() { all } else { consistent })
+}
+
+/// A box robust to stray points: per axis, the 0.1 % and 99.9 % quantiles. None without points.
+pub fn robust_bounds(points: &[DVec3]) -> Option<(DVec3, DVec3)> {
+    if points.is_empty() {
+        return None;
+    }
+    let quantile = |axis: usize, q: f64| -> f64 {
+        let mut v: Vec<f64> = points.iter().map(|p| p[axis]).collect();
+        v.sort_by(f64::total_cmp);
+        let index = ((v.len() - 1) as f64 * q).round() as usize;
+        v.get(index).copied().unwrap_or(0.0)
+    };
+    let lo = DVec3::new(quantile(0, 0.001), quantile(1, 0.001), quantile(2, 0.001));
+    let hi = DVec3::new(quantile(0, 0.999), quantile(1, 0.999), quantile(2, 0.999));
+    Some((lo, hi))
+}

@@ -1,0 +1,388 @@
+//! One depth map's cubes, merged by key, in bounded memory (format-spec.md, "Ingest runs").
+//!
+//! Samples' cube entries gather in a buffer of at most `capacity` entries. A map whose entries
+//! fit is sorted and merged in memory, as it always was. A larger one sorts and merges each
+//! full buffer into a run on a scratch file, then merges the runs key by key into a segment
+//! spilled to scratch files (`store::SegmentSpill`). Every sum is an integer sum, so the
+//! segment's bytes do not depend on where the buffer was cut: the store is the same whatever
+//! the memory budget.
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::Path;
+
+use super::{RADIUS_SUM, SPIKE_COUNT};
+use crate::format::{Column, ColumnShape, ColumnValues, CubeKey};
+use crate::stages::samples::{Moments, moment_columns};
+use crate::store::{Result, SegmentContent, SegmentSpill, StoreError};
+
+/// A sample's contribution to its cube: key, quantised radius, spike, SSD moments.
+pub(super) type Entry = (CubeKey, u64, bool, Moments);
+
+/// Bytes an entry costs in memory while buffered and once merged into columns (the buffer's
+/// element plus a cube's row in the in-memory columns).
+pub(super) const BYTES_PER_ENTRY: u64 = (size_of::<Entry>() + 16 + 8 + 4 + 4 + 7 * 8) as u64;
+
+/// Rows per batch appended to a spilled segment.
+const SPILL_BATCH_ROWS: usize = 1 << 16;
+
+/// One cube of a run: the sums of its entries.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct CubeSums {
+    key: CubeKey,
+    radius_sum: u64,
+    count: u32,
+    spikes: u32,
+    moments: Moments,
+}
+
+/// Bytes of a [`CubeSums`] record in a run file (little-endian fields in declaration order).
+const RECORD_LEN: usize = 16 + 8 + 4 + 4 + 7 * 8;
+
+impl CubeSums {
+    fn of(entry: &Entry) -> CubeSums {
+        CubeSums {
+            key: entry.0,
+            radius_sum: entry.1,
+            count: 1,
+            spikes: u32::from(entry.2),
+            moments: entry.3,
+        }
+    }
+
+    fn add(&mut self, other: &CubeSums) {
+        self.radius_sum += other.radius_sum;
+        self.count += other.count;
+        self.spikes += other.spikes;
+        self.moments.add(&other.moments);
+    }
+
+    fn encode(&self, out: &mut [u8; RECORD_LEN]) {
+        let m = &self.moments;
+        let fields = [
+            m.weight,
+            m.offset[0],
+            m.offset[1],
+            m.offset[2],
+            m.normal[0],
+            m.normal[1],
+            m.normal[2],
+        ];
+        let mut bytes = self.key.raw().to_le_bytes().to_vec();
+        bytes.extend_from_slice(&self.radius_sum.to_le_bytes());
+        bytes.extend_from_slice(&self.count.to_le_bytes());
+        bytes.extend_from_slice(&self.spikes.to_le_bytes());
+        for f in fields {
+            bytes.extend_from_slice(&f.to_le_bytes());
+        }
+        out.copy_from_slice(&bytes);
+    }
+
+    fn decode(bytes: &[u8; RECORD_LEN]) -> CubeSums {
+        let mut at = 0usize;
+        let mut take = |n: usize| {
+            let mut field = [0u8; 16];
+            if let (Some(dst), Some(src)) = (field.get_mut(..n), bytes.get(at..at + n)) {
+                dst.copy_from_slice(src);
+            }
+            at += n;
+            field
+        };
+        let key = CubeKey::from_raw(u128::from_le_bytes(take(16)));
+        let u64_of = |f: [u8; 16]| u64::from_le_bytes([f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]]);
+        let u32_of = |f: [u8; 16]| u32::from_le_bytes([f[0], f[1], f[2], f[3]]);
+        let radius_sum = u64_of(take(8));
+        let count = u32_of(take(4));
+        let spikes = u32_of(take(4));
+        let mut i = || u64_of(take(8)) as i64;
+        let weight = i();
+        let offset = [i(), i(), i()];
+        let normal = [i(), i(), i()];
+        CubeSums {
+            key,
+            radius_sum,
+            count,
+            spikes,
+            moments: Moments { weight, offset, normal },
+        }
+    }
+}
+
+/// Sorts `entries` by key and sums the entries of each key, in key order.
+fn merged(entries: &mut [Entry], mut each: impl FnMut(CubeSums) -> Result<()>) -> Result<()> {
+    // By key alone: entries of one key are summed, in any order.
+    entries.sort_unstable_by_key(|(key, _, _, _)| *key);
+    let mut current: Option<CubeSums> = None;
+    for entry in entries.iter() {
+        let sums = CubeSums::of(entry);
+        match &mut current {
+            Some(c) if c.key == sums.key => c.add(&sums),
+            _ => {
+                if let Some(done) = current.replace(sums) {
+                    each(done)?;
+                }
+            }
+        }
+    }
+    current.map_or(Ok(()), each)
+}
+
+/// Column builders for cube sums.
+#[derive(Default)]
+struct CubeColumns {
+    keys: Vec<CubeKey>,
+    sums: Vec<u64>,
+    counts: Vec<u32>,
+    spike_counts: Vec<u32>,
+    moments: Vec<Moments>,
+}
+
+impl CubeColumns {
+    fn push(&mut self, c: CubeSums) {
+        self.keys.push(c.key);
+        self.sums.push(c.radius_sum);
+        self.counts.push(c.count);
+        self.spike_counts.push(c.spikes);
+        self.moments.push(c.moments);
+    }
+
+    fn len(&self) -> usize {
+        self.keys.len()
+    }
+
+    /// An ingest run's columns (format-spec.md, "Columns used by stages").
+    fn into_columns(self) -> Vec<Column> {
+        let mut columns = vec![
+            Column::keys(self.keys),
+            Column::new(RADIUS_SUM, 1, ColumnValues::U64(self.sums)),
+            Column::new("radius_count", 1, ColumnValues::U32(self.counts)),
+            Column::new(SPIKE_COUNT, 1, ColumnValues::U32(self.spike_counts)),
+        ];
+        columns.extend(moment_columns(&self.moments));
+        columns
+    }
+}
+
+fn scratch_error<'a>(dir: &'a Path, action: &'static str) -> impl Fn(std::io::Error) -> StoreError + 'a {
+    move |source| StoreError::Io {
+        action,
+        path: dir.to_path_buf(),
+        source,
+    }
+}
+
+/// A map's cube entries, gathered in at most `capacity` entries of memory.
+pub(super) struct CubeRuns<'a> {
+    scratch: &'a Path,
+    capacity: usize,
+    entries: Vec<Entry>,
+    /// Sorted, merged runs of earlier full buffers.
+    runs: Vec<File>,
+}
+
+impl<'a> CubeRuns<'a> {
+    /// Runs of at most `capacity` entries; `expected` entries are likely (the map's valid
+    /// pixels), so the buffer is sized once (grown by doubling, a buffer costs up to twice its
+    /// size, and its copies are paid again).
+    pub(super) fn new(scratch: &'a Path, capacity: usize, expected: usize) -> CubeRuns<'a> {
+        let capacity = capacity.max(1);
+        CubeRuns {
+            scratch,
+            capacity,
+            entries: Vec::with_capacity(capacity.min(expected)),
+            runs: Vec::new(),
+        }
+    }
+
+    pub(super) fn push(&mut self, entry: Entry) -> Result<()> {
+        if self.entries.len() >= self.capacity {
+            self.spill()?;
+        }
+        self.entries.push(entry);
+        Ok(())
+    }
+
+    /// Writes the buffer as one sorted, merged run.
+    fn spill(&mut self) -> Result<()> {
+        std::fs::create_dir_all(self.scratch).map_err(scratch_error(self.scratch, "create scratch"))?;
+        let file =
+            tempfile::tempfile_in(self.scratch).map_err(scratch_error(self.scratch, "create scratch file in"))?;
+        let mut out = BufWriter::with_capacity(1 << 16, file);
+        let mut record = [0u8; RECORD_LEN];
+        let error = scratch_error(self.scratch, "write scratch in");
+        merged(&mut self.entries, |c| {
+            c.encode(&mut record);
+            out.write_all(&record).map_err(&error)
+        })?;
+        // The buffer is reused: a spilling map holds one buffer at a time.
+        self.entries.clear();
+        let mut file = out.into_inner().map_err(|e| error(e.into_error()))?;
+        file.seek(SeekFrom::Start(0)).map_err(&error)?;
+        self.runs.push(file);
+        Ok(())
+    }
+
+    /// The map's segment (`None` without cubes) and its cube count.
+    pub(super) fn finish(mut self) -> Result<(Option<SegmentContent>, u64)> {
+        if self.runs.is_empty() {
+            let mut columns = CubeColumns::default();
+            merged(&mut self.entries, |c| {
+                columns.push(c);
+                Ok(())
+            })?;
+            drop(std::mem::take(&mut self.entries));
+            let cubes = columns.len() as u64;
+            return Ok(((cubes > 0).then(|| columns.into_columns().into()), cubes));
+        }
+        if !self.entries.is_empty() {
+            self.spill()?;
+        }
+        let shapes: Vec<ColumnShape> = CubeColumns::default()
+            .into_columns()
+            .iter()
+            .map(ColumnShape::of)
+            .collect();
+        let mut spill = SegmentSpill::new_in(self.scratch, shapes)?;
+        let error = scratch_error(self.scratch, "read scratch in");
+        let mut readers: Vec<BufReader<File>> = self
+            .runs
+            .drain(..)
+            .map(|f| BufReader::with_capacity(1 << 16, f))
+            .collect();
+        let next = |run: usize, readers: &mut [BufReader<File>]| -> Result<Option<CubeSums>> {
+            let Some(reader) = readers.get_mut(run) else {
+                return Ok(None);
+            };
+            let mut record = [0u8; RECORD_LEN];
+            match reader.read_exact(&mut record) {
+                Ok(()) => Ok(Some(CubeSums::decode(&record))),
+                Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => Ok(None),
+                Err(e) => Err(error(e)),
+            }
+        };
+        // Smallest key first; among equal keys, the lower run first (any order sums the same).
+        let mut heads: BinaryHeap<Reverse<(CubeKey, usize)>> = BinaryHeap::new();
+        let mut pending: Vec<Option<CubeSums>> = Vec::with_capacity(readers.len());
+        for run in 0..readers.len() {
+            let head = next(run, &mut readers)?;
+            if let Some(c) = &head {
+                heads.push(Reverse((c.key, run)));
+            }
+            pending.push(head);
+        }
+        let mut batch = CubeColumns::default();
+        let mut current: Option<CubeSums> = None;
+        while let Some(Reverse((_, run))) = heads.pop() {
+            let Some(c) = pending.get_mut(run).and_then(Option::take) else {
+                continue;
+            };
+            match &mut current {
+                Some(cur) if cur.key == c.key => cur.add(&c),
+                _ => {
+                    if let Some(done) = current.replace(c) {
+                        batch.push(done);
+                        if batch.len() >= SPILL_BATCH_ROWS {
+                            spill.append(&std::mem::take(&mut batch).into_columns())?;
+                        }
+                    }
+                }
+            }
+            let head = next(run, &mut readers)?;
+            if let Some(h) = &head {
+                heads.push(Reverse((h.key, run)));
+            }
+            if let Some(slot) = pending.get_mut(run) {
+                *slot = head;
+            }
+        }
+        if let Some(done) = current {
+            batch.push(done);
+        }
+        if batch.len() > 0 {
+            spill.append(&batch.into_columns())?;
+        }
+        let cubes = spill.rows();
+        Ok(((cubes > 0).then_some(SegmentContent::Spilled(spill)), cubes))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(key: u32, radius: u64, spike: bool, weight: i64) -> Entry {
+        let moments = Moments {
+            weight,
+            offset: [weight, -weight, 3],
+            normal: [1, 2, -weight],
+        };
+        (CubeKey::new(10, key, key / 2, 7), radius, spike, moments)
+    }
+
+    fn columns_of(content: SegmentContent) -> Vec<Column> {
+        let SegmentContent::Columns(columns) = content else {
+            panic!("expected columns in memory")
+        };
+        columns
+    }
+
+    /// Spilled runs merge into exactly the columns the in-memory path gives, for any buffer
+    /// size (the encoder then writes the same bytes: `store::spill`).
+    #[test]
+    fn spilled_runs_sum_to_the_in_memory_columns() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut state = 3u64;
+        let entries: Vec<Entry> = (0..5000)
+            .map(|_| {
+                let r = crate::kernels::random::splitmix(&mut state);
+                entry((r % 700) as u32, r % 1000, r.is_multiple_of(7), (r % 50) as i64 - 20)
+            })
+            .collect();
+        let mut whole = CubeRuns::new(dir.path(), usize::MAX, 100);
+        for e in &entries {
+            whole.push(*e).unwrap();
+        }
+        let (content, cubes) = whole.finish().unwrap();
+        let expected = columns_of(content.unwrap());
+        assert_eq!(cubes as usize, expected[0].rows());
+        for capacity in [1, 7, 499, 4999] {
+            let mut runs = CubeRuns::new(dir.path(), capacity, 100);
+            for e in &entries {
+                runs.push(*e).unwrap();
+            }
+            let (content, spilled_cubes) = runs.finish().unwrap();
+            assert_eq!(spilled_cubes, cubes);
+            let Some(SegmentContent::Spilled(spill)) = content else {
+                panic!("capacity {capacity} should spill")
+            };
+            let mut direct = Vec::new();
+            crate::format::segment::encode_segment_with_block_rows(&expected, 1024, &mut direct).unwrap();
+            let (shapes, rows, mut sources) = spill.into_sources().unwrap();
+            let mut streamed = Vec::new();
+            crate::format::segment::encode_segment_streamed(&shapes, rows, &mut sources, 1024, &mut streamed).unwrap();
+            assert!(direct == streamed, "capacity {capacity}: the spilled segment differs");
+        }
+        // Nothing stays in the scratch folder: run and column files are unlinked at creation.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn records_round_trip() {
+        let c = CubeSums {
+            key: CubeKey::new(5, 1, 2, 3),
+            radius_sum: u64::MAX - 3,
+            count: 9,
+            spikes: 2,
+            moments: Moments {
+                weight: -5,
+                offset: [i64::MIN, 0, i64::MAX],
+                normal: [-1, 1, 12345],
+            },
+        };
+        let mut bytes = [0u8; RECORD_LEN];
+        c.encode(&mut bytes);
+        assert_eq!(CubeSums::decode(&bytes), c);
+    }
+}
