@@ -163,6 +163,100 @@ fn finest_cell_at(snapshot: &Snapshot<'_>, point: DVec3) -> Result<Option<(Scene
     Ok(full_resolution(&scene, point).map(|cell| (scene, level, cell)))
 }
 
+/// u at `point`, whose full-resolution cell is `cell`: interpolated by inverse distance over
+/// the cut cubes around the octree corner nearest to the point (exact at cube centres).
+fn interpolated(lookup: &mut LevelCut<'_, '_>, scene: &Scene, cell: [i64; 3], point: DVec3) -> Result<Option<f32>> {
+    let Some((leaf, own)) = lookup.cube_at(cell.map(|c| c as u32))? else {
+        return Ok(None);
+    };
+    // The nearest corner of the containing leaf, and the leaves in its 8 octants.
+    let side = 1i64 << (u32::from(MAX_DEPTH) - u32::from(leaf.depth()));
+    let corner = leaf.corner_full_resolution().map(i64::from);
+    let v: [i64; 3] = std::array::from_fn(|a| {
+        if cell[a] - corner[a] >= side / 2 {
+            corner[a] + side
+        } else {
+            corner[a]
+        }
+    });
+    let limit = 1i64 << 32;
+    let mut weights = 0f64;
+    let mut sum = 0f64;
+    let mut seen: [Option<CubeKey>; 8] = [None; 8];
+    for octant in 0..8usize {
+        let probe: [i64; 3] = std::array::from_fn(|a| v[a] - 1 + ((octant >> a) & 1) as i64);
+        if probe.iter().any(|c| *c < 0 || *c >= limit) {
+            continue;
+        }
+        let Some((key, value)) = lookup.cube_at(probe.map(|c| c as u32))? else {
+            continue;
+        };
+        if seen.contains(&Some(key)) {
+            continue;
+        }
+        if let Some(slot) = seen.get_mut(octant) {
+            *slot = Some(key);
+        }
+        let distance = (scene.cube_center(key) - point).length();
+        if distance < 1e-12 * scene.root_side {
+            return Ok(Some(value.u));
+        }
+        let w = 1.0 / (distance * distance);
+        weights += w;
+        sum += w * f64::from(value.u);
+    }
+    Ok(Some(if weights > 0.0 { (sum / weights) as f32 } else { own.u }))
+}
+
+/// Points per batch of [`indicator_at_points`]: each batch decodes the level's groups it
+/// touches once, so memory follows a batch's extent, not the scene's.
+const POINTS_PER_BATCH: usize = 1 << 14;
+
+/// u at many points ([`IndicatorField::indicator_at`] for each, NaN where it gives `None`),
+/// on every core: the version's checks run once, and the points are taken in Morton order of
+/// their cells in batches that each decode the groups they touch once. The values do not
+/// depend on the batching (each is its own point's).
+pub fn indicator_at_points(snapshot: &Snapshot<'_>, points: &[DVec3]) -> Result<Vec<f32>> {
+    use rayon::prelude::*;
+    let mut values = vec![f32::NAN; points.len()];
+    let Some(level) = snapshot.finest_level() else {
+        return Ok(values);
+    };
+    ensure_solution_is_current(snapshot)?;
+    let scene = scene_of(snapshot)?;
+    let treetop = Treetop::of(snapshot)?;
+    let mut order: Vec<(CubeKey, usize, [i64; 3])> = points
+        .iter()
+        .enumerate()
+        .filter_map(|(index, p)| {
+            let cell = full_resolution(&scene, *p)?;
+            let key = CubeKey::new(MAX_DEPTH, cell[0] as u32, cell[1] as u32, cell[2] as u32);
+            Some((key, index, cell))
+        })
+        .collect();
+    order.par_sort_unstable_by_key(|(key, index, _)| (*key, *index));
+    let found: Vec<Vec<(usize, f32)>> = order
+        .par_chunks(POINTS_PER_BATCH)
+        .map(|batch| {
+            let mut lookup = LevelCut::new(snapshot, &treetop, level);
+            batch
+                .iter()
+                .map(|(_, index, cell)| {
+                    let point = points.get(*index).copied().unwrap_or(DVec3::NAN);
+                    let u = interpolated(&mut lookup, &scene, *cell, point)?;
+                    Ok((*index, u.unwrap_or(f32::NAN)))
+                })
+                .collect::<Result<Vec<_>>>()
+        })
+        .collect::<Result<_>>()?;
+    for (index, u) in found.into_iter().flatten() {
+        if let Some(slot) = values.get_mut(index) {
+            *slot = u;
+        }
+    }
+    Ok(values)
+}
+
 impl IndicatorField for Snapshot<'_> {
     fn finest_level(&self) -> Option<u8> {
         (0..=MAX_DEPTH)
@@ -212,44 +306,7 @@ impl IndicatorField for Snapshot<'_> {
         };
         let treetop = Treetop::of(self)?;
         let mut lookup = LevelCut::new(self, &treetop, level);
-        let Some((leaf, own)) = lookup.cube_at(cell.map(|c| c as u32))? else {
-            return Ok(None);
-        };
-        // The nearest corner of the containing leaf, and the leaves in its 8 octants.
-        let side = 1i64 << (u32::from(MAX_DEPTH) - u32::from(leaf.depth()));
-        let corner = leaf.corner_full_resolution().map(i64::from);
-        let v: [i64; 3] = std::array::from_fn(|a| {
-            if cell[a] - corner[a] >= side / 2 {
-                corner[a] + side
-            } else {
-                corner[a]
-            }
-        });
-        let limit = 1i64 << 32;
-        let mut weights = 0f64;
-        let mut sum = 0f64;
-        let mut seen: Vec<CubeKey> = Vec::new();
-        for octant in 0..8 {
-            let probe: [i64; 3] = std::array::from_fn(|a| v[a] - 1 + ((octant >> a) & 1));
-            if probe.iter().any(|c| *c < 0 || *c >= limit) {
-                continue;
-            }
-            let Some((key, value)) = lookup.cube_at(probe.map(|c| c as u32))? else {
-                continue;
-            };
-            if seen.contains(&key) {
-                continue;
-            }
-            seen.push(key);
-            let distance = (scene.cube_center(key) - point).length();
-            if distance < 1e-12 * scene.root_side {
-                return Ok(Some(value.u));
-            }
-            let w = 1.0 / (distance * distance);
-            weights += w;
-            sum += w * f64::from(value.u);
-        }
-        Ok(Some(if weights > 0.0 { (sum / weights) as f32 } else { own.u }))
+        interpolated(&mut lookup, &scene, cell, point)
     }
 
     fn seen_at(&self, point: DVec3) -> Result<Option<bool>> {

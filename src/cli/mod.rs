@@ -33,6 +33,52 @@ fn open_or_create(path: &Path) -> Result<Store, StoreError> {
     }
 }
 
+/// A verb's options as the library takes them, parsed from a command line exactly as
+/// `octstore` parses and checks it: for front ends (the Python package) that run the verb on a
+/// store they already hold open.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum LibraryCall {
+    /// `octstore ingest`: the inputs, then discovery, ingest and run options.
+    Ingest {
+        /// Files and folders to discover depth maps in.
+        inputs: Vec<std::path::PathBuf>,
+        /// How to discover them.
+        discover: crate::inputs::DiscoverOptions,
+        /// How to ingest them.
+        options: crate::stages::ingest::IngestOptions,
+        /// Threads, resumption, progress bars.
+        run: RunOptions,
+    },
+    /// `octstore solve`.
+    Solve(crate::pipeline::SolveOptions),
+}
+
+/// Parses `argv` (`["octstore", "ingest" | "solve", STORE, ...]`) into the library call the
+/// command line would make; the error is clap's message, as the command line prints it.
+pub fn library_call(argv: &[String]) -> Result<LibraryCall, String> {
+    use clap::Parser;
+    // clap's message without its "error: " and its closing pointer to --help.
+    let cli = Cli::try_parse_from(argv).map_err(|e| {
+        let text = e.to_string();
+        let first = text.split("\n\n").next().unwrap_or_default();
+        first.trim_start_matches("error: ").trim_end().to_string()
+    })?;
+    match cli.command {
+        Command::Ingest(args) => {
+            let (discover, options, run) = verbs::ingest_options(&cli.global, &args);
+            Ok(LibraryCall::Ingest {
+                inputs: args.inputs,
+                discover,
+                options,
+                run,
+            })
+        }
+        Command::Solve(args) => Ok(LibraryCall::Solve(verbs::solve_options(&cli.global, &args))),
+        _ => Err("only ingest and solve run as library calls".into()),
+    }
+}
+
 /// Runs one command line; the exit code is non-zero when `verify` finds problems.
 pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
     let global = cli.global;

@@ -18,9 +18,13 @@ use crate::pipeline::{self, DemoOptions, save_png};
 use crate::stages::exercise::ExerciseStage;
 use crate::stages::extract::ExtractOptions;
 use crate::stages::ingest::{IngestOptions, scene_at};
-use crate::store::Store;
+use crate::store::{RunOptions, Store};
 
-pub(super) fn ingest(global: &GlobalOptions, args: IngestArgs) -> Result<()> {
+/// What `octstore ingest` passes to [`pipeline::ingest`]: discovery, ingest and run options.
+pub(super) fn ingest_options(
+    global: &GlobalOptions,
+    args: &IngestArgs,
+) -> (DiscoverOptions, IngestOptions, RunOptions) {
     let discover = DiscoverOptions {
         format: args.format,
         stride: args.stride,
@@ -29,27 +33,26 @@ pub(super) fn ingest(global: &GlobalOptions, args: IngestArgs) -> Result<()> {
         depth_noise: args.depth_noise,
         noise_sigmas: args.noise_sigmas,
     };
-    let store = open_or_create(&args.store)?;
     let options = IngestOptions {
         root: args.root,
         root_margin: args.root_margin,
         max_depth: args.max_depth,
         memory_budget: global.memory_budget,
     };
-    let report = pipeline::ingest(
-        &store,
-        &args.inputs,
-        &discover,
-        &options,
-        &run_options(global, args.resume),
-    )?;
+    (discover, options, run_options(global, args.resume))
+}
+
+pub(super) fn ingest(global: &GlobalOptions, args: IngestArgs) -> Result<()> {
+    let (discover, options, run) = ingest_options(global, &args);
+    let store = open_or_create(&args.store)?;
+    let report = pipeline::ingest(&store, &args.inputs, &discover, &options, &run)?;
     summary(&report);
     Ok(())
 }
 
-pub(super) fn solve(global: &GlobalOptions, args: SolveArgs) -> Result<()> {
-    let store = Store::open(&args.store)?;
-    let options = pipeline::SolveOptions {
+/// What `octstore solve` passes to [`pipeline::solve`].
+pub(super) fn solve_options(global: &GlobalOptions, args: &SolveArgs) -> pipeline::SolveOptions {
+    pipeline::SolveOptions {
         until: args.until,
         leaf_cubes: args.leaf_cubes,
         memory_budget: global.memory_budget,
@@ -57,7 +60,12 @@ pub(super) fn solve(global: &GlobalOptions, args: SolveArgs) -> Result<()> {
         method: args.solver.method(),
         run: run_options(global, args.resume),
         device: args.device,
-    };
+    }
+}
+
+pub(super) fn solve(global: &GlobalOptions, args: SolveArgs) -> Result<()> {
+    let store = Store::open(&args.store)?;
+    let options = solve_options(global, &args);
     pipeline::solve(&store, &options, summary)?;
     Ok(())
 }
