@@ -11,7 +11,7 @@ use crate::format::{BoundingBox, CubeKey, MAX_DEPTH, Scene};
 use crate::kernels::votes::BINS;
 use crate::stages::HISTOGRAMS;
 use crate::stages::ingest::scene_at;
-use crate::stages::solve::{LEVEL_STAGES, LevelCut, method_of_segment};
+use crate::stages::solve::{CutValue, LEVEL_STAGES, LevelCut, method_of_segment};
 use crate::stages::treetop::Treetop;
 use crate::store::{Result, Snapshot, StoreError};
 
@@ -163,9 +163,63 @@ fn finest_cell_at(snapshot: &Snapshot<'_>, point: DVec3) -> Result<Option<(Scene
     Ok(full_resolution(&scene, point).map(|cell| (scene, level, cell)))
 }
 
+/// The cut cubes found last, for a run of nearby lookups: points taken in Morton order probe
+/// around each other, so most probes fall in a cube found for a point just before. The cut
+/// tiles what it covers, so a remembered cube that contains a probe is the answer.
+struct RecentCubes<'l, 'a, 's> {
+    lookup: &'l mut LevelCut<'a, 's>,
+    cubes: [Option<(CubeKey, CutValue)>; 16],
+    next: usize,
+}
+
+impl<'l, 'a, 's> RecentCubes<'l, 'a, 's> {
+    fn new(lookup: &'l mut LevelCut<'a, 's>) -> Self {
+        RecentCubes {
+            lookup,
+            cubes: [None; 16],
+            next: 0,
+        }
+    }
+
+    fn cube_at(&mut self, cell: [u32; 3]) -> Result<Option<(CubeKey, CutValue)>> {
+        let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
+        if let Some(found) = self
+            .cubes
+            .iter()
+            .flatten()
+            .find(|(key, _)| key.is_ancestor_or_self_of(probe))
+        {
+            return Ok(Some(*found));
+        }
+        let found = self.lookup.cube_containing(probe)?;
+        if let (Some(found), Some(slot)) = (found, self.cubes.get_mut(self.next)) {
+            *slot = Some(found);
+            self.next = (self.next + 1) % 16;
+        }
+        Ok(found)
+    }
+}
+
+/// The cut cubes around one octree corner, as [`interpolated`] weighs them: each distinct
+/// cube's centre and u, in octant order.
+struct CornerCubes {
+    /// The leaf that holds the point, and the corner of it nearest the point (finest cells).
+    leaf: CubeKey,
+    corner: [i64; 3],
+    cubes: Vec<(DVec3, f32)>,
+}
+
 /// u at `point`, whose full-resolution cell is `cell`: interpolated by inverse distance over
 /// the cut cubes around the octree corner nearest to the point (exact at cube centres).
-fn interpolated(lookup: &mut LevelCut<'_, '_>, scene: &Scene, cell: [i64; 3], point: DVec3) -> Result<Option<f32>> {
+/// `last` keeps the previous point's corner cubes: points taken in Morton order often share
+/// a leaf and its nearest corner, and then only the distances are new.
+fn interpolated(
+    lookup: &mut RecentCubes<'_, '_, '_>,
+    last: &mut Option<CornerCubes>,
+    scene: &Scene,
+    cell: [i64; 3],
+    point: DVec3,
+) -> Result<Option<f32>> {
     let Some((leaf, own)) = lookup.cube_at(cell.map(|c| c as u32))? else {
         return Ok(None);
     };
@@ -179,38 +233,44 @@ fn interpolated(lookup: &mut LevelCut<'_, '_>, scene: &Scene, cell: [i64; 3], po
             corner[a]
         }
     });
-    let limit = 1i64 << 32;
+    if !last.as_ref().is_some_and(|c| c.leaf == leaf && c.corner == v) {
+        let limit = 1i64 << 32;
+        let mut keys: Vec<CubeKey> = Vec::with_capacity(8);
+        let mut cubes = Vec::with_capacity(8);
+        for octant in 0..8usize {
+            let probe: [i64; 3] = std::array::from_fn(|a| v[a] - 1 + ((octant >> a) & 1) as i64);
+            if probe.iter().any(|c| *c < 0 || *c >= limit) {
+                continue;
+            }
+            let Some((key, value)) = lookup.cube_at(probe.map(|c| c as u32))? else {
+                continue;
+            };
+            if keys.contains(&key) {
+                continue;
+            }
+            keys.push(key);
+            cubes.push((scene.cube_center(key), value.u));
+        }
+        *last = Some(CornerCubes { leaf, corner: v, cubes });
+    }
     let mut weights = 0f64;
     let mut sum = 0f64;
-    let mut seen: [Option<CubeKey>; 8] = [None; 8];
-    for octant in 0..8usize {
-        let probe: [i64; 3] = std::array::from_fn(|a| v[a] - 1 + ((octant >> a) & 1) as i64);
-        if probe.iter().any(|c| *c < 0 || *c >= limit) {
-            continue;
-        }
-        let Some((key, value)) = lookup.cube_at(probe.map(|c| c as u32))? else {
-            continue;
-        };
-        if seen.contains(&Some(key)) {
-            continue;
-        }
-        if let Some(slot) = seen.get_mut(octant) {
-            *slot = Some(key);
-        }
-        let distance = (scene.cube_center(key) - point).length();
+    for (center, u) in last.iter().flat_map(|c| c.cubes.iter()) {
+        let distance = (*center - point).length();
         if distance < 1e-12 * scene.root_side {
-            return Ok(Some(value.u));
+            return Ok(Some(*u));
         }
         let w = 1.0 / (distance * distance);
         weights += w;
-        sum += w * f64::from(value.u);
+        sum += w * f64::from(*u);
     }
     Ok(Some(if weights > 0.0 { (sum / weights) as f32 } else { own.u }))
 }
 
-/// Points per batch of [`indicator_at_points`]: each batch decodes the level's groups it
-/// touches once, so memory follows a batch's extent, not the scene's.
-const POINTS_PER_BATCH: usize = 1 << 14;
+/// Points per batch of [`indicator_at_points`], at least and at most: each batch decodes the
+/// level's groups it touches once (decoding dominated with 16,384-point batches), and holds
+/// them, so memory follows a batch's extent, not the scene's.
+const POINTS_PER_BATCH: std::ops::RangeInclusive<usize> = (1 << 14)..=(1 << 20);
 
 /// u at many points ([`IndicatorField::indicator_at`] for each, NaN where it gives `None`),
 /// on every core: the version's checks run once, and the points are taken in Morton order of
@@ -225,25 +285,41 @@ pub fn indicator_at_points(snapshot: &Snapshot<'_>, points: &[DVec3]) -> Result<
     ensure_solution_is_current(snapshot)?;
     let scene = scene_of(snapshot)?;
     let treetop = Treetop::of(snapshot)?;
-    let mut order: Vec<(CubeKey, usize, [i64; 3])> = points
-        .iter()
+    let mut order: Vec<(CubeKey, usize)> = points
+        .par_iter()
         .enumerate()
         .filter_map(|(index, p)| {
             let cell = full_resolution(&scene, *p)?;
-            let key = CubeKey::new(MAX_DEPTH, cell[0] as u32, cell[1] as u32, cell[2] as u32);
-            Some((key, index, cell))
+            Some((
+                CubeKey::new(MAX_DEPTH, cell[0] as u32, cell[1] as u32, cell[2] as u32),
+                index,
+            ))
         })
         .collect();
-    order.par_sort_unstable_by_key(|(key, index, _)| (*key, *index));
-    let found: Vec<Vec<(usize, f32)>> = order
-        .par_chunks(POINTS_PER_BATCH)
+    order.par_sort_unstable();
+    // The points in that order, gathered in one pass of independent loads: read inside the
+    // interpolation loop, each was a cache miss the loop waited for.
+    let sorted: Vec<(usize, DVec3)> = order
+        .par_iter()
+        .map(|(_, index)| (*index, points.get(*index).copied().unwrap_or(DVec3::NAN)))
+        .collect();
+    // Two batches per worker when that keeps them within bounds.
+    let batch = (sorted.len() / (2 * rayon::current_num_threads().max(1)))
+        .clamp(*POINTS_PER_BATCH.start(), *POINTS_PER_BATCH.end());
+    let found: Vec<Vec<(usize, f32)>> = sorted
+        .par_chunks(batch)
         .map(|batch| {
             let mut lookup = LevelCut::new(snapshot, &treetop, level);
+            let mut recent = RecentCubes::new(&mut lookup);
+            let mut last = None;
             batch
                 .iter()
-                .map(|(_, index, cell)| {
-                    let point = points.get(*index).copied().unwrap_or(DVec3::NAN);
-                    let u = interpolated(&mut lookup, &scene, *cell, point)?;
+                .map(|(index, point)| {
+                    let point = *point;
+                    let u = match full_resolution(&scene, point) {
+                        Some(cell) => interpolated(&mut recent, &mut last, &scene, cell, point)?,
+                        None => None,
+                    };
                     Ok((*index, u.unwrap_or(f32::NAN)))
                 })
                 .collect::<Result<Vec<_>>>()
@@ -306,7 +382,7 @@ impl IndicatorField for Snapshot<'_> {
         };
         let treetop = Treetop::of(self)?;
         let mut lookup = LevelCut::new(self, &treetop, level);
-        interpolated(&mut lookup, &scene, cell, point)
+        interpolated(&mut RecentCubes::new(&mut lookup), &mut None, &scene, cell, point)
     }
 
     fn seen_at(&self, point: DVec3) -> Result<Option<bool>> {

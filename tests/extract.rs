@@ -393,6 +393,26 @@ fn the_indicator_field_can_be_read_from_code_and_the_cli() {
         .unwrap();
     assert!(inside < 0.0 && outside > 0.0, "inside {inside}, outside {outside}");
     assert_eq!(snapshot.indicator_at(DVec3::splat(1.0e6)).unwrap(), None);
+    // The batch read (what Python's `snap.indicator` calls) gives each point's own value, bit
+    // for bit, whatever order the points come in; NaN where the one-point read gives None.
+    let mut state = 11u64;
+    let points: Vec<DVec3> = (0..3000)
+        .map(|_| {
+            let mut coordinate = || (xorshift(&mut state) % 20_000) as f64 / 10_000.0 - 1.0;
+            center + DVec3::new(coordinate(), coordinate(), coordinate()) * 1.2
+        })
+        .chain([DVec3::splat(1.0e6)])
+        .collect();
+    let batch = octstore::query::indicator_at_points(&snapshot, &points).unwrap();
+    for (point, value) in points.iter().zip(&batch) {
+        match snapshot.indicator_at(*point).unwrap() {
+            Some(u) => assert_eq!(u.to_bits(), value.to_bits(), "{point:?}"),
+            None => assert!(value.is_nan(), "{point:?}"),
+        }
+    }
+    let reversed: Vec<DVec3> = points.iter().rev().copied().collect();
+    let again = octstore::query::indicator_at_points(&snapshot, &reversed).unwrap();
+    assert!(again.iter().rev().zip(&batch).all(|(a, b)| a.to_bits() == b.to_bits()));
     // Cubes in a box around the sphere's top, with their histograms.
     let region = BoundingBox {
         min: center + DVec3::new(-0.2, -0.2, 0.35),

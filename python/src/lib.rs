@@ -136,6 +136,10 @@ fn points_of(array: &PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<Vec<DVec
             "{what} must have shape (N, 3), not {shape:?}"
         )));
     }
+    // Contiguous (the Python side asks for it): one pass over the buffer.
+    if let Ok(flat) = array.as_slice() {
+        return Ok(flat.chunks_exact(3).map(|r| DVec3::new(r[0], r[1], r[2])).collect());
+    }
     let view = array.as_array();
     Ok(view.rows().into_iter().map(|r| DVec3::new(r[0], r[1], r[2])).collect())
 }
