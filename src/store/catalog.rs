@@ -154,6 +154,12 @@ pub trait CatalogKey {
     fn key_bytes(&self) -> Vec<u8>;
     /// The key as a corruption error names it.
     fn describe(&self) -> String;
+    /// The key as an error about a value of `table` names it: depth map ids in hex, as
+    /// everywhere else they are printed.
+    fn describe_in(&self, table: &str) -> String {
+        let _ = table;
+        self.describe()
+    }
 }
 
 impl CatalogKey for str {
@@ -172,6 +178,9 @@ impl<T: CatalogKey + ?Sized> CatalogKey for &T {
     fn describe(&self) -> String {
         (**self).describe()
     }
+    fn describe_in(&self, table: &str) -> String {
+        (**self).describe_in(table)
+    }
 }
 
 impl CatalogKey for u64 {
@@ -180,6 +189,13 @@ impl CatalogKey for u64 {
     }
     fn describe(&self) -> String {
         self.to_string()
+    }
+    fn describe_in(&self, table: &str) -> String {
+        if table == redb::TableHandle::name(&DEPTH_MAPS) {
+            format!("{self:016x}")
+        } else {
+            self.describe()
+        }
     }
 }
 
@@ -258,7 +274,7 @@ pub fn unseal<'v, K: CatalogKey + ?Sized>(
     if seal_checksum(table, &key.key_bytes(), payload) != expected {
         return Err(StoreError::CatalogCorruption {
             table,
-            reason: format!("the value at key {} fails its checksum", key.describe()),
+            reason: format!("the value at key {} fails its checksum", key.describe_in(table)),
         });
     }
     Ok(payload)
@@ -278,7 +294,7 @@ pub fn check_sealed<K: CatalogKey + ?Sized>(table: &'static str, key: &K, value:
     if !is_sealed(value) {
         return Err(StoreError::CatalogCorruption {
             table,
-            reason: format!("the value at key {} has no seal", key.describe()),
+            reason: format!("the value at key {} has no seal", key.describe_in(table)),
         });
     }
     unseal(table, key, value).map(|_| ())
@@ -540,4 +556,41 @@ pub fn canonical_dump(db: &impl ReadableDatabase) -> Result<Vec<u8>, StoreError>
     dump!(UNITS_DONE, |k: (&str, u64)| k.key_bytes());
     dump!(UNIT_STATE, |k: (&str, crate::format::CubeKey)| k.key_bytes());
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A flipped byte fails the seal, and the error names the table and the key as the rest of
+    /// octstore prints it: a depth map's id in hex, a version in decimal.
+    #[test]
+    fn a_broken_seal_names_its_table_and_key() {
+        let id = 0x00ab_cdef_0123_4567u64;
+        let mut value = seal("depth_maps", &id, b"payload");
+        if let Some(byte) = value.first_mut() {
+            *byte ^= 1;
+        }
+        let error = unseal("depth_maps", &id, &value)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(
+            error.contains("depth_maps") && error.contains("00abcdef01234567"),
+            "{error}"
+        );
+        let mut value = seal("versions", &12u64, b"payload");
+        if let Some(byte) = value.first_mut() {
+            *byte ^= 1;
+        }
+        let error = unseal("versions", &12u64, &value)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(error.contains("key 12 "), "{error}");
+        assert_eq!(
+            unseal("versions", &12u64, &seal("versions", &12u64, b"ok")).ok(),
+            Some(&b"ok"[..])
+        );
+    }
 }
