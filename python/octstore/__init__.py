@@ -57,8 +57,8 @@ class Report(NamedTuple):
 
 
 class Snapshot:
-    """One version of a store, read-only. Each read pins the version, so `gc` keeps it
-    meanwhile; a version that `gc` removed between reads raises `OctstoreError`."""
+    """One version of a store, read-only. Taken from a read-only handle, it pins its version
+    while it lives, so `octstore gc` in a writer keeps the version's segments."""
 
     def __init__(self, native: Any) -> None:
         self._native = native

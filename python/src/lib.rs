@@ -99,15 +99,19 @@ impl Store {
     #[pyo3(signature = (version = None))]
     fn snapshot(&self, py: Python<'_>, version: Option<u64>) -> PyResult<Snapshot> {
         let store = self.inner.clone();
-        let version = py
-            .detach(move || match version {
-                Some(v) => store.snapshot(v).map(|s| s.version()),
-                None => store.latest().map(|s| s.version()),
+        let (version, pin) = py
+            .detach(move || {
+                let mut snapshot = match version {
+                    Some(v) => store.snapshot(v)?,
+                    None => store.latest()?,
+                };
+                Ok::<_, octstore::StoreError>((snapshot.version(), snapshot.take_pin()))
             })
             .map_err(error)?;
         Ok(Snapshot {
             store: self.inner.clone(),
             version,
+            _pin: pin,
         })
     }
 
@@ -120,12 +124,14 @@ impl Store {
     }
 }
 
-/// One version of a store. Each read pins it (`gc` keeps it meanwhile); reading a version that
-/// `gc` removed in between raises an error that says so.
+/// One version of a store. From a read-only handle it pins its version while it lives, so a
+/// writer's `gc` keeps the version's segments (a writer's own snapshots need no pin: gc runs
+/// in the writer).
 #[pyclass(frozen, module = "octstore._native")]
 struct Snapshot {
     store: Arc<octstore::Store>,
     version: u64,
+    _pin: Option<octstore::store::ReaderPin>,
 }
 
 /// Rows of an (N, 3) float64 array as points.

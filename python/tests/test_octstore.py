@@ -224,3 +224,24 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
         reader.snapshot().indicator(np.zeros((4, 2)))
     with pytest.raises(TypeError, match="real numbers"):
         reader.snapshot().indicator(np.array([["a", "b", "c"]]))
+
+
+def test_a_snapshot_keeps_its_version_from_gc(tmp_path):
+    path = tmp_path / "store"
+    writer = octstore.Store.create(path)
+    depths, K, poses = views()
+    octstore.ingest_arrays(writer, depths[:4], K, poses[:4], **OPTIONS)
+    octstore.solve(writer, iterations=10, device="cpu", quiet=True, threads=2)
+    first = writer.snapshot().version
+    octstore.ingest_arrays(writer, depths[4:], K, poses[4:], **OPTIONS)
+    octstore.solve(writer, iterations=10, device="cpu", quiet=True, threads=2)
+    del writer  # gc runs in another process, which needs the writer's lock
+    reader = octstore.Store.open_read_only(path)
+    held = reader.snapshot(first)
+    points = SPHERE_CENTER + np.random.default_rng(2).normal(size=(500, 3)) * 0.5
+    before = held.indicator(points)
+    out = cli("gc", path, "--keep", "1")
+    assert np.array_equal(held.indicator(points), before, equal_nan=True), out
+    # A version nobody held is gone, and reading it says so.
+    with pytest.raises(octstore.OctstoreError, match="gc|gone|collected"):
+        reader.snapshot(first - 1).indicator(points)

@@ -34,6 +34,7 @@ use catalog::{
     UNIT_STATE, UNITS_DONE, VERSION_TIMES, VERSIONS, VersionRecord,
 };
 pub use failpoint::IoFaults;
+pub use pins::ReaderPin;
 pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSpec};
 pub use snapshot::{SegmentFile, Snapshot};
 pub use spill::{SegmentContent, SegmentSpill};

@@ -11,6 +11,7 @@ use xxhash_rust::xxh3::Xxh3;
 use super::catalog::{
     self, META, META_CURRENT_VERSION, META_GC_HORIZON, SEGMENTS, SegmentRecord, VERSIONS, VersionRecord,
 };
+use super::pins::ReaderPin;
 use super::{Result, Store, StoreError};
 use crate::format::SegmentReader;
 
@@ -22,7 +23,7 @@ pub struct Snapshot<'s> {
     /// Visible segments per stage, ordered by (first key, unit, part).
     stages: BTreeMap<String, Vec<(String, SegmentRecord)>>,
     /// A read-only store's pin on `version`, so that `gc` in a writer keeps its segments.
-    _pin: Option<super::pins::ReaderPin>,
+    pin: Option<super::pins::ReaderPin>,
 }
 
 impl<'s> Snapshot<'s> {
@@ -77,8 +78,15 @@ impl<'s> Snapshot<'s> {
             version,
             record,
             stages,
-            _pin: pin,
+            pin,
         })
+    }
+
+    /// Takes the pin that keeps this version from `gc` (read-only stores; `None` otherwise),
+    /// to hold beyond the snapshot: a front end that opens the version again later (the Python
+    /// package's `Snapshot`) keeps it readable meanwhile.
+    pub fn take_pin(&mut self) -> Option<ReaderPin> {
+        self.pin.take()
     }
 
     /// The store the snapshot reads.
