@@ -150,12 +150,19 @@ def test_cubes_versions_and_snapshots(solved):
     assert solved.snapshot(versions[0]).version == versions[0]
 
 
-def test_readers_in_threads_see_their_version_while_a_writer_runs(tmp_path):
-    path = tmp_path / "store"
+def build_half(path, iterations):
+    """A store of the first four views, solved; returns the writer and the other four views'
+    (depths, K, poses), for a second ingest."""
     writer = octstore.Store.create(path)
     depths, K, poses = views()
     octstore.ingest_arrays(writer, depths[:4], K, poses[:4], **OPTIONS)
-    octstore.solve(writer, iterations=20, device="cpu", quiet=True, threads=2)
+    octstore.solve(writer, iterations=iterations, device="cpu", quiet=True, threads=2)
+    return writer, (depths[4:], K, poses[4:])
+
+
+def test_readers_in_threads_see_their_version_while_a_writer_runs(tmp_path):
+    path = tmp_path / "store"
+    writer, rest = build_half(path, iterations=20)
     pinned = writer.snapshot().version
     points = SPHERE_CENTER + np.random.default_rng(1).normal(size=(2000, 3)) * 0.6
     expected = writer.snapshot(pinned).indicator(points)
@@ -178,7 +185,7 @@ def test_readers_in_threads_see_their_version_while_a_writer_runs(tmp_path):
     for t in threads:
         t.start()
     try:
-        octstore.ingest_arrays(writer, depths[4:], K, poses[4:], **OPTIONS)
+        octstore.ingest_arrays(writer, *rest, **OPTIONS)
         octstore.solve(writer, iterations=20, device="cpu", quiet=True, threads=2)
     finally:
         done.set()
@@ -228,12 +235,9 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
 
 def test_a_snapshot_keeps_its_version_from_gc(tmp_path):
     path = tmp_path / "store"
-    writer = octstore.Store.create(path)
-    depths, K, poses = views()
-    octstore.ingest_arrays(writer, depths[:4], K, poses[:4], **OPTIONS)
-    octstore.solve(writer, iterations=10, device="cpu", quiet=True, threads=2)
+    writer, rest = build_half(path, iterations=10)
     first = writer.snapshot().version
-    octstore.ingest_arrays(writer, depths[4:], K, poses[4:], **OPTIONS)
+    octstore.ingest_arrays(writer, *rest, **OPTIONS)
     octstore.solve(writer, iterations=10, device="cpu", quiet=True, threads=2)
     del writer  # gc runs in another process, which needs the writer's lock
     reader = octstore.Store.open_read_only(path)
