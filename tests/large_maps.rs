@@ -160,3 +160,50 @@ fn a_lidar_scan_at_a_tiny_angular_step_stays_within_the_budget() {
     let peak = ingest(&dir.path().join("store"), &ptx, "256MiB");
     assert!(peak < 300.0, "{peak} MB at a 256 MiB budget");
 }
+
+/// A large PNG cut short after its header: ingest reads it row by row, so the damage shows up
+/// mid-image; the error names the file and the problem, and the store stays at its last commit
+/// with no scratch left.
+#[test]
+fn a_truncated_large_png_is_a_clear_error_and_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = large_view(&dir.path().join("input"));
+    let png = as_png(&manifest);
+    let store = dir.path().join("store");
+    // A first depth map, so the store has a commit to keep.
+    let first = octstore(
+        &[
+            "ingest",
+            store.to_str().unwrap(),
+            manifest.to_str().unwrap(),
+            "--max-depth",
+            "10",
+        ],
+        &[],
+    );
+    assert!(first.status.success(), "{}", stderr(&first));
+    let before = fingerprint(&store);
+    let image = manifest.parent().unwrap().join("view-000.png");
+    let bytes = std::fs::read(&image).unwrap();
+    std::fs::write(&image, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let out = octstore(
+        &[
+            "ingest",
+            store.to_str().unwrap(),
+            png.to_str().unwrap(),
+            "--max-depth",
+            "10",
+            "--memory-budget",
+            "32MiB",
+        ],
+        &[],
+    );
+    let message = stderr(&out);
+    assert!(!out.status.success());
+    assert!(
+        message.contains("view-000.png") && message.contains("truncated"),
+        "{message}"
+    );
+    assert_same_store(&before, &fingerprint(&store), "after the failed ingest");
+    assert!(!store.join("tmp").exists(), "scratch left behind");
+}
