@@ -12,7 +12,7 @@ use std::path::Path;
 
 use crate::format::{Column, ColumnShape};
 
-use super::{Result, StoreError};
+use super::{Result, StoreError, io_error};
 
 /// One segment of a unit's output: columns in memory, or rows spilled to scratch files.
 pub enum SegmentContent {
@@ -36,25 +36,17 @@ pub struct SegmentSpill {
     rows: u64,
 }
 
-fn spill_error<'a>(dir: &'a Path, action: &'static str) -> impl Fn(std::io::Error) -> StoreError + 'a {
-    move |source| StoreError::Io {
-        action,
-        path: dir.to_path_buf(),
-        source,
-    }
-}
-
 impl SegmentSpill {
     /// An empty spill of columns shaped `shapes`, its scratch files in `dir` (created if
     /// missing).
     pub fn new_in(dir: &Path, shapes: Vec<ColumnShape>) -> Result<SegmentSpill> {
-        std::fs::create_dir_all(dir).map_err(spill_error(dir, "create scratch"))?;
+        std::fs::create_dir_all(dir).map_err(io_error("create scratch", dir))?;
         let files = shapes
             .iter()
             .map(|_| {
                 tempfile::tempfile_in(dir)
                     .map(|file| BufWriter::with_capacity(1 << 16, file))
-                    .map_err(spill_error(dir, "create scratch file in"))
+                    .map_err(io_error("create scratch file in", dir))
             })
             .collect::<Result<_>>()?;
         Ok(SegmentSpill { shapes, files, rows: 0 })
