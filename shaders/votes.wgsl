@@ -46,6 +46,46 @@ const TAU: f32 = 6.28318530717958647692;
 const PI: f32 = 3.14159265358979323846;
 const BINS: u32 = 8u;
 
+// The bilinear depth of the level `shape` at level-pixel coordinates (x, y), or -1 where one
+// of the 2 x 2 pixels around it is invalid or outside the image (a spherical map wraps in x),
+// or their depths spread over more than `band` (`kernels::surface_depth`, whose
+// `surface_depth_f32` is this function step for step).
+fn surface_depth(shape: vec4<u32>, x: f32, y: f32, band: f32) -> f32 {
+    let x0 = floor(x);
+    let y0 = floor(y);
+    let w = f32(shape.y);
+    let h = f32(shape.z);
+    var i0 = x0;
+    var i1 = x0 + 1.0;
+    if map.spherical == 1u {
+        i0 = x0 - floor(x0 / w) * w;
+        i1 = i0 + 1.0;
+        if i1 >= w {
+            i1 = 0.0;
+        }
+    }
+    if !(i0 >= 0.0 && i0 < w && i1 < w && y0 >= 0.0 && y0 + 1.0 < h) {
+        return -1.0;
+    }
+    let row0 = shape.x + u32(y0) * shape.y;
+    let row1 = row0 + shape.y;
+    let a = depths[row0 + u32(i0)];
+    let b = depths[row0 + u32(i1)];
+    let c = depths[row1 + u32(i0)];
+    let e = depths[row1 + u32(i1)];
+    if !(a > 0.0 && b > 0.0 && c > 0.0 && e > 0.0) {
+        return -1.0;
+    }
+    let low = min(min(a, b), min(c, e));
+    let high = max(max(a, b), max(c, e));
+    if !(high - low <= band) {
+        return -1.0;
+    }
+    let fx = x - x0;
+    let fy = y - y0;
+    return (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + e * fx) * fy;
+}
+
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let c = id.x + id.y * map.row_stride;
@@ -89,8 +129,11 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     level = min(level, map.levels - 1u);
     let shape = levels[level];
     let scale = f32(1u << level);
-    var i = floor((u - (scale - 1.0) * 0.5) / scale + 0.5);
-    let j = floor((v - (scale - 1.0) * 0.5) / scale + 0.5);
+    // Level-pixel coordinates, pixel centres at integers.
+    let x_level = (u - (scale - 1.0) * 0.5) / scale;
+    let y_level = (v - (scale - 1.0) * 0.5) / scale;
+    var i = floor(x_level + 0.5);
+    let j = floor(y_level + 0.5);
     let width = f32(shape.y);
     if map.spherical == 1u {
         i = i - floor(i / width) * width;
@@ -111,8 +154,11 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let bin = min(u32((clamp(a / delta, -1.0, 1.0) + 1.0) / 2.0 * 8.0), BINS - 1u);
     hist[c * BINS + bin] += map.weight;
     let band = max(map.band_per_delta * delta, map.band_floor);
-    if a >= -band {
-        measured_distance[2u * c] += map.weight * min(a, band);
+    // The distance measures the surface where the centre projects, not the nearest pixel.
+    let surface = surface_depth(shape, x_level, y_level, band);
+    let measured = surface - distance;
+    if surface > 0.0 && measured >= -band {
+        measured_distance[2u * c] += map.weight * min(measured, band);
         measured_distance[2u * c + 1u] += map.weight;
     }
     votes[c] += 1u;

@@ -683,14 +683,19 @@ fn votes_shader_matches_the_twin() {
         let on_gpu: Vec<f32> = voted.hist.iter().zip(&previous).map(|(h, p)| h - p).collect();
         // Where the shader and the twin chose the same bin, the distance sums agree to f32
         // arithmetic (1e-3 of delta; the previous sums add exactly representable values),
-        // unless they read neighbouring pixels whose depths fall into one bin.
+        // unless they read neighbouring pixels whose depths fall into one bin. The distance
+        // interpolates between pixels, so an error in the projected position moves it by the
+        // depth's slope: WGSL's atan2 and asin may be off by 4096 ulp, which llvmpipe uses,
+        // and put a 360-degree map's points up to about 0.01 pixel off (the case's depths
+        // change by at most 0.05 from one pixel to the next).
+        let position_slack = if spherical { 0.02 * 0.05 } else { 0.0 };
         let same_bin = voted_bins(&twin)
             .into_iter()
             .zip(voted_bins(&on_gpu))
             .map(|(a, b)| a == b);
         let mut distances_differ = 0;
         for (c, same) in same_bin.enumerate() {
-            let tolerance = 1e-3 * 6.0 * case.radii[c] as f32;
+            let tolerance = 1e-3 * 6.0 * case.radii[c] as f32 + position_slack;
             let differs = (2 * c..2 * c + 2).any(|k| {
                 let (gpu_sum, twin_sum, before) = (voted.distance[k], twin_distance[k], previous_distance[k]);
                 ((gpu_sum - before) - twin_sum).abs() > tolerance

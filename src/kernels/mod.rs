@@ -7,5 +7,6 @@
 pub mod occlusion;
 pub mod random;
 pub mod ssd;
+pub mod surface_depth;
 pub mod tgv;
 pub mod votes;

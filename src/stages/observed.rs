@@ -28,8 +28,9 @@ pub fn measured_weight(hist: &[f32; BINS]) -> f32 {
 
 /// Where the votes put the surface relative to a cube's centre, in world units (positive: the
 /// centre is outside): the mean truncated signed distance of its votes, a TSDF value at the
-/// centre, from the histogram segment's `distance` sums (weighted sum, weight). NaN when no
-/// vote measured one. u decides where the surface is, robustly; this places it inside the
+/// centre, from the histogram segment's `distance` sums (weighted sum, weight), each measured
+/// to the surface interpolated where the centre projects (`kernels::surface_depth`). NaN when
+/// no vote measured one. u decides where the surface is, robustly; this places it inside the
 /// cube, where u's L1 data term snaps to bin centres and would leave terraces one bin high.
 pub fn surface_offset([sum, weight]: [f32; 2]) -> f32 {
     if weight > 0.0 { sum / weight } else { f32::NAN }
