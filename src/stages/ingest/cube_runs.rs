@@ -1,11 +1,13 @@
 //! One depth map's cubes, merged by key, in bounded memory (format-spec.md, "Ingest runs").
 //!
-//! Samples' cube entries gather in a buffer of at most `capacity` entries. A map whose entries
-//! fit is sorted and merged in memory, as it always was. A larger one sorts and merges each
-//! full buffer into a run on a scratch file, then merges the runs key by key into a segment
+//! Samples' cube entries are summed per cube as they come, in a hash table of at most
+//! `capacity` cubes (several samples fall in one cube, so this holds and sorts far less than
+//! the entries themselves: sorting every entry took a sixth of RedKitchen's ingest). A map
+//! whose cubes fit is sorted by key and written from memory. A larger one writes each full
+//! table, sorted, as a run on a scratch file, then merges the runs key by key into a segment
 //! spilled to scratch files (`store::SegmentSpill`). Every sum is an integer sum, so the
-//! segment's bytes do not depend on where the buffer was cut: the store is the same whatever
-//! the memory budget.
+//! segment's bytes do not depend on where the table was cut, nor on the order of the
+//! entries: the store is the same whatever the memory budget.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -21,9 +23,18 @@ use crate::store::{Result, SegmentContent, SegmentSpill, StoreError};
 /// A sample's contribution to its cube: key, quantised radius, spike, SSD moments.
 pub(super) type Entry = (CubeKey, u64, bool, Moments);
 
-/// Bytes an entry costs in memory while buffered and once merged into columns (the buffer's
-/// element plus a cube's row in the in-memory columns).
-pub(super) const BYTES_PER_ENTRY: u64 = (size_of::<Entry>() + 16 + 8 + 4 + 4 + 7 * 8) as u64;
+/// Bytes a cube costs in memory while buffered and once merged into columns: its slot in the
+/// table (with a control byte, at the table's 7/8 load), the sorted copy, and its row in the
+/// in-memory columns.
+pub(super) const BYTES_PER_ENTRY: u64 =
+    ((size_of::<(CubeKey, CubeSums)>() + 1) * 8 / 7 + size_of::<CubeSums>() + 16 + 8 + 4 + 4 + 7 * 8) as u64;
+
+/// Sample entries per cube the table is first sized for (RedKitchen at `--max-depth 10`: 4.1;
+/// the table grows where there are fewer).
+const EXPECTED_ENTRIES_PER_CUBE: usize = 4;
+
+/// The per-cube sums being gathered. Its order is never observed: cubes leave it sorted.
+type SumsTable = std::collections::HashMap<CubeKey, CubeSums, foldhash::fast::FixedState>;
 
 /// Rows per batch appended to a spilled segment.
 const SPILL_BATCH_ROWS: usize = 1 << 16;
@@ -110,23 +121,11 @@ impl CubeSums {
     }
 }
 
-/// Sorts `entries` by key and sums the entries of each key, in key order.
-fn merged(entries: &mut [Entry], mut each: impl FnMut(CubeSums) -> Result<()>) -> Result<()> {
-    // By key alone: entries of one key are summed, in any order.
-    entries.sort_unstable_by_key(|(key, _, _, _)| *key);
-    let mut current: Option<CubeSums> = None;
-    for entry in entries.iter() {
-        let sums = CubeSums::of(entry);
-        match &mut current {
-            Some(c) if c.key == sums.key => c.add(&sums),
-            _ => {
-                if let Some(done) = current.replace(sums) {
-                    each(done)?;
-                }
-            }
-        }
-    }
-    current.map_or(Ok(()), each)
+/// Empties `table` into `each` in key order (keys are unique: no two cubes compare equal).
+fn merged(table: &mut SumsTable, mut each: impl FnMut(CubeSums) -> Result<()>) -> Result<()> {
+    let mut cubes: Vec<CubeSums> = table.drain().map(|(_, sums)| sums).collect();
+    cubes.sort_unstable_by_key(|c| c.key);
+    cubes.into_iter().try_for_each(&mut each)
 }
 
 /// Column builders for cube sums.
@@ -173,38 +172,63 @@ fn scratch_error<'a>(dir: &'a Path, action: &'static str) -> impl Fn(std::io::Er
     }
 }
 
-/// A map's cube entries, gathered in at most `capacity` entries of memory.
+/// A map's cube entries, summed per cube in at most `capacity` cubes of memory.
 pub(super) struct CubeRuns<'a> {
     scratch: &'a Path,
     capacity: usize,
-    entries: Vec<Entry>,
-    /// Sorted, merged runs of earlier full buffers.
+    /// The cube of the latest entries, not yet in `table`: a row of pixels falls in one cube
+    /// several times in a row, and adding to it here saves a hash lookup each time.
+    current: Option<CubeSums>,
+    table: SumsTable,
+    /// Sorted, merged runs of earlier full tables.
     runs: Vec<File>,
 }
 
 impl<'a> CubeRuns<'a> {
-    /// Runs of at most `capacity` entries; `expected` entries are likely (the map's valid
-    /// pixels), so the buffer is sized once (grown by doubling, a buffer costs up to twice its
-    /// size, and its copies are paid again).
+    /// Runs of at most `capacity` cubes; at most `expected` entries are likely (the map's valid
+    /// pixels), so the table is sized once for the lesser (grown by doubling, a table costs up
+    /// to twice its size, and its moves are paid again).
     pub(super) fn new(scratch: &'a Path, capacity: usize, expected: usize) -> CubeRuns<'a> {
         let capacity = capacity.max(1);
         CubeRuns {
             scratch,
             capacity,
-            entries: Vec::with_capacity(capacity.min(expected)),
+            current: None,
+            table: SumsTable::with_capacity_and_hasher(
+                capacity.min(expected / EXPECTED_ENTRIES_PER_CUBE),
+                foldhash::fast::FixedState::default(),
+            ),
             runs: Vec::new(),
         }
     }
 
     pub(super) fn push(&mut self, entry: Entry) -> Result<()> {
-        if self.entries.len() >= self.capacity {
+        let sums = CubeSums::of(&entry);
+        match &mut self.current {
+            Some(current) if current.key == sums.key => {
+                current.add(&sums);
+                Ok(())
+            }
+            _ => match self.current.replace(sums) {
+                Some(done) => self.add_to_table(done),
+                None => Ok(()),
+            },
+        }
+    }
+
+    fn add_to_table(&mut self, sums: CubeSums) -> Result<()> {
+        if let Some(cube) = self.table.get_mut(&sums.key) {
+            cube.add(&sums);
+            return Ok(());
+        }
+        if self.table.len() >= self.capacity {
             self.spill()?;
         }
-        self.entries.push(entry);
+        self.table.insert(sums.key, sums);
         Ok(())
     }
 
-    /// Writes the buffer as one sorted, merged run.
+    /// Writes the table as one sorted run, and empties it.
     fn spill(&mut self) -> Result<()> {
         std::fs::create_dir_all(self.scratch).map_err(scratch_error(self.scratch, "create scratch"))?;
         let file =
@@ -212,12 +236,11 @@ impl<'a> CubeRuns<'a> {
         let mut out = BufWriter::with_capacity(1 << 16, file);
         let mut record = [0u8; RECORD_LEN];
         let error = scratch_error(self.scratch, "write scratch in");
-        merged(&mut self.entries, |c| {
+        // The table keeps its memory: a spilling map holds one table at a time.
+        merged(&mut self.table, |c| {
             c.encode(&mut record);
             out.write_all(&record).map_err(&error)
         })?;
-        // The buffer is reused: a spilling map holds one buffer at a time.
-        self.entries.clear();
         let mut file = out.into_inner().map_err(|e| error(e.into_error()))?;
         file.seek(SeekFrom::Start(0)).map_err(&error)?;
         self.runs.push(file);
@@ -226,17 +249,20 @@ impl<'a> CubeRuns<'a> {
 
     /// The map's segment (`None` without cubes) and its cube count.
     pub(super) fn finish(mut self) -> Result<(Option<SegmentContent>, u64)> {
+        if let Some(done) = self.current.take() {
+            self.add_to_table(done)?;
+        }
         if self.runs.is_empty() {
             let mut columns = CubeColumns::default();
-            merged(&mut self.entries, |c| {
+            merged(&mut self.table, |c| {
                 columns.push(c);
                 Ok(())
             })?;
-            drop(std::mem::take(&mut self.entries));
+            drop(std::mem::take(&mut self.table));
             let cubes = columns.len() as u64;
             return Ok(((cubes > 0).then(|| columns.into_columns().into()), cubes));
         }
-        if !self.entries.is_empty() {
+        if !self.table.is_empty() {
             self.spill()?;
         }
         let shapes: Vec<ColumnShape> = CubeColumns::default()
@@ -347,7 +373,7 @@ mod tests {
         let (content, cubes) = whole.finish().unwrap();
         let expected = columns_of(content.unwrap());
         assert_eq!(cubes as usize, expected[0].rows());
-        for capacity in [1, 7, 499, 4999] {
+        for capacity in [1, 7, 499, 699] {
             let mut runs = CubeRuns::new(dir.path(), capacity, 100);
             for e in &entries {
                 runs.push(*e).unwrap();
