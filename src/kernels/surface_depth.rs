@@ -53,7 +53,7 @@ pub fn surface_depth(image: &DepthImage, x: f64, y: f64, spherical: bool, band: 
 
 /// [`surface_depth`] in f32 on a [`DepthLevels`] (the CPU pyramid or the shader's arrays), the
 /// same operations in the same order as the shader.
-#[inline]
+#[inline(always)]
 #[expect(
     clippy::neg_cmp_op_on_partial_ord,
     reason = "the shader's !(x <= band) test, which also rejects the NaN of infinite depths"
@@ -67,7 +67,17 @@ pub fn surface_depth_f32(
     band: f32,
 ) -> Option<f32> {
     let (width, height) = levels.shape(level);
-    let (x0, y0) = (x.floor(), y.floor());
+    let (x0, y0) = if spherical {
+        (x.floor(), y.floor())
+    } else {
+        // The floor of a non-negative coordinate is its truncation (a huge one saturates and
+        // fails the bounds below, as its floor would); a negative one has its square outside
+        // the image. This spares the libm call `floor` is on baseline x86-64, on every vote.
+        if !(x >= 0.0 && y >= 0.0) {
+            return None;
+        }
+        ((x as u32) as f32, (y as u32) as f32)
+    };
     let (w, h) = (width as f32, height as f32);
     let (i0, i1) = if spherical {
         let i0 = x0 - (x0 / w).floor() * w;
@@ -79,12 +89,7 @@ pub fn surface_depth_f32(
         return None;
     }
     let (i0, i1, j0) = (i0 as u32, i1 as u32, y0 as u32);
-    let d = [
-        levels.depth(level, i0, j0),
-        levels.depth(level, i1, j0),
-        levels.depth(level, i0, j0 + 1),
-        levels.depth(level, i1, j0 + 1),
-    ];
+    let d = levels.square(level, i0, i1, j0);
     if !d.iter().all(|d| *d > 0.0) {
         return None;
     }

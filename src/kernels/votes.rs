@@ -287,6 +287,16 @@ pub trait DepthLevels {
     /// The depth at column `i`, row `j` of `level` (both inside its shape); invalid pixels
     /// read as NaN or a value <= 0.
     fn depth(&self, level: u32, i: u32, j: u32) -> f32;
+    /// Pixels (i0, j0), (i1, j0), (i0, j0 + 1), (i1, j0 + 1) of `level` (all inside its shape).
+    #[inline]
+    fn square(&self, level: u32, i0: u32, i1: u32, j0: u32) -> [f32; 4] {
+        [
+            self.depth(level, i0, j0),
+            self.depth(level, i1, j0),
+            self.depth(level, i0, j0 + 1),
+            self.depth(level, i1, j0 + 1),
+        ]
+    }
 }
 
 impl DepthLevels for Pyramid {
@@ -301,6 +311,25 @@ impl DepthLevels for Pyramid {
     #[inline]
     fn depth(&self, level: u32, i: u32, j: u32) -> f32 {
         self.levels.get(level as usize).map_or(f32::NAN, |l| l.get(i, j))
+    }
+
+    /// The same values as four `depth` reads, with one level lookup and two row slices: the
+    /// distance's square is read on every vote.
+    #[inline]
+    fn square(&self, level: u32, i0: u32, i1: u32, j0: u32) -> [f32; 4] {
+        let Some(image) = self.levels.get(level as usize) else {
+            return [f32::NAN; 4];
+        };
+        let width = image.width as usize;
+        let start = j0 as usize * width;
+        let (Some(upper), Some(lower)) = (
+            image.depth.get(start..start + width),
+            image.depth.get(start + width..start + 2 * width),
+        ) else {
+            return [f32::NAN; 4];
+        };
+        let read = |row: &[f32], i: u32| row.get(i as usize).copied().unwrap_or(f32::NAN);
+        [read(upper, i0), read(upper, i1), read(lower, i0), read(lower, i1)]
     }
 }
 
