@@ -102,6 +102,18 @@ pub fn surface_depth_f32(
     Some((a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + e * fx) * fy)
 }
 
+/// [`truncated_distance`] in f32 of the surface depth a vote read (if any) less the cube's
+/// distance `along`, with the band already known: the f32 votes' and the shader's arithmetic.
+///
+/// [`truncated_distance`]: super::votes::truncated_distance
+#[inline(always)]
+pub fn truncated_surface_distance(surface: Option<f32>, along: f32, band: f32) -> Option<f32> {
+    surface
+        .map(|surface| surface - along)
+        .filter(|measured| *measured >= -band)
+        .map(|measured| measured.min(band))
+}
+
 /// Pixels (i0, j0), (i1, j0), (i0, j1), (i1, j1) interpolated at fractions `fx`, `fy`, if all
 /// are valid (positive; NaN is not) and within `band` of each other.
 #[expect(

@@ -5,7 +5,7 @@
 use glam::{DVec3, Mat4, Vec4};
 
 use super::occlusion::FarthestDepths;
-use super::surface_depth::{surface_depth, surface_depth_f32};
+use super::surface_depth::{surface_depth, surface_depth_f32, truncated_surface_distance};
 
 use crate::format::{CubeKey, Scene};
 use crate::inputs::{DepthImage, DepthMapSource, Projection};
@@ -78,8 +78,14 @@ pub fn band_floor(scene: &Scene) -> f64 {
 /// [`DISTANCE_BAND_PER_DELTA`] x delta, `floor`), nothing when the voxel lies more than T
 /// behind the surface.
 pub fn truncated_distance(a: f64, delta: f64, floor: f64) -> Option<f64> {
-    let band = (DISTANCE_BAND_PER_DELTA * delta).max(floor);
+    let band = distance_band(delta, floor);
     (a >= -band).then_some(a.min(band))
+}
+
+/// The truncation band T of [`truncated_distance`]: [`DISTANCE_BAND_PER_DELTA`] x delta, at
+/// least `floor`.
+pub fn distance_band(delta: f64, floor: f64) -> f64 {
+    (DISTANCE_BAND_PER_DELTA * delta).max(floor)
 }
 
 /// Vote weights are rounded to multiples of 1/16 so that sums are exact in any order.
@@ -234,7 +240,7 @@ impl Pyramid {
         }
         // The bin reads the nearest pixel; the distance measures the surface where the centre
         // projects (kernels::surface_depth).
-        let band = (DISTANCE_BAND_PER_DELTA * delta).max(band_floor);
+        let band = distance_band(delta, band_floor);
         let measured = surface_depth(image, x_level, y_level, spherical, band)
             .and_then(|surface| truncated_distance(surface - distance, delta, band_floor));
         Some((bin_of((a / delta).clamp(-1.0, 1.0)), measured))
@@ -499,10 +505,8 @@ pub fn vote_relative(view: &UnitView, cube: Vec4, levels: &impl DepthLevels) -> 
     }
     let bin = ((((a / delta).clamp(-1.0, 1.0) + 1.0) / 2.0 * 8.0) as usize).min(BINS - 1);
     let band = (view.band_per_delta * delta).max(view.band_floor);
-    let measured = surface_depth_f32(levels, level, x_level, y_level, view.spherical, band)
-        .map(|surface| surface - distance)
-        .filter(|measured| *measured >= -band);
-    Some((bin, measured.map(|measured| measured.min(band))))
+    let surface = surface_depth_f32(levels, level, x_level, y_level, view.spherical, band);
+    Some((bin, truncated_surface_distance(surface, distance, band)))
 }
 
 /// [`vote_relative`] for four cubes of a pinhole map at once, cubes as lanes: the projection,
@@ -567,12 +571,10 @@ pub fn vote_relative_pinhole_x4(
         let (depth, a, eta, band) = (depth[lane], a[lane], eta[lane], band[lane]);
         // depth > 0 also rejects the NaN of a lane that read no pixel.
         (depth > 0.0 && a >= -eta).then(|| {
-            let measured = surface_depth_f32(levels, level[lane], x_level[lane], y_level[lane], false, band)
-                .map(|surface| surface - lz[lane])
-                .filter(|measured| *measured >= -band);
+            let surface = surface_depth_f32(levels, level[lane], x_level[lane], y_level[lane], false, band);
             (
                 (bin[lane] as usize).min(BINS - 1),
-                measured.map(|measured| measured.min(band)),
+                truncated_surface_distance(surface, lz[lane], band),
             )
         })
     })

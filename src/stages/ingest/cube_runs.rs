@@ -26,7 +26,7 @@ pub(super) type Entry = (CubeKey, u64, bool, Moments);
 /// Bytes a cube costs in memory while buffered and once merged into columns: its slot in the
 /// table (with a control byte, at the table's 7/8 load), the sorted copy, and its row in the
 /// in-memory columns.
-pub(super) const BYTES_PER_ENTRY: u64 =
+pub(super) const BYTES_PER_CUBE: u64 =
     ((size_of::<(CubeKey, CubeSums)>() + 1) * 8 / 7 + size_of::<CubeSums>() + 16 + 8 + 4 + 4 + 7 * 8) as u64;
 
 /// Sample entries per cube the table is first sized for (RedKitchen at `--max-depth 10`: 4.1;
@@ -122,7 +122,7 @@ impl CubeSums {
 }
 
 /// Empties `table` into `each` in key order (keys are unique: no two cubes compare equal).
-fn merged(table: &mut SumsTable, mut each: impl FnMut(CubeSums) -> Result<()>) -> Result<()> {
+fn drain_in_key_order(table: &mut SumsTable, mut each: impl FnMut(CubeSums) -> Result<()>) -> Result<()> {
     let mut cubes: Vec<CubeSums> = table.drain().map(|(_, sums)| sums).collect();
     cubes.sort_unstable_by_key(|c| c.key);
     cubes.into_iter().try_for_each(&mut each)
@@ -237,7 +237,7 @@ impl<'a> CubeRuns<'a> {
         let mut record = [0u8; RECORD_LEN];
         let error = scratch_error(self.scratch, "write scratch in");
         // The table keeps its memory: a spilling map holds one table at a time.
-        merged(&mut self.table, |c| {
+        drain_in_key_order(&mut self.table, |c| {
             c.encode(&mut record);
             out.write_all(&record).map_err(&error)
         })?;
@@ -254,7 +254,7 @@ impl<'a> CubeRuns<'a> {
         }
         if self.runs.is_empty() {
             let mut columns = CubeColumns::default();
-            merged(&mut self.table, |c| {
+            drain_in_key_order(&mut self.table, |c| {
                 columns.push(c);
                 Ok(())
             })?;

@@ -348,7 +348,7 @@ impl IngestStage {
     /// few at a time and cube entries spill to sorted runs (`cube_runs.rs`).
     pub fn cubes(&self, source: &DepthMapSource) -> Result<(Option<SegmentContent>, SampleStats)> {
         let stream = map_samples(source, self.map_memory / 4)?;
-        let capacity = (self.map_memory * 3 / 4 / cube_runs::BYTES_PER_ENTRY).max(1 << 12) as usize;
+        let capacity = (self.map_memory * 3 / 4 / cube_runs::BYTES_PER_CUBE).max(1 << 12) as usize;
         let mut runs = CubeRuns::new(&self.scratch, capacity, stream.valid_pixels() as usize);
         // Consistent samples outside the root mean the map sees beyond the scene the store was
         // sized for; spikes outside it are noise.
