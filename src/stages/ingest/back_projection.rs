@@ -140,7 +140,17 @@ impl<'r> SampleStream<'r> {
     }
 
     /// Calls `each` with every sample, in row-major order, and returns the map's statistics.
-    pub fn for_each(mut self, mut each: impl FnMut(&Sample)) -> Result<SampleStats, InputError> {
+    pub fn for_each(self, each: impl FnMut(&Sample)) -> Result<SampleStats, InputError> {
+        self.each_sample::<true>(each)
+    }
+
+    /// As [`for_each`](Self::for_each), but every sample's normal is zero: passes that need
+    /// only positions and spike flags (root sizing) skip the normals' arithmetic.
+    pub fn for_each_without_normals(self, each: impl FnMut(&Sample)) -> Result<SampleStats, InputError> {
+        self.each_sample::<false>(each)
+    }
+
+    fn each_sample<const NORMALS: bool>(mut self, mut each: impl FnMut(&Sample)) -> Result<SampleStats, InputError> {
         let (width, height) = (self.rows.width() as usize, self.rows.height() as usize);
         let mut stats = SampleStats {
             pixels: (width * height) as u64,
@@ -154,28 +164,31 @@ impl<'r> SampleStream<'r> {
         let mut depth = vec![f32::NAN; width];
         let mut window = Window {
             rows: [vec![None; width], vec![None; width], vec![None; width]],
-            width,
+            vertical: [vec![None; width], vec![None; width]],
+            horizontal: vec![None; width],
             wraps,
-            has_up: false,
-            has_down: false,
         };
         if height > 0 {
             self.camera_row(0, &mut depth, &mut stats, &mut window.rows[1])?;
         }
         for j in 0..height {
-            window.has_up = j > 0;
-            window.has_down = j + 1 < height;
-            if window.has_down {
+            if j + 1 < height {
                 self.camera_row(j + 1, &mut depth, &mut stats, &mut window.rows[2])?;
+                window.steps_down();
+            } else {
+                window.vertical[1].fill(None);
             }
+            window.steps_along();
             for i in 0..width {
-                let Some(p) = window.at(Some(i), Some(1)) else { continue };
+                let Some(p) = window.rows[1].get(i).copied().flatten() else {
+                    continue;
+                };
+                let steps = window.steps(i);
                 let reach = SPIKE_SPACING * pixel_angle * p.length();
                 let (mut nearest, mut close) = (f64::INFINITY, 0);
-                for q in window.neighbours(i) {
-                    let distance = (q - p).length();
-                    nearest = nearest.min(distance);
-                    close += usize::from(distance <= reach);
+                for step in steps.iter().flatten() {
+                    nearest = nearest.min(step.length);
+                    close += usize::from(step.length <= reach);
                 }
                 if !nearest.is_finite() || nearest <= 0.0 {
                     stats.isolated += 1;
@@ -185,18 +198,23 @@ impl<'r> SampleStream<'r> {
                     Projection::Pinhole { .. } => p.z,
                     Projection::Spherical => p.length(),
                 };
+                let normal = if NORMALS {
+                    normal(p, &steps).map_or(DVec3::ZERO, |n| (rotation * n).normalize_or_zero())
+                } else {
+                    DVec3::ZERO
+                };
                 stats.samples += 1;
                 each(&Sample {
                     point: pose.transform_point3(p),
                     radius: self.source.noise.radius(nearest * 0.5, along_ray),
                     spike: close < 2,
-                    normal: window
-                        .normal(i, p)
-                        .map_or(DVec3::ZERO, |n| (rotation * n).normalize_or_zero()),
+                    normal,
                     area: nearest * nearest,
                 });
             }
             window.rows.rotate_left(1);
+            // The steps down from this row are the next row's steps up.
+            window.vertical.swap(0, 1);
         }
         Ok(stats)
     }
@@ -283,64 +301,99 @@ fn select_bucket(histogram: &[u64], rank: u64) -> Option<(usize, u64)> {
     None
 }
 
-/// Three rows of camera-frame points: above (0), current (1), below (2).
+/// The vector from one valid pixel's point to a neighbour's, and its length.
+#[derive(Clone, Copy)]
+struct Step {
+    vector: DVec3,
+    length: f64,
+}
+
+impl Step {
+    fn between(from: Option<DVec3>, to: Option<DVec3>) -> Option<Step> {
+        let vector = to? - from?;
+        Some(Step {
+            vector,
+            length: vector.length(),
+        })
+    }
+}
+
+/// Three rows of camera-frame points, above (0), current (1) and below (2), and the steps
+/// between neighbouring points, each computed once although two samples use it (a step's
+/// length is the same from either end: negating a vector is exact).
 struct Window {
     rows: [Vec<Option<DVec3>>; 3],
-    width: usize,
+    /// Column by column, from row 0 to row 1 (`vertical[0]`) and from row 1 to row 2
+    /// (`vertical[1]`); `None` where either point is invalid or its row is outside the image.
+    vertical: [Vec<Option<Step>>; 2],
+    /// From column `i` to column `i + 1` of row 1; the last column's step wraps around to
+    /// column 0 for spherical maps and is `None` otherwise.
+    horizontal: Vec<Option<Step>>,
     /// Spherical maps wrap around horizontally.
     wraps: bool,
-    has_up: bool,
-    has_down: bool,
 }
 
 impl Window {
-    fn at(&self, i: Option<usize>, row: Option<usize>) -> Option<DVec3> {
-        self.rows.get(row?)?.get(i?).copied().flatten()
-    }
-
-    /// The valid ones among the left, right, upper and lower neighbours of column `i`.
-    fn neighbours(&self, i: usize) -> impl Iterator<Item = DVec3> + '_ {
-        self.neighbour_pixels(i)
-            .into_iter()
-            .filter_map(|(ni, row)| self.at(ni, row))
-    }
-
-    /// The camera-frame normal at column `i` of the current row, whose point is `p`: the cross
-    /// product of the depth gradient along the row and along the column, each taken towards
-    /// the neighbour nearer to `p` (a difference across a depth edge would tilt it), oriented
-    /// towards the camera. `None` when an axis has no valid neighbour.
-    fn normal(&self, i: usize, p: DVec3) -> Option<DVec3> {
-        let [left, right, up, down] = self.neighbour_pixels(i).map(|(ni, row)| self.at(ni, row));
-        let along = |before: Option<DVec3>, after: Option<DVec3>| match (before, after) {
-            (Some(b), Some(a)) if (a - p).length() <= (p - b).length() => Some(a - p),
-            (Some(b), _) => Some(p - b),
-            (None, Some(a)) => Some(a - p),
-            (None, None) => None,
-        };
-        let n = along(left, right)?.cross(along(up, down)?).normalize_or_zero();
-        if n == DVec3::ZERO {
-            return None;
+    /// Steps from row 1 to row 2, once row 2 holds the next row.
+    fn steps_down(&mut self) {
+        let [_, current, below] = &self.rows;
+        for ((step, p), q) in self.vertical[1].iter_mut().zip(current).zip(below) {
+            *step = Step::between(*p, *q);
         }
-        Some(if n.dot(p) > 0.0 { -n } else { n })
     }
 
-    /// Left, right, upper and lower neighbours of column `i` as (column, window row), wrapping
-    /// around horizontally for spherical maps; `None` outside the image.
-    fn neighbour_pixels(&self, i: usize) -> [(Option<usize>, Option<usize>); 4] {
-        let left = i
-            .checked_sub(1)
-            .or(if self.wraps { self.width.checked_sub(1) } else { None });
-        let right = if i + 1 < self.width {
-            Some(i + 1)
-        } else if self.wraps {
-            Some(0)
-        } else {
-            None
-        };
-        let up = self.has_up.then_some(0);
-        let down = self.has_down.then_some(2);
-        [(left, Some(1)), (right, Some(1)), (Some(i), up), (Some(i), down)]
+    /// Steps along row 1.
+    fn steps_along(&mut self) {
+        let row = &self.rows[1];
+        for (step, pair) in self.horizontal.iter_mut().zip(row.windows(2)) {
+            *step = match *pair {
+                [p, q] => Step::between(p, q),
+                _ => None,
+            };
+        }
+        if let Some(last) = self.horizontal.last_mut() {
+            *last = match (self.wraps, row.last(), row.first()) {
+                (true, Some(p), Some(q)) => Step::between(*p, *q),
+                _ => None,
+            };
+        }
     }
+
+    /// Column `i`'s steps: from its left neighbour, to its right one, from the one above and
+    /// to the one below (each vector points down or to the right).
+    #[inline]
+    fn steps(&self, i: usize) -> [Option<Step>; 4] {
+        let left = match i.checked_sub(1) {
+            Some(before) => self.horizontal.get(before),
+            None if self.wraps => self.horizontal.last(),
+            None => None,
+        };
+        let at = |steps: &[Option<Step>]| steps.get(i).copied().flatten();
+        [
+            left.copied().flatten(),
+            at(&self.horizontal),
+            at(&self.vertical[0]),
+            at(&self.vertical[1]),
+        ]
+    }
+}
+
+/// The camera-frame normal at a point `p` from its steps [left, right, up, down]
+/// ([`Window::steps`]): the cross product of the depth gradient along the row and along the
+/// column, each taken towards the neighbour nearer to `p` (a difference across a depth edge
+/// would tilt it), oriented towards the camera. `None` when an axis has no valid neighbour.
+fn normal(p: DVec3, [left, right, up, down]: &[Option<Step>; 4]) -> Option<DVec3> {
+    let along = |before: &Option<Step>, after: &Option<Step>| match (before, after) {
+        (Some(b), Some(a)) if a.length <= b.length => Some(a.vector),
+        (Some(b), _) => Some(b.vector),
+        (None, Some(a)) => Some(a.vector),
+        (None, None) => None,
+    };
+    let n = along(left, right)?.cross(along(up, down)?).normalize_or_zero();
+    if n == DVec3::ZERO {
+        return None;
+    }
+    Some(if n.dot(p) > 0.0 { -n } else { n })
 }
 
 /// Back-projected samples of one depth map, as columns.
@@ -385,7 +438,7 @@ pub fn bounds_sample(stream: SampleStream<'_>, count: usize) -> Result<Vec<DVec3
     let step = (stream.valid_pixels() / count.max(1) as u64).max(1);
     let (mut consistent, mut all) = (Vec::new(), Vec::new());
     let (mut seen_consistent, mut seen) = (0u64, 0u64);
-    stream.for_each(|s| {
+    stream.for_each_without_normals(|s| {
         if seen % step == 0 {
             all.push(s.point);
         }
