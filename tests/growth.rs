@@ -71,7 +71,7 @@ fn f_score(a: &Path, b: &Path, tau_fraction: f64) -> f64 {
 fn a_kitchen_store_grows_to_take_frames_beyond_its_root() {
     let dir = tempfile::tempdir().unwrap();
     let grown = dir.path().join("grown");
-    ingest(&grown, &FIRST, &["--max-depth", "8"]);
+    ingest(&grown, &FIRST, &["--max-depth", "7"]);
     let first = read_scene(&octstore::Store::open(&grown).unwrap()).unwrap().unwrap();
     // The surface before growth, and the version it was solved in.
     let before = solve_and_extract(&grown);

@@ -21,10 +21,15 @@
 //! to 6). The first drops the space no map reached (virtual exterior cells are never seen);
 //! the other two drop the boundary between occluded space (which votes "inside" up to eta
 //! behind a surface) and free space, the sheets that would hang behind a plate or under a
-//! counter, where no sample lies and the votes are all clamped. The decision reads only the
-//! cell's own corners, so a cell on a seam between treetop leaves gets the same answer
-//! whichever unit generates it, and the pieces stay seamless. `closed` keeps the whole zero set
-//! (a watertight mesh, hidden parts filled in).
+//! counter, where no sample lies and the votes are all clamped. A cell of coarse cubes passes
+//! these tests with one sample anywhere in it, so each tetrahedron must also be supported by
+//! its own four corners: the votes at one of them place the surface within 1.5 times the
+//! tetrahedron's span of it, or samples reached two of them and a tenth of their own votes measured a
+//! distance (`dual_cells::tetrahedron_supported`); that drops the fringes past depth edges
+//! and the bridges across crevices. The decision reads only the cell's own corners, so a cell
+//! on a seam between treetop leaves gets the same answer whichever unit generates it, and the
+//! pieces stay seamless. `closed` keeps the whole zero set (a watertight mesh, hidden parts
+//! filled in).
 //!
 //! Vertices inside cubes. u's L1 data term snaps it to histogram bin centres, and linear
 //! interpolation of u between cell centres then leaves terraces about one bin (near one finest
