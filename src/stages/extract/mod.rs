@@ -24,9 +24,9 @@
 //! counter, where no sample lies and the votes are all clamped. A cell of coarse cubes passes
 //! these tests with one sample anywhere in it, so each tetrahedron must also be supported by
 //! its own four corners: the votes at one of them place the surface within 1.5 times the
-//! tetrahedron's span of it, or samples reached two of them and a tenth of their own votes measured a
-//! distance (`dual_cells::tetrahedron_supported`); that drops the fringes past depth edges
-//! and the bridges across crevices. The decision reads only the cell's own corners, so a cell
+//! tetrahedron's span of it, or samples reached two of them and a tenth of their own votes
+//! measured a distance (`dual_cells::tetrahedron_supported`); that drops the fringes past
+//! depth edges and the bridges across crevices. The decision reads only the cell's own corners, so a cell
 //! on a seam between treetop leaves gets the same answer whichever unit generates it, and the
 //! pieces stay seamless. `closed` keeps the whole zero set (a watertight mesh, hidden parts
 //! filled in).
