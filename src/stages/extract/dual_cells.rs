@@ -5,8 +5,10 @@
 use glam::DVec3;
 
 use super::weld::NameIndex;
+
+mod pinholes;
 use crate::format::{CubeKey, MAX_DEPTH, Scene};
-use crate::mesh::{CornerId, UnitMesh, VertexMove};
+use crate::mesh::{CornerId, UnitMesh, VertexId, VertexMove};
 use crate::stages::solve::{CutValue, LevelCut, cut_cube_ending_at};
 use crate::store::Result;
 
@@ -57,7 +59,7 @@ const MEASURED_SHARE: f32 = 0.1;
 /// How near, in spans of a tetrahedron (the largest coordinate difference of its corners'
 /// centres: the cube side where its cells share one size), the votes at one of its corners
 /// must place the surface for the tetrahedron to carry surface on that evidence alone.
-const NEAR_SURFACE_SPANS: f64 = 1.5;
+const NEAR_SURFACE_SPANS: f64 = 1.0;
 
 /// Whether the data supports a surface in a tetrahedron of an observed dual cell: the votes at
 /// one of its corners put the surface within [`NEAR_SURFACE_SPANS`] of that corner, or samples
@@ -66,9 +68,10 @@ const NEAR_SURFACE_SPANS: f64 = 1.5;
 /// measured) lets a cell of coarse cubes carry surface anywhere in it; at depth edges and in
 /// crevices that left fringes and bridges one to three cubes wide beyond every sample
 /// (RedKitchen, 100 frames: 2.9 % of the mesh farther than 3 finest cubes from every input
-/// pixel; 2.1 % with this test, at the same completeness; README, "Status and limits").
-/// Tighter tests trim more but open pinholes in closed objects: within 1 span, 1.8 % and
-/// holes in the noisy bunnies of `tests/quality.rs`; a share of 0.15, holes in the clean one.
+/// pixel; 1.9 % with this test, at the same completeness; README, "Status and limits").
+/// Within 1.5 spans it trims less (2.1 %); within 1 span alone (no pinhole fill) it opened
+/// holes in the noisy bunnies of `tests/quality.rs`, which [`pinholes::fill_pinholes`] closes; a
+/// share of 0.15 opens holes in the clean one.
 fn tetrahedron_supported(t: &[Corner; 4]) -> bool {
     let mut span: f64 = 0.0;
     for (i, a) in t.iter().enumerate() {
@@ -253,6 +256,18 @@ impl OffsetPlane {
     }
 }
 
+/// A unit's piece while its dual cells are meshed.
+#[derive(Default)]
+struct Piece {
+    mesh: UnitMesh,
+    guides: VertexGuides,
+    /// The piece's vertices by name, as indices into `mesh.vertices`.
+    vertex_index: NameIndex,
+    /// The cut tetrahedra that their own corners do not support, for
+    /// [`pinholes::fill_pinholes`].
+    held: Vec<pinholes::HeldTetrahedron>,
+}
+
 /// The surface pieces of a unit's dual cells; unless `closed`, only the observed surface
 /// ([`mesh_cell`]); and what the cells say about each vertex ([`VertexGuides`]).
 pub(super) fn dual_cells_of_unit(
@@ -262,10 +277,7 @@ pub(super) fn dual_cells_of_unit(
     values: &[CutValue],
     closed: bool,
 ) -> Result<(UnitMesh, VertexGuides)> {
-    let mut mesh = UnitMesh::default();
-    let mut guides = VertexGuides::default();
-    // The unit's vertices by name, as indices into `mesh.vertices`.
-    let mut vertex_index = NameIndex::default();
+    let mut piece = Piece::default();
     let limit = 1u64 << 32;
     for (index, (key, own)) in keys.iter().zip(values).enumerate() {
         let d = key.depth();
@@ -392,10 +404,11 @@ pub(super) fn dual_cells_of_unit(
                 continue;
             }
             let gradient = cell_gradient(&corners);
-            mesh_cell(&corners, gradient, closed, &mut mesh, &mut guides, &mut vertex_index);
+            mesh_cell(&corners, gradient, closed, &mut piece);
         }
     }
-    Ok((mesh, guides))
+    pinholes::fill_pinholes(&mut piece);
+    Ok((piece.mesh, piece.guides))
 }
 
 /// Gradient of u over a dual cell (mean difference between opposite faces of the 8 corners,
@@ -424,20 +437,31 @@ fn cell_gradient(corners: &[Corner; 8]) -> DVec3 {
     gradient
 }
 
+/// The vertices of a cut tetrahedron's surface polygon, in order around it, as pairs of
+/// corner indices (inside, outside) into the tetrahedron.
+fn polygon_edges(t: &[Corner; 4]) -> Vec<(usize, usize)> {
+    let inside: Vec<usize> = (0..4).filter(|&i| t[i].u <= 0.0).collect();
+    let outside: Vec<usize> = (0..4).filter(|&i| t[i].u > 0.0).collect();
+    match (inside.as_slice(), outside.as_slice()) {
+        ([apex], others) | (others, [apex]) => others.iter().map(|&o| (*apex, o)).collect(),
+        ([i0, i1], [o0, o1]) => vec![(*i0, *o0), (*i0, *o1), (*i1, *o1), (*i1, *o0)],
+        _ => Vec::new(),
+    }
+}
+
+/// The name of the surface vertex on the edge between two corners.
+fn vertex_name(a: &Corner, b: &Corner) -> VertexId {
+    if a.id <= b.id { (a.id, b.id) } else { (b.id, a.id) }
+}
+
 /// Cuts the dual cell's 6 Kuhn tetrahedra at u = 0 and adds the triangles, oriented towards
 /// positive u, to `mesh`; vertices are found or added by name through `vertex_index`, and each
 /// triangle's vertices accumulate the cell's `gradient` as their normal. Unless `closed`, a
-/// tetrahedron adds nothing unless depth maps saw all four of its cells, samples reached one
-/// of the dual cell's eight, and its own corners support a surface ([`tetrahedron_supported`];
-/// module docs of `stages::extract`, "Observed surface only").
-fn mesh_cell(
-    corners: &[Corner; 8],
-    gradient: DVec3,
-    closed: bool,
-    mesh: &mut UnitMesh,
-    guides: &mut VertexGuides,
-    vertex_index: &mut NameIndex,
-) {
+/// tetrahedron adds nothing unless depth maps saw all four of its cells and samples reached one
+/// of the dual cell's eight; one whose own corners do not support a surface
+/// ([`tetrahedron_supported`]) is held for [`pinholes::fill_pinholes`] (module docs of
+/// `stages::extract`, "Observed surface only").
+fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut Piece) {
     let plane = OffsetPlane::fit(corners);
     let mut cell_vertices: Vec<u32> = Vec::new();
     let votes: f32 = corners.iter().map(|c| c.votes).sum();
@@ -449,78 +473,84 @@ fn mesh_cell(
         if !(closed || observed) {
             continue;
         }
-        let inside: Vec<usize> = (0..4).filter(|&i| t[i].u <= 0.0).collect();
-        let outside: Vec<usize> = (0..4).filter(|&i| t[i].u > 0.0).collect();
-        if inside.is_empty() || outside.is_empty() || !(closed || tetrahedron_supported(&t)) {
+        let positive = t.iter().filter(|c| c.u > 0.0).count();
+        if positive == 0 || positive == 4 {
             continue;
         }
-        let mut vertex = |a: usize, b: usize, mesh: &mut UnitMesh| -> u32 {
-            let (ca, cb) = (t[a], t[b]);
-            let edge = if ca.id <= cb.id { (ca.id, cb.id) } else { (cb.id, ca.id) };
-            let vertices = &mesh.vertices;
-            match vertex_index.entry(edge, |i| vertices.get(i as usize).map(|v| v.0)) {
-                hashbrown::hash_table::Entry::Occupied(found) => *found.get(),
-                hashbrown::hash_table::Entry::Vacant(slot) => {
-                    let (lo, hi) = if ca.id <= cb.id { (ca, cb) } else { (cb, ca) };
-                    let position = lo.center + (hi.center - lo.center) * crossing(&lo, &hi);
-                    let index = mesh.vertices.len() as u32;
-                    mesh.vertices.push((edge, position, DVec3::ZERO));
-                    guides.ends.push((lo.center, hi.center));
-                    guides
-                        .moves
-                        .push(VertexMove::empty(index, 0.5 * (hi.center - lo.center).length()));
-                    *slot.insert(index).get()
-                }
-            }
-        };
-        let mut polygon: Vec<u32> = Vec::new();
-        if inside.len() == 1 || outside.len() == 1 {
-            let (apex, others) = if inside.len() == 1 {
-                (inside[0], &outside)
-            } else {
-                (outside[0], &inside)
-            };
-            for &o in others.iter() {
-                polygon.push(vertex(apex, o, &mut *mesh));
-            }
-        } else {
-            let (i0, i1, o0, o1) = (inside[0], inside[1], outside[0], outside[1]);
-            polygon.push(vertex(i0, o0, &mut *mesh));
-            polygon.push(vertex(i0, o1, &mut *mesh));
-            polygon.push(vertex(i1, o1, &mut *mesh));
-            polygon.push(vertex(i1, o0, &mut *mesh));
+        if !(closed || tetrahedron_supported(&t)) {
+            piece.held.push(pinholes::HeldTetrahedron { corners: t, gradient });
+            continue;
         }
-        for &vi in &polygon {
-            if let Some(v) = mesh.vertices.get_mut(vi as usize) {
-                v.2 += gradient;
-            }
-        }
-        cell_vertices.extend_from_slice(&polygon);
-        // Orient towards positive u (outside).
-        let to_outside = outside.iter().map(|&i| t[i].center).sum::<DVec3>() / outside.len() as f64
-            - inside.iter().map(|&i| t[i].center).sum::<DVec3>() / inside.len() as f64;
-        for k in 1..polygon.len() - 1 {
-            let mut tri = [polygon[0], polygon[k], polygon[k + 1]];
-            if tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2] {
-                continue;
-            }
-            let p = tri.map(|i| mesh.vertices[i as usize].1);
-            let normal = (p[1] - p[0]).cross(p[2] - p[0]);
-            if normal.dot(to_outside) < 0.0 {
-                tri.swap(1, 2);
-            }
-            mesh.triangles.push(tri);
-        }
+        cell_vertices.extend(mesh_tetrahedron(&t, gradient, piece));
     }
     let Some(plane) = plane else { return };
     let (normal, distance) = plane.normal_form();
     cell_vertices.sort_unstable();
     cell_vertices.dedup();
     for vi in cell_vertices {
-        if let Some(share) = guides.moves.get_mut(vi as usize) {
+        if let Some(share) = piece.guides.moves.get_mut(vi as usize) {
             share.add_plane(normal, distance);
         }
     }
+}
+
+/// Adds the surface polygon of a cut tetrahedron to the piece (triangles oriented towards
+/// positive u, vertices found or added by name) and returns its vertices.
+fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> Vec<u32> {
+    let Piece {
+        mesh,
+        guides,
+        vertex_index,
+        ..
+    } = piece;
+    let mut polygon: Vec<u32> = Vec::with_capacity(4);
+    for (a, b) in polygon_edges(t) {
+        let (ca, cb) = (t[a], t[b]);
+        let edge = vertex_name(&ca, &cb);
+        let vertices = &mesh.vertices;
+        let index = match vertex_index.entry(edge, |i| vertices.get(i as usize).map(|v| v.0)) {
+            hashbrown::hash_table::Entry::Occupied(found) => *found.get(),
+            hashbrown::hash_table::Entry::Vacant(slot) => {
+                let (lo, hi) = if ca.id <= cb.id { (ca, cb) } else { (cb, ca) };
+                let position = lo.center + (hi.center - lo.center) * crossing(&lo, &hi);
+                let index = mesh.vertices.len() as u32;
+                mesh.vertices.push((edge, position, DVec3::ZERO));
+                guides.ends.push((lo.center, hi.center));
+                guides
+                    .moves
+                    .push(VertexMove::empty(index, 0.5 * (hi.center - lo.center).length()));
+                *slot.insert(index).get()
+            }
+        };
+        polygon.push(index);
+    }
+    for &vi in &polygon {
+        if let Some(v) = mesh.vertices.get_mut(vi as usize) {
+            v.2 += gradient;
+        }
+    }
+    // Orient towards positive u (outside).
+    let centroid = |outside: bool| {
+        let side: Vec<DVec3> = t.iter().filter(|c| (c.u > 0.0) == outside).map(|c| c.center).collect();
+        side.iter().sum::<DVec3>() / side.len().max(1) as f64
+    };
+    let to_outside = centroid(true) - centroid(false);
+    for k in 1..polygon.len().saturating_sub(1) {
+        let (Some(&a), Some(&b), Some(&c)) = (polygon.first(), polygon.get(k), polygon.get(k + 1)) else {
+            continue;
+        };
+        let mut tri = [a, b, c];
+        if tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2] {
+            continue;
+        }
+        let p = tri.map(|i| mesh.vertices.get(i as usize).map_or(DVec3::ZERO, |v| v.1));
+        let normal = (p[1] - p[0]).cross(p[2] - p[0]);
+        if normal.dot(to_outside) < 0.0 {
+            tri.swap(1, 2);
+        }
+        mesh.triangles.push(tri);
+    }
+    polygon
 }
 
 #[cfg(test)]

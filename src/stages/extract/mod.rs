@@ -23,13 +23,19 @@
 //! behind a surface) and free space, the sheets that would hang behind a plate or under a
 //! counter, where no sample lies and the votes are all clamped. A cell of coarse cubes passes
 //! these tests with one sample anywhere in it, so each tetrahedron must also be supported by
-//! its own four corners: the votes at one of them place the surface within 1.5 times the
-//! tetrahedron's span of it, or samples reached two of them and a tenth of their own votes
-//! measured a distance (`dual_cells::tetrahedron_supported`); that drops the fringes past
-//! depth edges and the bridges across crevices. The decision reads only the cell's own corners, so a cell
-//! on a seam between treetop leaves gets the same answer whichever unit generates it, and the
-//! pieces stay seamless. `closed` keeps the whole zero set (a watertight mesh, hidden parts
-//! filled in).
+//! its own four corners: the votes at one of them place the surface within the tetrahedron's
+//! span of it, or samples reached two of them and a tenth of their own votes measured a
+//! distance (`dual_cells::tetrahedron_supported`); that drops the fringes past depth edges and
+//! the bridges across crevices. Noise leaves a few tetrahedra of well-seen surfaces short of
+//! that support too, and dropping them would open pinholes in closed objects; so the unit's
+//! unsupported cut tetrahedra are held, and a group of at most 8 of them joined by shared
+//! polygon edges comes back when every other edge of theirs is an edge of the unit's kept
+//! surface (a hole the surface surrounds), while a fringe, which borders nothing kept on one
+//! side, stays out (`dual_cells::pinholes`). Each tetrahedron is meshed only by the unit
+//! that generates its dual cell, and the fill reads only the surface that unit meshes, so the
+//! pieces stay seamless and the result does not depend on the order units run in (a pinhole
+//! whose rim lies partly in another unit stays open). `closed` keeps the whole zero set (a
+//! watertight mesh, hidden parts filled in).
 //!
 //! Vertices inside cubes. u's L1 data term snaps it to histogram bin centres, and linear
 //! interpolation of u between cell centres then leaves terraces about one bin (near one finest
@@ -49,9 +55,10 @@
 //! the vertices only their unit produces (Taubin's steps, each vertex within half its edge of
 //! where it was; seam vertices stay).
 //!
-//! Files: `dual_cells` (a unit's piece), `weld` (streaming weld in unit order), `mesh_file`
-//! (the temporary vertex and face files and the final PLY), `in_order` (workers compute
-//! pieces ahead while the weld consumes them in order).
+//! Files: `dual_cells` (a unit's piece; `dual_cells/pinholes` fills its pinholes), `weld`
+//! (streaming weld in unit order), `mesh_file` (the temporary vertex and face files and the
+//! final PLY), `in_order` (workers compute pieces ahead while the weld consumes them in
+//! order).
 
 mod dual_cells;
 mod in_order;
