@@ -125,7 +125,10 @@ impl Scene {
     /// The key of the cube at `depth` containing `p` (which must be inside the root).
     pub fn key_at(&self, p: DVec3, depth: u8) -> CubeKey {
         let q = (p - self.min()) / self.root_side;
-        let full = |c: f64| -> u32 { ((c * 4294967296.0).floor()).clamp(0.0, 4294967295.0) as u32 };
+        // Clamped first, the float-to-int cast truncates a non-negative value, which is its
+        // floor: the same key as `floor().clamp()`, without a call to libm's floor (the
+        // crate's baseline x86-64 has no rounding instruction).
+        let full = |c: f64| -> u32 { (c * 4294967296.0).clamp(0.0, 4294967295.0) as u32 };
         let shift = u32::from(MAX_DEPTH - depth);
         let mask = |c: u32| if shift >= 32 { 0 } else { (c >> shift) << shift };
         CubeKey::from_full_resolution(depth, mask(full(q.x)), mask(full(q.y)), mask(full(q.z)))
