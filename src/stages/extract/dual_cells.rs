@@ -5,12 +5,12 @@
 use glam::DVec3;
 
 use super::weld::NameIndex;
-
-mod pinholes;
 use crate::format::{CubeKey, MAX_DEPTH, Scene};
 use crate::mesh::{CornerId, UnitMesh, VertexId, VertexMove};
 use crate::stages::solve::{CutValue, LevelCut, cut_cube_ending_at};
 use crate::store::Result;
+
+mod pinholes;
 
 /// Corner ids with this bit set are virtual exterior cells (see [`CornerId`]).
 const VIRTUAL: u128 = 1 << 127;
@@ -531,8 +531,11 @@ fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> Vec<
     }
     // Orient towards positive u (outside).
     let centroid = |outside: bool| {
-        let side: Vec<DVec3> = t.iter().filter(|c| (c.u > 0.0) == outside).map(|c| c.center).collect();
-        side.iter().sum::<DVec3>() / side.len().max(1) as f64
+        let (sum, count) = t
+            .iter()
+            .filter(|c| (c.u > 0.0) == outside)
+            .fold((DVec3::ZERO, 0u32), |(sum, count), c| (sum + c.center, count + 1));
+        sum / f64::from(count.max(1))
     };
     let to_outside = centroid(true) - centroid(false);
     for k in 1..polygon.len().saturating_sub(1) {
