@@ -5,8 +5,9 @@ use std::path::PathBuf;
 use clap::{Args, Parser, Subcommand};
 
 use super::parse::{
-    parse_depth_noise, parse_iterations, parse_margin, parse_memory_budget, parse_noise_sigmas, parse_point,
-    parse_ratio, parse_region, parse_root, parse_ssd_tolerance, parse_ssd_weight, parse_tolerance, parse_weight,
+    parse_depth_noise, parse_iterations, parse_margin, parse_memory_budget, parse_noise_sigmas, parse_overlap,
+    parse_point, parse_ratio, parse_region, parse_root, parse_ssd_tolerance, parse_ssd_weight, parse_tolerance,
+    parse_weight,
 };
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
@@ -154,6 +155,13 @@ pub enum Command {
     Log(LogArgs),
     /// Remove segments that no kept version can see.
     Gc(GcArgs),
+    /// Divide huge point clouds (PLY, XYZ, TXT) into overlapping subspaces of at most
+    /// --max-points points each, for reconstruction part by part (Kuhn and Mayer 2015); a
+    /// later divide into the same folder adds points and rewrites only what they touch.
+    Divide(DivideArgs),
+    /// Fuse meshes reconstructed per subspace of a division: each keeps the triangles whose
+    /// centroid lies in its core cube.
+    Merge(MergeArgs),
     /// Run the synthetic test stage (exercises the stage runner without input files).
     #[command(hide = true)]
     DebugSynthetic(DebugSyntheticArgs),
@@ -335,6 +343,48 @@ pub struct ExtractArgs {
     /// watertight mesh matters more than honest borders (hidden parts are then filled in).
     #[arg(long)]
     pub closed: bool,
+}
+
+/// Arguments of `octstore divide`.
+#[derive(Args, Debug)]
+pub struct DivideArgs {
+    /// Point clouds: PLY (ASCII or binary, any scalar vertex properties), XYZ or TXT (x y z,
+    /// optionally nx ny nz, then red green blue). All must have the same properties.
+    #[arg(required_unless_present = "synthetic")]
+    pub inputs: Vec<PathBuf>,
+    /// The folder of subspace PLYs and subspaces.json; one that holds a division already gets
+    /// the new points added.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// The most points in a subspace's core (default 10000000, or the folder's).
+    #[arg(long)]
+    pub max_points: Option<u64>,
+    /// How far grown cubes reach beyond each face of their core, as a fraction of its side
+    /// (default 0.1, or the folder's).
+    #[arg(long, value_parser = parse_overlap)]
+    pub overlap: Option<f64>,
+    /// Octree levels counted in one pass (default: enough for the points and --max-points
+    /// where they spread evenly, plus 3, within --memory-budget); nodes at that depth that
+    /// still hold too many points are divided again from their own points.
+    #[arg(long)]
+    pub max_depth: Option<u32>,
+    /// Divide a generated cloud of this many points instead of files (benchmarks: nothing is
+    /// read from disk).
+    #[arg(long, hide = true)]
+    pub synthetic: Option<u64>,
+}
+
+/// Arguments of `octstore merge`.
+#[derive(Args, Debug)]
+pub struct MergeArgs {
+    /// The division's subspaces.json.
+    pub manifest: PathBuf,
+    /// One mesh per subspace, named after its file (L2_0_1_3.ply takes L2_0_1_3.mesh.ply).
+    #[arg(required = true)]
+    pub meshes: Vec<PathBuf>,
+    /// The merged mesh (PLY, or OBJ by extension).
+    #[arg(short, long)]
+    pub output: PathBuf,
 }
 
 /// Arguments of `octstore query`.

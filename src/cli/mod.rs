@@ -4,6 +4,7 @@
 
 mod args;
 mod cluster;
+mod divide;
 mod error;
 mod parse;
 mod report;
@@ -101,6 +102,8 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
         Command::Verify(args) => return verbs::verify(args),
         Command::Log(args) => verbs::log(args)?,
         Command::Gc(args) => verbs::gc(args)?,
+        Command::Divide(args) => divide::divide(&global, args)?,
+        Command::Merge(args) => divide::merge(args)?,
         Command::DebugSynthetic(args) => verbs::debug_synthetic(&global, args)?,
     }
     Ok(ExitCode::SUCCESS)

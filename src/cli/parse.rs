@@ -177,3 +177,13 @@ pub(crate) fn parse_size(text: &str) -> Result<u64, ArgumentError> {
     };
     Ok((value * scale) as u64)
 }
+
+/// `divide --overlap`: a fraction in [0, 1).
+pub(crate) fn parse_overlap(text: &str) -> Result<f64, ArgumentError> {
+    match text.parse::<f64>() {
+        Ok(v) if (0.0..1.0).contains(&v) => Ok(v),
+        _ => Err(ArgumentError(format!(
+            "'{text}' is not an overlap in [0, 1) (the default is 0.1)"
+        ))),
+    }
+}

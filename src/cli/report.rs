@@ -30,6 +30,9 @@ pub struct InfoJson {
     pub bytes: u64,
     /// Content digest per stage (hex), equal for equal content however it was produced.
     pub digest: std::collections::BTreeMap<String, String>,
+    /// The root cube's lowest corner in world units (absent before the first ingest); with
+    /// `root_side`, what `ingest --root` takes to give another store the same cubes.
+    pub root_min: Option<[f64; 3]>,
     /// Side of the root cube in world units (absent before the first ingest).
     pub root_side: Option<f64>,
     /// The deepest solved level and the side of its cubes in world units (absent before a solve).
@@ -59,6 +62,7 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
         .filter(|record| record.added_in <= snapshot.version())
         .collect();
     Ok(InfoJson {
+        root_min: scene.map(|s| s.root_min),
         root_side: scene.map(|s| s.root_side),
         finest_level,
         finest_cube_side: scene.zip(finest_level).map(|(s, level)| s.cube_side(level)),

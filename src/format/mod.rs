@@ -6,6 +6,7 @@
 #[doc(hidden)]
 pub mod bytes;
 pub mod key;
+pub mod ply_header;
 pub mod segment;
 mod world;
 

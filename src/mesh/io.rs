@@ -7,6 +7,9 @@ use std::io::Read;
 use std::path::Path;
 
 use super::Mesh;
+use crate::format::ply_header::{
+    PlyEncoding as Encoding, PlyHeader, PlyProperty as Property, PlyScalar as Scalar, parse_ply_header,
+};
 
 /// A mesh file that cannot be read: the file and the problem.
 #[derive(Debug, thiserror::Error)]
@@ -149,61 +152,6 @@ fn read_obj(path: &Path, bytes: &[u8]) -> Result<Mesh, MeshReadError> {
     Ok(mesh)
 }
 
-#[derive(Clone, Copy, PartialEq)]
-enum Encoding {
-    Ascii,
-    Little,
-    Big,
-}
-
-#[derive(Clone, Copy)]
-enum Scalar {
-    I8,
-    U8,
-    I16,
-    U16,
-    I32,
-    U32,
-    F32,
-    F64,
-}
-
-impl Scalar {
-    fn parse(name: &str) -> Option<Scalar> {
-        Some(match name {
-            "char" | "int8" => Scalar::I8,
-            "uchar" | "uint8" => Scalar::U8,
-            "short" | "int16" => Scalar::I16,
-            "ushort" | "uint16" => Scalar::U16,
-            "int" | "int32" => Scalar::I32,
-            "uint" | "uint32" => Scalar::U32,
-            "float" | "float32" => Scalar::F32,
-            "double" | "float64" => Scalar::F64,
-            _ => return None,
-        })
-    }
-
-    fn size(self) -> usize {
-        match self {
-            Scalar::I8 | Scalar::U8 => 1,
-            Scalar::I16 | Scalar::U16 => 2,
-            Scalar::I32 | Scalar::U32 | Scalar::F32 => 4,
-            Scalar::F64 => 8,
-        }
-    }
-}
-
-enum Property {
-    Scalar(String, Scalar),
-    List(String, Scalar, Scalar),
-}
-
-struct Element {
-    name: String,
-    count: usize,
-    properties: Vec<Property>,
-}
-
 /// Values of a PLY body, one at a time, in ASCII or binary.
 struct PlyValues<'a> {
     path: &'a Path,
@@ -238,76 +186,19 @@ impl PlyValues<'_> {
         self.pos += size;
         let mut buf = [0u8; 8];
         buf[..size].copy_from_slice(raw);
-        if self.encoding == Encoding::Big {
+        if self.encoding == Encoding::BigEndian {
             buf[..size].reverse();
         }
-        Ok(match scalar {
-            Scalar::I8 => f64::from(buf[0] as i8),
-            Scalar::U8 => f64::from(buf[0]),
-            Scalar::I16 => f64::from(i16::from_le_bytes([buf[0], buf[1]])),
-            Scalar::U16 => f64::from(u16::from_le_bytes([buf[0], buf[1]])),
-            Scalar::I32 => f64::from(i32::from_le_bytes([buf[0], buf[1], buf[2], buf[3]])),
-            Scalar::U32 => f64::from(u32::from_le_bytes([buf[0], buf[1], buf[2], buf[3]])),
-            Scalar::F32 => f64::from(f32::from_le_bytes([buf[0], buf[1], buf[2], buf[3]])),
-            Scalar::F64 => f64::from_le_bytes(buf),
-        })
+        Ok(scalar.read_le(&buf))
     }
 }
 
 fn read_ply_bytes(path: &Path, bytes: &[u8]) -> Result<Mesh, MeshReadError> {
-    let marker = b"end_header";
-    let at = bytes
-        .windows(marker.len())
-        .position(|w| w == marker)
-        .ok_or_else(|| err(path, "not a PLY file (no end_header)"))?;
-    let mut body = at + marker.len();
-    if bytes.get(body) == Some(&b'\r') {
-        body += 1;
-    }
-    body += 1; // the newline
-    let header = String::from_utf8_lossy(bytes.get(..at).unwrap_or_default()).into_owned();
-    let mut lines = header.lines().map(str::trim);
-    if lines.next() != Some("ply") {
-        return Err(err(path, "not a PLY file (no ply magic)"));
-    }
-    let mut encoding = None;
-    let mut elements: Vec<Element> = Vec::new();
-    for line in lines {
-        let tokens: Vec<&str> = line.split_whitespace().collect();
-        match tokens.as_slice() {
-            ["format", "ascii", _] => encoding = Some(Encoding::Ascii),
-            ["format", "binary_little_endian", _] => encoding = Some(Encoding::Little),
-            ["format", "binary_big_endian", _] => encoding = Some(Encoding::Big),
-            ["element", name, count] => elements.push(Element {
-                name: (*name).to_string(),
-                count: count
-                    .parse()
-                    .map_err(|_| err(path, format!("bad element count '{count}'")))?,
-                properties: Vec::new(),
-            }),
-            ["property", "list", count, item, name] => {
-                let (Some(c), Some(i)) = (Scalar::parse(count), Scalar::parse(item)) else {
-                    return Err(err(path, format!("unknown list types in '{line}'")));
-                };
-                elements
-                    .last_mut()
-                    .ok_or_else(|| err(path, "property before any element"))?
-                    .properties
-                    .push(Property::List((*name).to_string(), c, i));
-            }
-            ["property", kind, name] => {
-                let scalar = Scalar::parse(kind).ok_or_else(|| err(path, format!("unknown property type '{kind}'")))?;
-                elements
-                    .last_mut()
-                    .ok_or_else(|| err(path, "property before any element"))?
-                    .properties
-                    .push(Property::Scalar((*name).to_string(), scalar));
-            }
-            ["comment", ..] | ["obj_info", ..] | [] => {}
-            _ => return Err(err(path, format!("unexpected header line '{line}'"))),
-        }
-    }
-    let encoding = encoding.ok_or_else(|| err(path, "PLY header has no format line"))?;
+    let PlyHeader {
+        encoding,
+        elements,
+        body_offset: body,
+    } = parse_ply_header(bytes).map_err(|problem| err(path, problem))?;
     let mut values = PlyValues {
         path,
         encoding,
@@ -318,7 +209,7 @@ fn read_ply_bytes(path: &Path, bytes: &[u8]) -> Result<Mesh, MeshReadError> {
     let mut polygon = Vec::new();
     for element in &elements {
         // Each row needs at least one byte (binary) or two (ASCII): a count beyond that is a lie.
-        if element.count > bytes.len() {
+        if element.count > bytes.len() as u64 {
             return Err(err(
                 path,
                 format!("element {} claims {} rows", element.name, element.count),

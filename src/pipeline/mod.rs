@@ -35,6 +35,7 @@
 
 pub mod cluster;
 mod demo;
+pub mod divide;
 mod error;
 
 use std::path::{Path, PathBuf};

@@ -8,6 +8,8 @@ Sections:
                outlier levels; accuracy, completeness, Chamfer and F-score from octstore-evaluate
   redkitchen   RedKitchen subsets: wall time, CPU time, peak RSS and output size for octstore and
                TSDF at the same voxel size
+  divide       `octstore divide` of a generated billion-point cloud at two memory budgets, and the
+               bunny divided, reconstructed part by part and merged (divide_bench.py)
 
 Every method sees exactly the same depth maps and poses. Wall and CPU time and peak RSS of
 Open3D are measured in a child process (resource.getrusage of the children), like octstore's.
@@ -1045,6 +1047,9 @@ def write_markdown(results, out_dir, path):
         if largest:
             lines += table_one(largest["stages"], f"{largest['blocks']} blocks, `--memory-budget {budget}`",
                                largest, "####" if budget != budgets[0] else "###")
+    import divide_bench
+
+    lines += divide_bench.markdown(results.get("divide", []))
     path.write_text("\n".join(lines))
 
 
@@ -1069,6 +1074,10 @@ def main():
                         help="TSDF voxel (m) of the redkitchen section (default: octstore's finest cube side)")
     parser.add_argument("--scale-sizes", nargs="+", type=int, default=[4, 8, 16, 22],
                         help="city sizes (blocks per side, squared) of the scale section")
+    parser.add_argument("--divide-points", type=int, default=1_000_000_000,
+                        help="points of the generated cloud of the divide section")
+    parser.add_argument("--divide-budgets", nargs="+", default=["256MiB", "1GiB"],
+                        help="--memory-budget values of the divide section")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks", help="plots and raw results")
     parser.add_argument("--markdown", type=Path, default=ROOT / "BENCHMARKS.md")
     args = parser.parse_args()
@@ -1089,6 +1098,15 @@ def main():
                 rows = scale(work, args.scale_sizes, args.scale_budget)
             elif section == "cube-sizes":
                 rows = [row for frames in args.frames for row in cube_sizes(work, frames, args.redkitchen_budget)]
+            elif section == "divide":
+                import divide_bench
+
+                rows = [divide_bench.synthetic(BIN, work, args.divide_points, budget, 10_000_000, run_measured)
+                        for budget in args.divide_budgets]
+                for row in rows:
+                    print(json.dumps(row), flush=True)
+                rows.append(divide_bench.bunny_merge(BIN, work, GT_MESHES["bunny"], octstore, evaluate, read_manifest))
+                print(json.dumps(rows[-1]), flush=True)
             else:
                 raise SystemExit(f"unknown section {section}")
             for row in rows:
@@ -1113,7 +1131,7 @@ def main():
                 rows.sort(key=lambda r: (r.get("max_depth") or 99, r["frames"], r["method"] != "octstore"))
             path.write_text(json.dumps(rows, indent=1))
     results = {}
-    for section in ("groundtruth", "interior", "redkitchen", "scale", "cube-sizes"):
+    for section in ("groundtruth", "interior", "redkitchen", "scale", "cube-sizes", "divide"):
         path = args.out / f"results-{section}.json"
         results[section] = json.loads(path.read_text()) if path.exists() else []
     write_markdown(results, args.out, args.markdown)

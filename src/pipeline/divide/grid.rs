@@ -1,0 +1,522 @@
+//! The geometry of a division: the root cube, octree nodes, their core and grown cubes, the
+//! per-node point counts of the counting pass, and the lookup from a point to the cubes that
+//! take it.
+//!
+//! Exactness: the root's side is a power of two, at least a millionth of the coordinates'
+//! magnitude, and its corner a multiple of the side / 2^[`GRID_BITS`], so every node's corner,
+//! `min + index * side`, is exact in f64, and so is `min + side`: the core cubes
+//! that `subspaces.json` lists tile the root exactly, and a point's node, found through its
+//! integer grid coordinates, agrees with the comparisons `min <= p < min + size` a user makes.
+
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use serde::{Deserialize, Serialize};
+
+/// Levels of the integer grid under the root: no node is deeper.
+pub const GRID_BITS: u32 = 32;
+
+/// 2^-GRID_BITS: the grid's unit over the root's side.
+const UNIT_PER_SIDE: f64 = 1.0 / 4_294_967_296.0;
+
+/// The root cube of a division.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Root {
+    /// Lowest corner.
+    pub min: [f64; 3],
+    /// Side, a power of two.
+    pub size: f64,
+}
+
+/// An octree node: its level (0 is the root) and its integer position among the 2^level
+/// nodes along each axis.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct Node {
+    /// Depth below the root.
+    pub level: u32,
+    /// Position along x, y, z (each below 2^level).
+    pub index: [u32; 3],
+}
+
+/// An axis-aligned box, half-open: `min <= p < max`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Bounds {
+    /// Lowest corner.
+    pub min: [f64; 3],
+    /// Highest corner (excluded).
+    pub max: [f64; 3],
+}
+
+impl Bounds {
+    /// Whether `p` lies inside (half-open).
+    #[inline]
+    pub fn contains(&self, p: [f64; 3]) -> bool {
+        (0..3).all(|a| self.min[a] <= p[a] && p[a] < self.max[a])
+    }
+
+    /// Whether the two boxes share a point.
+    pub fn meets(&self, other: &Bounds) -> bool {
+        (0..3).all(|a| self.min[a] < other.max[a] && other.min[a] < self.max[a])
+    }
+
+    /// The common part (possibly empty).
+    pub fn intersection(&self, other: &Bounds) -> Bounds {
+        Bounds {
+            min: [0, 1, 2].map(|a| self.min[a].max(other.min[a])),
+            max: [0, 1, 2].map(|a| self.max[a].min(other.max[a])),
+        }
+    }
+}
+
+/// One coordinate of [`Root::grid`].
+#[inline]
+fn grid_axis(p: f64, min: f64, unit: f64, per_unit: f64) -> u32 {
+    const LAST: i64 = (1i64 << GRID_BITS) - 1;
+    // Truncation is floor for the positive values it is used on; the unit is a power of two,
+    // so multiplying by its inverse is the exact division.
+    let t = (p - min) * per_unit;
+    let mut g = if t > 0.0 { (t as i64).min(LAST) } else { 0 };
+    // The subtraction rounds: settle the cell with the exact boundaries.
+    // The root's side is at least a millionth of the coordinates' magnitude (`Root::around`),
+    // so the subtraction errs by at most half a unit and the quotient is at most one cell off:
+    // one comparison with the exact boundaries settles it.
+    if g > 0 && p < min + g as f64 * unit {
+        g -= 1;
+    } else if g < LAST && p >= min + (g + 1) as f64 * unit {
+        g += 1;
+    }
+    g as u32
+}
+
+impl Root {
+    /// The smallest power-of-two cube, on the grid, that holds every point of the box
+    /// `[low, high]` (closed), `None` for an empty box.
+    pub fn around(low: [f64; 3], high: [f64; 3]) -> Option<Root> {
+        if (0..3).any(|a| !low[a].is_finite() || !high[a].is_finite() || low[a] > high[a]) {
+            return None;
+        }
+        let extent = (0..3).map(|a| high[a] - low[a]).fold(0.0f64, f64::max);
+        let magnitude = (0..3).map(|a| low[a].abs().max(high[a].abs())).fold(0.0f64, f64::max);
+        // A side of at least a millionth of the coordinates' magnitude (a single point, or
+        // points on a plane, still get a cube) and some slack, so the highest point is inside.
+        let wanted = (extent * (1.0 + 1e-6))
+            .max(magnitude * 1e-6)
+            .max(f64::MIN_POSITIVE * 1e10);
+        let mut size = 2f64.powi(wanted.log2().ceil() as i32);
+        loop {
+            let unit = size * UNIT_PER_SIDE;
+            let min = low.map(|l| (l / unit).floor() * unit);
+            if (0..3).all(|a| high[a] < min[a] + size) {
+                return Some(Root { min, size });
+            }
+            size *= 2.0;
+        }
+    }
+
+    fn unit(&self) -> f64 {
+        // Exact: the side is a power of two.
+        self.size * UNIT_PER_SIDE
+    }
+
+    /// Side of the nodes of `level`.
+    pub fn side(&self, level: u32) -> f64 {
+        // Exact: a power of two over a power of two (levels stop at GRID_BITS).
+        self.size / (1u64 << level.min(63)) as f64
+    }
+
+    /// The integer grid coordinates of `p` (clamped to the root): the unique `g` with
+    /// `min + g * unit <= p < min + (g + 1) * unit` for a point inside.
+    #[inline]
+    pub fn grid(&self, p: [f64; 3]) -> [u32; 3] {
+        let unit = self.unit();
+        let per_unit = 1.0 / unit;
+        [
+            grid_axis(p[0], self.min[0], unit, per_unit),
+            grid_axis(p[1], self.min[1], unit, per_unit),
+            grid_axis(p[2], self.min[2], unit, per_unit),
+        ]
+    }
+
+    /// Whether `p` lies in the root cube.
+    pub fn contains(&self, p: [f64; 3]) -> bool {
+        self.bounds().contains(p)
+    }
+
+    /// The root cube as a box.
+    pub fn bounds(&self) -> Bounds {
+        self.core(Node::ROOT)
+    }
+
+    /// A node's own cube.
+    pub fn core(&self, node: Node) -> Bounds {
+        let side = self.side(node.level);
+        let min = [0, 1, 2].map(|a| self.min[a] + f64::from(node.index[a]) * side);
+        Bounds {
+            min,
+            max: [0, 1, 2].map(|a| min[a] + side),
+        }
+    }
+
+    /// A node's cube grown by `overlap` times its side on every face.
+    pub fn grown(&self, node: Node, overlap: f64) -> Bounds {
+        let side = self.side(node.level);
+        let core = self.core(node);
+        let min = core.min.map(|m| m - overlap * side);
+        let grown_side = side * (1.0 + 2.0 * overlap);
+        Bounds {
+            min,
+            max: min.map(|m| m + grown_side),
+        }
+    }
+}
+
+impl Node {
+    /// The root.
+    pub const ROOT: Node = Node {
+        level: 0,
+        index: [0; 3],
+    };
+
+    /// The node of `level` that holds grid coordinates `g`.
+    #[inline]
+    pub fn holding(g: [u32; 3], level: u32) -> Node {
+        let shift = GRID_BITS - level;
+        Node {
+            level,
+            index: g.map(|c| c.checked_shr(shift).unwrap_or(0)),
+        }
+    }
+
+    /// Its eight children, in Morton order (x fastest).
+    pub fn children(self) -> [Node; 8] {
+        std::array::from_fn(|i| Node {
+            level: self.level + 1,
+            index: [0, 1, 2].map(|a| self.index[a] * 2 + ((i as u32 >> a) & 1)),
+        })
+    }
+
+    /// Whether `other` is this node or lies inside it.
+    pub fn holds(self, other: Node) -> bool {
+        other.level >= self.level
+            && (0..3).all(|a| other.index[a].checked_shr(other.level - self.level).unwrap_or(0) == self.index[a])
+    }
+
+    /// Its ancestor at `level` (itself at its own level).
+    pub fn ancestor(self, level: u32) -> Node {
+        let up = self.level.saturating_sub(level);
+        Node {
+            level: self.level.min(level),
+            index: self.index.map(|c| c.checked_shr(up).unwrap_or(0)),
+        }
+    }
+
+    /// A name for files: `L{level}_{x}_{y}_{z}`.
+    pub fn name(self) -> String {
+        let [x, y, z] = self.index;
+        format!("L{}_{x}_{y}_{z}", self.level)
+    }
+}
+
+/// Point counts of the nodes below `top`, down to `depth` levels below it, counted in one pass
+/// over the points (concurrently: relaxed atomic adds commute, so the counts do not depend on
+/// the order or the threads).
+pub struct Counts {
+    top: Node,
+    depth: u32,
+    finest: Vec<AtomicU64>,
+    /// One private copy of the finest counts per worker thread when they fit the budget:
+    /// atomic adds of two cores to the same cache lines cost more than the rest of the pass.
+    per_thread: Vec<Mutex<Vec<u64>>>,
+    /// Per level, relative 0..=depth, once [`Counts::finish`] has summed them.
+    levels: Vec<Vec<u64>>,
+}
+
+/// Bytes a count grid of `depth` levels takes (finest counts and the sums above them).
+pub fn counts_bytes(depth: u32) -> u64 {
+    (8u64.pow(depth) * 8) * 8 / 7 * 2
+}
+
+impl Counts {
+    /// Empty counts under `top`, `depth` levels deep; per-thread copies when they take at
+    /// most `spare_bytes`.
+    pub fn new(top: Node, depth: u32, spare_bytes: u64) -> Counts {
+        let cells = 1usize << (3 * depth);
+        let threads = rayon::current_num_threads();
+        let copies = if (threads * cells * 8) as u64 <= spare_bytes {
+            threads
+        } else {
+            0
+        };
+        Counts {
+            top,
+            depth,
+            finest: (0..cells).map(|_| AtomicU64::new(0)).collect(),
+            per_thread: (0..copies).map(|_| Mutex::new(vec![0; cells])).collect(),
+            levels: Vec::new(),
+        }
+    }
+
+    /// Adds the `(cell, count)` runs of one block.
+    pub fn add_runs(&self, runs: &[(usize, u64)]) {
+        let copy = rayon::current_thread_index().and_then(|t| self.per_thread.get(t));
+        match copy.map(|m| m.lock()) {
+            Some(Ok(mut counts)) => {
+                for &(cell, n) in runs {
+                    if let Some(c) = counts.get_mut(cell) {
+                        *c += n;
+                    }
+                }
+            }
+            _ => {
+                for &(cell, n) in runs {
+                    self.add(cell, n);
+                }
+            }
+        }
+    }
+
+    fn linear(&self, relative: [u32; 3], depth: u32) -> usize {
+        let n = 1usize << depth;
+        relative[0] as usize + n * (relative[1] as usize + n * relative[2] as usize)
+    }
+
+    /// The finest counted cell of grid coordinates `g`, `None` outside `top`.
+    #[inline]
+    pub fn cell(&self, g: [u32; 3]) -> Option<usize> {
+        let node = Node::holding(g, self.top.level + self.depth);
+        let base = self.top.index.map(|c| c << self.depth);
+        let n = 1u32 << self.depth;
+        let relative = [0, 1, 2].map(|a| node.index[a].wrapping_sub(base[a]));
+        relative
+            .iter()
+            .all(|r| *r < n)
+            .then(|| self.linear(relative, self.depth))
+    }
+
+    /// Adds `count` points to a cell ([`Counts::cell`]).
+    #[inline]
+    pub fn add(&self, cell: usize, count: u64) {
+        if let Some(c) = self.finest.get(cell) {
+            c.fetch_add(count, Ordering::Relaxed);
+        }
+    }
+
+    /// Sums the finest counts into every coarser level.
+    pub fn finish(&mut self) {
+        let mut finest: Vec<u64> = self.finest.iter().map(|c| c.load(Ordering::Relaxed)).collect();
+        for copy in self.per_thread.drain(..) {
+            let copy = copy.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner);
+            for (sum, c) in finest.iter_mut().zip(copy) {
+                *sum += c;
+            }
+        }
+        let mut levels = vec![finest];
+        for depth in (0..self.depth).rev() {
+            let n = 1usize << depth;
+            let finer = levels.last().map(Vec::as_slice).unwrap_or_default();
+            let mut coarse = vec![0u64; n * n * n];
+            for z in 0..n {
+                for y in 0..n {
+                    for x in 0..n {
+                        let mut sum = 0;
+                        for child in 0..8 {
+                            let (cx, cy, cz) = (2 * x + (child & 1), 2 * y + ((child >> 1) & 1), 2 * z + (child >> 2));
+                            sum += finer.get(cx + 2 * n * (cy + 2 * n * cz)).copied().unwrap_or(0);
+                        }
+                        if let Some(c) = coarse.get_mut(x + n * (y + n * z)) {
+                            *c = sum;
+                        }
+                    }
+                }
+            }
+            levels.push(coarse);
+        }
+        levels.reverse();
+        self.levels = levels;
+    }
+
+    /// The count of `node`, which lies under `top` within the counted depth (after
+    /// [`Counts::finish`]).
+    pub fn of(&self, node: Node) -> u64 {
+        let depth = node.level - self.top.level;
+        let relative = [0, 1, 2].map(|a| node.index[a] - (self.top.index[a] << depth));
+        self.levels
+            .get(depth as usize)
+            .and_then(|level| level.get(self.linear(relative, depth)))
+            .copied()
+            .unwrap_or(0)
+    }
+}
+
+/// A node and the points in its core.
+pub type NodeCount = (Node, u64);
+
+/// Which nodes under `top` become subspaces (at most `max_points` points each, or at the
+/// grid's last level) and which, at the counted depth, still hold too many and are divided
+/// again from their own points. Both in depth-first Morton order.
+pub fn choose_leaves(counts: &Counts, max_points: u64) -> (Vec<NodeCount>, Vec<NodeCount>) {
+    let mut leaves = Vec::new();
+    let mut again = Vec::new();
+    let mut stack = vec![counts.top];
+    while let Some(node) = stack.pop() {
+        let count = counts.of(node);
+        if count == 0 {
+            continue;
+        }
+        if count <= max_points || node.level == GRID_BITS {
+            leaves.push((node, count));
+        } else if node.level == counts.top.level + counts.depth {
+            again.push((node, count));
+        } else {
+            stack.extend(node.children().iter().rev());
+        }
+    }
+    (leaves, again)
+}
+
+/// For each cell of a uniform grid over a node, the targets (by number) whose grown cube
+/// meets the cell: a point's candidates are its cell's, and an exact test of each grown cube
+/// decides. Points outside the node are looked up in the nearest cell, which lists every
+/// target whose grown cube reaches them (a target lies inside the node and its grown cube is a
+/// box, so it also holds the point's projection onto the node).
+pub struct Lookup {
+    top: Node,
+    depth: u32,
+    offsets: Vec<u32>,
+    targets: Vec<u32>,
+}
+
+impl Lookup {
+    /// The lookup of `grown` boxes over `top`, `depth` levels fine.
+    pub fn new(root: &Root, top: Node, depth: u32, grown: &[Bounds]) -> Lookup {
+        let n = 1usize << depth;
+        let cell_side = root.side(top.level + depth);
+        let origin = root.core(top).min;
+        let range = |b: &Bounds, a: usize| {
+            let lo = ((b.min[a] - origin[a]) / cell_side).floor().max(0.0) as usize;
+            let hi = (((b.max[a] - origin[a]) / cell_side).ceil().max(0.0) as usize).min(n);
+            (lo.min(n), hi)
+        };
+        let mut offsets = vec![0u32; n * n * n + 1];
+        let each_cell = |b: &Bounds, f: &mut dyn FnMut(usize)| {
+            let (x0, x1) = range(b, 0);
+            let (y0, y1) = range(b, 1);
+            let (z0, z1) = range(b, 2);
+            for z in z0..z1 {
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        f(x + n * (y + n * z));
+                    }
+                }
+            }
+        };
+        for b in grown {
+            each_cell(b, &mut |cell| {
+                if let Some(o) = offsets.get_mut(cell + 1) {
+                    *o += 1;
+                }
+            });
+        }
+        for i in 1..offsets.len() {
+            let before = offsets.get(i - 1).copied().unwrap_or(0);
+            if let Some(o) = offsets.get_mut(i) {
+                *o += before;
+            }
+        }
+        let mut targets = vec![0u32; offsets.last().copied().unwrap_or(0) as usize];
+        let mut fill = offsets.clone();
+        for (t, b) in grown.iter().enumerate() {
+            each_cell(b, &mut |cell| {
+                if let Some(at) = fill.get_mut(cell) {
+                    if let Some(slot) = targets.get_mut(*at as usize) {
+                        *slot = t as u32;
+                    }
+                    *at += 1;
+                }
+            });
+        }
+        Lookup {
+            top,
+            depth,
+            offsets,
+            targets,
+        }
+    }
+
+    /// The candidate targets of a point with grid coordinates `g`.
+    #[inline]
+    pub fn candidates(&self, g: [u32; 3]) -> &[u32] {
+        let node = Node::holding(g, self.top.level + self.depth);
+        let n = 1u32 << self.depth;
+        let base = self.top.index.map(|c| c << self.depth);
+        // Clamped to the node: below it wraps to a huge value, so compare signed.
+        let relative =
+            [0, 1, 2].map(|a| (i64::from(node.index[a]) - i64::from(base[a])).clamp(0, i64::from(n) - 1) as usize);
+        let n = n as usize;
+        let cell = relative[0] + n * (relative[1] + n * relative[2]);
+        let from = self.offsets.get(cell).copied().unwrap_or(0) as usize;
+        let to = self.offsets.get(cell + 1).copied().unwrap_or(0) as usize;
+        self.targets.get(from..to).unwrap_or_default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn node_corners_are_exact_and_grid_cells_agree_with_them() {
+        let root = Root::around([-3.7, 100.25, 1e-3], [12.1, 101.0, 5.0]).expect("a box");
+        assert_eq!(root.size, 16.0);
+        let node = Node {
+            level: 5,
+            index: [7, 30, 3],
+        };
+        let core = root.core(node);
+        let side = root.side(5);
+        assert_eq!(core.max[0] - core.min[0], side);
+        // The corner and the far corner are grid points: the cell of each corner is the node.
+        assert_eq!(Node::holding(root.grid(core.min), 5), node);
+        let below = core.max.map(|m| m - root.unit() * 0.5);
+        assert_eq!(Node::holding(root.grid(below), 5), node);
+        let next = Node::holding(root.grid(core.max), 5);
+        assert_eq!(next.index, [8, 31, 4]);
+        for p in [[-3.7, 100.25, 1e-3], [12.1, 101.0, 5.0], [0.0, 100.5, 2.5]] {
+            let g = root.grid(p);
+            let n = Node::holding(g, 9);
+            assert!(root.core(n).contains(p), "{p:?} in {n:?}");
+        }
+    }
+
+    #[test]
+    fn counts_sum_up_and_leaves_respect_the_limit() {
+        let root = Root::around([0.0; 3], [1.0; 3]).expect("a box");
+        let mut counts = Counts::new(Node::ROOT, 3, 0);
+        let mut points = Vec::new();
+        for i in 0..1000u32 {
+            // Dense near the origin, sparse far away.
+            let t = f64::from(i) / 1000.0;
+            points.push([t * t, t * t * t, t * 0.5]);
+        }
+        for p in &points {
+            let cell = counts.cell(root.grid(*p)).expect("inside");
+            counts.add(cell, 1);
+        }
+        counts.finish();
+        assert_eq!(counts.of(Node::ROOT), 1000);
+        let (leaves, again) = choose_leaves(&counts, 100);
+        let total: u64 = leaves.iter().chain(&again).map(|(_, c)| c).sum();
+        assert_eq!(total, 1000);
+        assert!(leaves.iter().all(|(_, c)| *c <= 100));
+        assert!(again.iter().all(|(n, c)| *c > 100 && n.level == 3));
+        for p in &points {
+            let g = root.grid(*p);
+            let holders = leaves
+                .iter()
+                .chain(&again)
+                .filter(|(n, _)| n.holds(Node::holding(g, n.level)))
+                .count();
+            assert_eq!(holders, 1);
+        }
+    }
+}

@@ -1,0 +1,276 @@
+//! A `divide` into a folder that already holds a division: only the subspaces the new points
+//! touch are rewritten, and the old inputs are never read again.
+//!
+//! The new points are counted per owner: the subspace whose core holds them, or, where no
+//! subspace was (a region that held no point), the largest empty node. An owner whose core
+//! would pass the limit, and every empty owner, is divided again from its points: the new
+//! ones in its grown cube and the old ones in it, each read from the one subspace file whose
+//! core holds it (so no point is read twice). A subspace that stays within the limit but whose
+//! grown cube receives new points is rewritten as its old file plus those points. Every file
+//! written carries the folder's generation in its name; the manifest is replaced last, and the
+//! replaced files are removed only after it.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::path::Path;
+
+use super::grid::{Lookup, Node};
+use super::manifest::{Cube, Manifest, Subspace};
+use super::{
+    Context, DivideOptions, DivideReport, Feed, MAX_LOOKUP_DEPTH, PointSource, STAGING, commit, divide_error, io,
+    progress, scan, stream,
+};
+use crate::inputs::{PointCloudFile, open_point_cloud};
+use crate::pipeline::{PipelineError, Result};
+
+/// Where new points fall: an existing subspace (by index) or an empty node.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+enum Owner {
+    Subspace(usize),
+    Empty(Node),
+}
+
+pub(super) fn divide_more(
+    sources: &[&dyn PointSource],
+    dir: &Path,
+    manifest: Manifest,
+    options: &DivideOptions,
+) -> Result<DivideReport> {
+    let Manifest { subspaces, division } = manifest;
+    let layout = division.layout().map_err(divide_error)?;
+    check_compatible(sources, dir, &division, &layout, options)?;
+    let root = division.root;
+    let feeds: Vec<Feed<'_>> = sources.iter().map(|&source| Feed { source, keep: None }).collect();
+    let scanned = scan(&feeds, &layout, options)?;
+    if scanned.points == 0 {
+        return Err(divide_error("the inputs hold no points"));
+    }
+    if !(root.contains(scanned.low) && root.contains(scanned.high)) {
+        return Err(divide_error(format!(
+            "the new points reach from {:?} to {:?}, beyond the root cube of {} (min {:?}, size {}): divide everything into a new folder",
+            scanned.low,
+            scanned.high,
+            dir.display(),
+            root.min,
+            root.size
+        )));
+    }
+    let feeds: Vec<Feed<'_>> = scanned.order.iter().filter_map(|&i| feeds.get(i).copied()).collect();
+    let (new_core, touched) = owners_of_new_points(&feeds, &layout, &subspaces, &division, options)?;
+
+    let redo: Vec<Owner> = new_core
+        .iter()
+        .filter(|(owner, new)| match owner {
+            Owner::Subspace(i) => subspaces
+                .get(*i)
+                .is_some_and(|s| s.core_points + **new > division.max_points),
+            Owner::Empty(_) => true,
+        })
+        .map(|(owner, _)| *owner)
+        .collect();
+    let old_files: Vec<PointCloudFile> = subspaces
+        .iter()
+        .map(|s| open_point_cloud(&dir.join(&s.file)))
+        .collect::<std::result::Result<_, _>>()
+        .map_err(PipelineError::PointCloud)?;
+    let mut report = DivideReport {
+        input_points: scanned.points,
+        ..DivideReport::default()
+    };
+    let mut replaced = BTreeSet::new();
+    let mut written = Vec::new();
+    let mut context = Context {
+        dir,
+        layout: layout.clone(),
+        division: &division,
+        options,
+        report: &mut report,
+    };
+    for owner in &redo {
+        let top = match owner {
+            Owner::Subspace(i) => {
+                replaced.insert(*i);
+                subspaces.get(*i).map(|s| s.node).unwrap_or(Node::ROOT)
+            }
+            Owner::Empty(node) => *node,
+        };
+        let grown = root.grown(top, division.overlap);
+        let mut top_feeds: Vec<Feed<'_>> = feeds
+            .iter()
+            .map(|f| Feed {
+                source: f.source,
+                keep: Some(grown),
+            })
+            .collect();
+        for (subspace, file) in subspaces.iter().zip(&old_files) {
+            let core = root.core(subspace.node);
+            if core.meets(&grown) {
+                top_feeds.push(Feed {
+                    source: file,
+                    keep: Some(core.intersection(&grown)),
+                });
+            }
+        }
+        let points = match owner {
+            Owner::Subspace(i) => {
+                subspaces.get(*i).map_or(0, |s| s.core_points) + new_core.get(owner).copied().unwrap_or(0)
+            }
+            Owner::Empty(_) => new_core.get(owner).copied().unwrap_or(0),
+        };
+        context.divide_node(top, points, &top_feeds, &mut written)?;
+    }
+    let appended: Vec<usize> = touched.iter().filter(|i| !replaced.contains(*i)).copied().collect();
+    for i in appended {
+        let (Some(subspace), Some(file)) = (subspaces.get(i), old_files.get(i)) else {
+            continue;
+        };
+        replaced.insert(i);
+        let grown = root.grown(subspace.node, division.overlap);
+        let mut top_feeds = vec![Feed {
+            source: file as &dyn PointSource,
+            keep: None,
+        }];
+        top_feeds.extend(feeds.iter().map(|f| Feed {
+            source: f.source,
+            keep: Some(grown),
+        }));
+        let name = context.file_name(subspace.node);
+        let path = dir.join(STAGING).join(&name);
+        let points = context.write_targets(
+            subspace.node,
+            0,
+            &top_feeds,
+            vec![(path, format!("updated {}", subspace.file))],
+            &[grown],
+        )?;
+        let points = points.first().copied().unwrap_or(0);
+        let new = new_core.get(&Owner::Subspace(i)).copied().unwrap_or(0);
+        context.report.files_written += 1;
+        context.report.points_written += points;
+        written.push(Subspace {
+            file: name,
+            core: subspace.core,
+            grown: Cube::of(&grown),
+            points,
+            core_points: subspace.core_points + new,
+            node: subspace.node,
+        });
+    }
+    let mut all: Vec<Subspace> = subspaces
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| !replaced.contains(i))
+        .map(|(_, s)| s.clone())
+        .chain(written)
+        .collect();
+    all.sort_by_key(|s| s.node);
+    let old_names: Vec<String> = replaced
+        .iter()
+        .filter_map(|i| subspaces.get(*i).map(|s| s.file.clone()))
+        .collect();
+    let mut next = division.clone();
+    next.generation += 1;
+    commit(dir, all, next, &mut report)?;
+    for name in old_names {
+        let path = dir.join(name);
+        std::fs::remove_file(&path).map_err(io("remove", &path))?;
+    }
+    Ok(report)
+}
+
+/// The new points must have the folder's properties; the limit and the overlap stay its own.
+fn check_compatible(
+    sources: &[&dyn PointSource],
+    dir: &Path,
+    division: &super::Division,
+    layout: &crate::inputs::PointLayout,
+    options: &DivideOptions,
+) -> Result<()> {
+    if options.max_points != division.max_points || options.overlap != division.overlap {
+        return Err(divide_error(format!(
+            "{} was divided with --max-points {} and --overlap {}; a later divide into it keeps them (asked: {} and {})",
+            dir.display(),
+            division.max_points,
+            division.overlap,
+            options.max_points,
+            options.overlap
+        )));
+    }
+    for source in sources {
+        if source.layout() != layout {
+            return Err(divide_error(format!(
+                "{}: its vertex properties ({}) differ from those of the division in {} ({})",
+                source.describe(),
+                super::property_list(source.layout()),
+                dir.display(),
+                super::property_list(layout)
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// New points in each owner's core, and the subspaces whose grown cube receives new points.
+fn owners_of_new_points(
+    feeds: &[Feed<'_>],
+    layout: &crate::inputs::PointLayout,
+    subspaces: &[Subspace],
+    division: &super::Division,
+    options: &DivideOptions,
+) -> Result<(BTreeMap<Owner, u64>, BTreeSet<usize>)> {
+    let root = division.root;
+    let leaves: HashMap<Node, usize> = subspaces.iter().enumerate().map(|(i, s)| (s.node, i)).collect();
+    let mut inner: std::collections::HashSet<Node> = std::collections::HashSet::new();
+    for s in subspaces {
+        for level in 0..s.node.level {
+            inner.insert(s.node.ancestor(level));
+        }
+    }
+    let deepest = subspaces.iter().map(|s| s.node.level).max().unwrap_or(0);
+    let grown: Vec<_> = subspaces.iter().map(|s| root.grown(s.node, division.overlap)).collect();
+    let lookup = Lookup::new(&root, Node::ROOT, deepest.min(MAX_LOOKUP_DEPTH), &grown);
+    let owner_of = |g: [u32; 3]| {
+        let mut level = 0;
+        loop {
+            let node = Node::holding(g, level);
+            if let Some(&i) = leaves.get(&node) {
+                return Owner::Subspace(i);
+            }
+            if !inner.contains(&node) || level == super::GRID_BITS {
+                return Owner::Empty(node);
+            }
+            level += 1;
+        }
+    };
+    let mut counts: BTreeMap<Owner, u64> = BTreeMap::new();
+    let mut touched = BTreeSet::new();
+    let bar = progress(options, "owners", feeds);
+    stream(
+        feeds,
+        layout,
+        &bar,
+        |block, _| {
+            let mut owners: Vec<Owner> = Vec::new();
+            let mut hits: BTreeSet<u32> = BTreeSet::new();
+            for record in block.chunks_exact(layout.record_len()) {
+                let p = layout.position(record);
+                let g = root.grid(p);
+                owners.push(owner_of(g));
+                for &t in lookup.candidates(g) {
+                    if grown.get(t as usize).is_some_and(|b| b.contains(p)) {
+                        hits.insert(t);
+                    }
+                }
+            }
+            (owners, hits)
+        },
+        |_, (owners, hits)| {
+            for owner in owners {
+                *counts.entry(owner).or_insert(0) += 1;
+            }
+            touched.extend(hits.into_iter().map(|t| t as usize));
+            Ok(())
+        },
+    )?;
+    bar.finish_and_clear();
+    Ok((counts, touched))
+}

@@ -1,0 +1,145 @@
+//! `subspaces.json`: the list of subspaces a division wrote (what reconstructors and `merge`
+//! read) and what a later `divide` into the same folder needs to go on (the root, the overlap,
+//! the point limit and the record layout). It is written last, atomically: a folder's
+//! subspaces are the ones its manifest lists; other files in it are leftovers.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::grid::{Bounds, Node, Root};
+use crate::format::ply_header::PlyScalar;
+use crate::inputs::PointLayout;
+
+/// The manifest's file name in a division's folder.
+pub const MANIFEST: &str = "subspaces.json";
+
+/// Version of the `division` block; a folder written by a later version is refused.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// A cube as the manifest states it: half-open, `min <= p < min + size`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Cube {
+    /// Lowest corner.
+    pub min: [f64; 3],
+    /// Side.
+    pub size: f64,
+}
+
+impl Cube {
+    /// The cube of a box with equal sides.
+    pub fn of(bounds: &Bounds) -> Cube {
+        Cube {
+            min: bounds.min,
+            size: bounds.max[0] - bounds.min[0],
+        }
+    }
+
+    /// Whether `p` lies inside, as a user of the manifest tests it.
+    pub fn contains(&self, p: [f64; 3]) -> bool {
+        (0..3).all(|a| self.min[a] <= p[a] && p[a] < self.min[a] + self.size)
+    }
+}
+
+/// One subspace.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Subspace {
+    /// Its PLY, relative to the folder.
+    pub file: String,
+    /// The cube it owns: every point lies in exactly one subspace's core.
+    pub core: Cube,
+    /// The core grown by the overlap on every face: its file holds every point in it.
+    pub grown: Cube,
+    /// Points in its file (the grown cube's).
+    pub points: u64,
+    /// Points in its core.
+    pub core_points: u64,
+    /// Its octree node under the root.
+    pub node: Node,
+}
+
+/// What a later `divide` into the folder needs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Division {
+    /// [`FORMAT_VERSION`].
+    pub version: u32,
+    /// The root cube every node lies in.
+    pub root: Root,
+    /// Grown cubes reach this fraction of their side beyond the core.
+    pub overlap: f64,
+    /// No subspace's core holds more points (but at the grid's last level).
+    pub max_points: u64,
+    /// The points' properties, name and PLY type, in record order.
+    pub properties: Vec<(String, String)>,
+    /// Counts the divides into the folder; new files carry it in their names.
+    pub generation: u64,
+}
+
+/// The whole `subspaces.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// In depth-first Morton order of their nodes.
+    pub subspaces: Vec<Subspace>,
+    /// How the folder was divided.
+    pub division: Division,
+}
+
+impl Division {
+    /// The record layout its properties describe.
+    pub fn layout(&self) -> Result<PointLayout, String> {
+        let properties = self
+            .properties
+            .iter()
+            .map(|(name, scalar)| {
+                PlyScalar::parse(scalar)
+                    .map(|s| (name.clone(), s))
+                    .ok_or_else(|| format!("unknown property type '{scalar}'"))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        PointLayout::new(properties)
+    }
+
+    /// The properties of `layout` as the manifest records them.
+    pub fn properties_of(layout: &PointLayout) -> Vec<(String, String)> {
+        layout
+            .properties()
+            .iter()
+            .map(|(name, scalar)| (name.clone(), scalar.name().to_string()))
+            .collect()
+    }
+}
+
+/// Reads a folder's manifest; `None` when there is none.
+pub fn read_manifest(dir: &Path) -> Result<Option<Manifest>, String> {
+    let path = dir.join(MANIFEST);
+    let bytes = match std::fs::read(&path) {
+        Ok(bytes) => bytes,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(format!("{}: {e}", path.display())),
+    };
+    let manifest: Manifest = serde_json::from_slice(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+    if manifest.division.version > FORMAT_VERSION {
+        return Err(format!(
+            "{}: written by a later octstore (division version {})",
+            path.display(),
+            manifest.division.version
+        ));
+    }
+    Ok(Some(manifest))
+}
+
+/// Reads the manifest at `path` (for `merge`, which may name it anywhere).
+pub fn read_manifest_file(path: &Path) -> Result<Manifest, String> {
+    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    serde_json::from_slice(&bytes).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// Writes the manifest atomically.
+pub fn write_manifest(dir: &Path, manifest: &Manifest) -> std::io::Result<()> {
+    let json = serde_json::to_vec_pretty(manifest).map_err(std::io::Error::other)?;
+    crate::mesh::write_atomically(&dir.join(MANIFEST), |out| {
+        use std::io::Write;
+        out.write_all(&json)?;
+        out.write_all(b"\n")
+    })
+}

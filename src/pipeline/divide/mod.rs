@@ -1,0 +1,671 @@
+//! `divide`: the octree space division of huge point clouds into overlapping subspaces of at
+//! most N points (Kuhn and Mayer 2015, Algorithm 2), so that any reconstructor can process
+//! the parts in parallel and `merge` fuses the results by cutting the overlaps.
+//!
+//! Three streaming passes over the points, as in the paper: their bounds (the root cube),
+//! their counts per node down to a depth the memory budget allows (counters only, never the
+//! points), and the writes: each point goes to the file of every subspace whose grown cube
+//! holds it. A node at the counted depth that still holds more than N points is written to a
+//! scratch file in the same pass and divided again from it (the paper's recursion), which reads
+//! only its own points. Memory is the counters, the lookup and the write buffers, bounded by
+//! `--memory-budget` whatever the input's size.
+//!
+//! Deterministic: the sources are taken in the order of their content's hash (not the order
+//! they were named in), blocks are cut at fixed record counts, and the results of the blocks
+//! processed in parallel are consumed in block order, so the files are byte-identical for any
+//! thread count and input order. A later `divide` into the same folder updates only the
+//! subspaces the new points touch (`incremental.rs`).
+
+mod grid;
+mod incremental;
+mod manifest;
+pub mod merge;
+mod subspace_files;
+mod synthetic;
+
+use std::path::{Path, PathBuf};
+
+use indicatif::ProgressBar;
+use rayon::prelude::*;
+
+pub use grid::{Bounds, GRID_BITS, Node, Root};
+pub use manifest::{Cube, Division, MANIFEST, Manifest, Subspace, read_manifest_file};
+pub use synthetic::SyntheticCloud;
+
+use super::error::{PipelineError, Result};
+use crate::inputs::{InputError, PointCloudFile, PointLayout, open_point_cloud};
+use grid::{Counts, Lookup, choose_leaves, counts_bytes};
+use subspace_files::Appenders;
+
+/// What `divide` is asked for.
+#[derive(Clone, Debug)]
+pub struct DivideOptions {
+    /// No subspace's core holds more points.
+    pub max_points: u64,
+    /// Grown cubes reach this fraction of their side beyond each face of the core.
+    pub overlap: f64,
+    /// The deepest level counted in one pass (fewer when the budget allows less).
+    pub max_depth: Option<u32>,
+    /// Bytes of memory the division may use.
+    pub memory_budget: u64,
+    /// Progress bars on stderr.
+    pub progress: bool,
+}
+
+impl Default for DivideOptions {
+    fn default() -> Self {
+        DivideOptions {
+            max_points: 10_000_000,
+            overlap: 0.1,
+            max_depth: None,
+            memory_budget: 1 << 30,
+            progress: false,
+        }
+    }
+}
+
+/// What a division did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct DivideReport {
+    /// Points read from the inputs.
+    pub input_points: u64,
+    /// Subspaces in the folder afterwards.
+    pub subspaces: usize,
+    /// Subspace files written by this run (new or rewritten).
+    pub files_written: usize,
+    /// Points written into them, overlaps included.
+    pub points_written: u64,
+    /// The most points in one core.
+    pub largest_core: u64,
+    /// Levels counted in one pass.
+    pub counting_depth: u32,
+    /// Nodes that still held too many points at the counted depth and were divided again from
+    /// their own points.
+    pub divided_again: usize,
+    /// Cores over the limit: points that no division of the grid separates (duplicates).
+    pub over_limit: Vec<String>,
+}
+
+/// A stream of point records of one layout, read block by block in a fixed order.
+pub trait PointSource: Sync {
+    /// Names it in messages: the file.
+    fn describe(&self) -> String;
+    /// Its records' layout.
+    fn layout(&self) -> &PointLayout;
+    /// Its points, when known in advance (for progress bars).
+    fn announced_points(&self) -> Option<u64>;
+    /// Calls `each` with consecutive blocks of at most `block_points` records.
+    fn for_each_block(&self, block_points: usize, each: &mut dyn FnMut(&[u8]) -> Result<()>) -> Result<u64>;
+}
+
+impl PointSource for PointCloudFile {
+    fn describe(&self) -> String {
+        self.path().display().to_string()
+    }
+
+    fn layout(&self) -> &PointLayout {
+        PointCloudFile::layout(self)
+    }
+
+    fn announced_points(&self) -> Option<u64> {
+        PointCloudFile::announced_points(self)
+    }
+
+    fn for_each_block(&self, block_points: usize, each: &mut dyn FnMut(&[u8]) -> Result<()>) -> Result<u64> {
+        PointCloudFile::for_each_block::<PipelineError>(self, block_points, |block| each(block))
+    }
+}
+
+/// A source, and the box its points are taken from (all of them when `None`).
+#[derive(Clone, Copy)]
+struct Feed<'a> {
+    source: &'a dyn PointSource,
+    keep: Option<Bounds>,
+}
+
+/// Records per block: the unit of parallel work and of the determinism argument (blocks are
+/// cut at fixed record counts, whatever the thread count).
+const BLOCK_BYTES: usize = 1 << 20;
+
+/// The scratch folder inside a division's folder; removed at the start and end of a run.
+const STAGING: &str = ".divide-staging";
+
+pub(crate) fn divide_error(problem: impl Into<String>) -> PipelineError {
+    PipelineError::Divide(problem.into())
+}
+
+fn io<'a>(action: &'static str, path: &'a Path) -> impl Fn(std::io::Error) -> PipelineError + 'a {
+    move |source| PipelineError::Io {
+        action,
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Divides the point clouds `inputs` (PLY, XYZ, TXT) into the folder `dir`; a folder that
+/// already holds a division gets the new points added to it.
+pub fn divide(inputs: &[PathBuf], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
+    let files = inputs
+        .iter()
+        .map(|path| open_point_cloud(path))
+        .collect::<std::result::Result<Vec<_>, InputError>>()
+        .map_err(PipelineError::PointCloud)?;
+    let sources: Vec<&dyn PointSource> = files.iter().map(|f| f as &dyn PointSource).collect();
+    divide_sources(&sources, dir, options)
+}
+
+/// [`divide`] of any point sources (files, or generated clouds for benchmarks).
+pub fn divide_sources(sources: &[&dyn PointSource], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
+    if options.max_points == 0 {
+        return Err(divide_error("--max-points must be at least 1"));
+    }
+    if !(0.0..1.0).contains(&options.overlap) {
+        return Err(divide_error(format!("--overlap {} is not in [0, 1)", options.overlap)));
+    }
+    let Some(first) = sources.first() else {
+        return Err(divide_error("no input point clouds"));
+    };
+    for source in sources {
+        if source.layout() != first.layout() {
+            return Err(divide_error(format!(
+                "{}: its vertex properties ({}) differ from those of {} ({}); divide them separately",
+                source.describe(),
+                property_list(source.layout()),
+                first.describe(),
+                property_list(first.layout())
+            )));
+        }
+    }
+    std::fs::create_dir_all(dir).map_err(io("create", dir))?;
+    let staging = dir.join(STAGING);
+    remove_staging(&staging)?;
+    std::fs::create_dir_all(&staging).map_err(io("create", &staging))?;
+    let existing = manifest::read_manifest(dir).map_err(divide_error)?;
+    remove_leftovers(dir, existing.as_ref())?;
+    let result = match existing {
+        Some(manifest) => incremental::divide_more(sources, dir, manifest, options),
+        None => divide_fresh(sources, dir, options),
+    };
+    // On success and on failure: the folder keeps only what its manifest lists.
+    remove_staging(&staging)?;
+    result
+}
+
+/// Whether `name` is a subspace file's: `L{level}_{x}_{y}_{z}.ply`, optionally with
+/// `.g{generation}` before `.ply`.
+fn is_subspace_file(name: &str) -> bool {
+    let Some(stem) = name.strip_prefix('L').and_then(|n| n.strip_suffix(".ply")) else {
+        return false;
+    };
+    let node = stem.split_once(".g").map_or(stem, |(node, generation)| {
+        if !generation.is_empty() && generation.bytes().all(|b| b.is_ascii_digit()) {
+            node
+        } else {
+            ""
+        }
+    });
+    let parts: Vec<&str> = node.split('_').collect();
+    parts.len() == 4
+        && parts
+            .iter()
+            .all(|p| !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit()))
+}
+
+/// Removes the subspace files of killed runs: those the manifest does not name.
+fn remove_leftovers(dir: &Path, manifest: Option<&Manifest>) -> Result<()> {
+    let named: std::collections::HashSet<&str> = manifest
+        .map(|m| m.subspaces.iter().map(|s| s.file.as_str()).collect())
+        .unwrap_or_default();
+    for entry in std::fs::read_dir(dir).map_err(io("read", dir))? {
+        let entry = entry.map_err(io("read", dir))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if is_subspace_file(&name) && !named.contains(name.as_str()) {
+            let path = entry.path();
+            std::fs::remove_file(&path).map_err(io("remove", &path))?;
+        }
+    }
+    Ok(())
+}
+
+fn remove_staging(staging: &Path) -> Result<()> {
+    match std::fs::remove_dir_all(staging) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(io("remove", staging)(e)),
+        _ => Ok(()),
+    }
+}
+
+fn property_list(layout: &PointLayout) -> String {
+    layout
+        .properties()
+        .iter()
+        .map(|(name, scalar)| format!("{} {name}", scalar.name()))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+fn divide_fresh(sources: &[&dyn PointSource], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
+    let layout = sources
+        .first()
+        .map(|s| s.layout().clone())
+        .ok_or_else(|| divide_error("no inputs"))?;
+    let feeds: Vec<Feed<'_>> = sources.iter().map(|&source| Feed { source, keep: None }).collect();
+    let scan = scan(&feeds, &layout, options)?;
+    let root = Root::around(scan.low, scan.high).ok_or_else(|| divide_error("the inputs hold no points"))?;
+    let feeds: Vec<Feed<'_>> = scan.order.iter().filter_map(|&i| feeds.get(i).copied()).collect();
+    let mut division = Division {
+        version: manifest::FORMAT_VERSION,
+        root,
+        overlap: options.overlap,
+        max_points: options.max_points,
+        properties: Division::properties_of(&layout),
+        generation: 0,
+    };
+    let mut report = DivideReport {
+        input_points: scan.points,
+        ..DivideReport::default()
+    };
+    let mut subspaces = Vec::new();
+    let mut context = Context {
+        dir,
+        layout,
+        division: &division,
+        options,
+        report: &mut report,
+    };
+    context.divide_node(Node::ROOT, scan.points, &feeds, &mut subspaces)?;
+    division.generation = 1;
+    commit(dir, subspaces, division, &mut report)?;
+    Ok(report)
+}
+
+/// Moves the new files from the staging folder into `dir` and writes the manifest, which makes
+/// them the division.
+fn commit(dir: &Path, subspaces: Vec<Subspace>, division: Division, report: &mut DivideReport) -> Result<()> {
+    let staging = dir.join(STAGING);
+    for subspace in &subspaces {
+        let staged = staging.join(&subspace.file);
+        if staged.exists() {
+            std::fs::rename(&staged, dir.join(&subspace.file)).map_err(io("move", &staged))?;
+        }
+    }
+    report.subspaces = subspaces.len();
+    report.largest_core = subspaces.iter().map(|s| s.core_points).max().unwrap_or(0);
+    let manifest = Manifest { subspaces, division };
+    manifest::write_manifest(dir, &manifest).map_err(io("write", &dir.join(MANIFEST)))?;
+    std::fs::File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(io("sync", dir))
+}
+
+/// What the first pass learns: the points' bounds, their number, and the order of the sources
+/// by content.
+struct Scan {
+    low: [f64; 3],
+    high: [f64; 3],
+    points: u64,
+    order: Vec<usize>,
+}
+
+fn scan(feeds: &[Feed<'_>], layout: &PointLayout, options: &DivideOptions) -> Result<Scan> {
+    let bar = progress(options, "bounds", feeds);
+    let mut low = [f64::INFINITY; 3];
+    let mut high = [f64::NEG_INFINITY; 3];
+    let mut digests: Vec<xxhash_rust::xxh3::Xxh3> = feeds.iter().map(|_| xxhash_rust::xxh3::Xxh3::new()).collect();
+    let points = stream(
+        feeds,
+        layout,
+        &bar,
+        |block, _| {
+            let mut lo = [f64::INFINITY; 3];
+            let mut hi = [f64::NEG_INFINITY; 3];
+            for record in block.chunks_exact(layout.record_len()) {
+                let p = layout.position(record);
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p[a]);
+                    hi[a] = hi[a].max(p[a]);
+                }
+            }
+            (lo, hi, xxhash_rust::xxh3::xxh3_64(block))
+        },
+        |feed, (lo, hi, digest)| {
+            for a in 0..3 {
+                low[a] = low[a].min(lo[a]);
+                high[a] = high[a].max(hi[a]);
+            }
+            if let Some(d) = digests.get_mut(feed) {
+                d.update(&digest.to_le_bytes());
+            }
+            Ok(())
+        },
+    )?;
+    bar.finish_and_clear();
+    // Sources of equal digests hold the same records: their order does not matter.
+    let digests: Vec<u128> = digests.iter().map(|d| d.digest128()).collect();
+    let mut order: Vec<usize> = (0..feeds.len()).collect();
+    order.sort_by_key(|&i| digests.get(i).copied());
+    Ok(Scan {
+        low,
+        high,
+        points,
+        order,
+    })
+}
+
+fn progress(options: &DivideOptions, pass: &str, feeds: &[Feed<'_>]) -> ProgressBar {
+    let bar = if options.progress {
+        let total: Option<u64> = feeds.iter().map(|f| f.source.announced_points()).sum();
+        let bar = total.map_or_else(ProgressBar::no_length, ProgressBar::new);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{prefix:>12} [{bar:40}] {human_pos}/{human_len} points, {elapsed} (eta {eta})",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+        );
+        bar
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_prefix(pass.to_string());
+    bar
+}
+
+/// Runs `work` on every block of every feed, in parallel over a batch of blocks, and
+/// `consume` on the results in feed and block order while the next batch is worked on;
+/// returns the number of records read.
+fn stream<T: Send>(
+    feeds: &[Feed<'_>],
+    layout: &PointLayout,
+    bar: &ProgressBar,
+    work: impl Fn(&[u8], Option<&Bounds>) -> T + Sync,
+    mut consume: impl FnMut(usize, T) -> Result<()> + Send,
+) -> Result<u64> {
+    let record_len = layout.record_len().max(1);
+    let block_points = (BLOCK_BYTES / record_len).max(1);
+    let batch = rayon::current_num_threads() * 2;
+    let started = std::time::Instant::now();
+    let mut points = 0;
+    // The results of the last batch, not consumed yet, and their feed.
+    let mut waiting: Option<(usize, Vec<T>)> = None;
+    let mut consume_all = |batch: Option<(usize, Vec<T>)>| -> Result<()> {
+        match batch {
+            Some((index, results)) => results.into_iter().try_for_each(|result| consume(index, result)),
+            None => Ok(()),
+        }
+    };
+    for (index, feed) in feeds.iter().enumerate() {
+        let mut pending: Vec<Vec<u8>> = Vec::with_capacity(batch);
+        let mut spare: Vec<Vec<u8>> = Vec::new();
+        let mut run = |pending: &mut Vec<Vec<u8>>, spare: &mut Vec<Vec<u8>>| -> Result<()> {
+            let before = waiting.take();
+            let (results, consumed) = rayon::join(
+                || {
+                    pending
+                        .par_iter()
+                        .map(|block| work(block, feed.keep.as_ref()))
+                        .collect::<Vec<T>>()
+                },
+                || consume_all(before),
+            );
+            consumed?;
+            waiting = Some((index, results));
+            spare.append(pending);
+            Ok(())
+        };
+        points += feed.source.for_each_block(block_points, &mut |block| {
+            let mut owned = spare.pop().unwrap_or_default();
+            owned.clear();
+            owned.extend_from_slice(block);
+            pending.push(owned);
+            bar.inc((block.len() / record_len) as u64);
+            if pending.len() >= batch {
+                run(&mut pending, &mut spare)?;
+            }
+            Ok(())
+        })?;
+        run(&mut pending, &mut spare)?;
+    }
+    consume_all(waiting.take())?;
+    tracing::debug!(
+        "{}: {points} points in {:.2} s",
+        bar.prefix(),
+        started.elapsed().as_secs_f64()
+    );
+    Ok(points)
+}
+
+/// The records of `block` that `memberships` (target, record index; in record order) send
+/// to each target, grouped by target (a counting sort: records keep their order within a
+/// target): one buffer, and each target's range in it.
+fn group_by_target(block: &[u8], len: usize, memberships: &[(u32, u32)], targets: usize) -> Grouped {
+    let mut starts = vec![0usize; targets + 1];
+    for &(target, _) in memberships {
+        if let Some(s) = starts.get_mut(target as usize + 1) {
+            *s += len;
+        }
+    }
+    for i in 1..starts.len() {
+        let before = starts.get(i - 1).copied().unwrap_or(0);
+        if let Some(s) = starts.get_mut(i) {
+            *s += before;
+        }
+    }
+    let mut bytes = vec![0u8; memberships.len() * len];
+    let mut at = starts.clone();
+    for &(target, i) in memberships {
+        let (Some(to), Some(record)) = (
+            at.get_mut(target as usize),
+            block.get(i as usize * len..(i as usize + 1) * len),
+        ) else {
+            continue;
+        };
+        if let Some(slot) = bytes.get_mut(*to..*to + len) {
+            slot.copy_from_slice(record);
+        }
+        *to += len;
+    }
+    let ranges = starts
+        .windows(2)
+        .enumerate()
+        .filter_map(|(target, w)| match *w {
+            [from, to] if to > from => Some((target as u32, from..to)),
+            _ => None,
+        })
+        .collect();
+    Grouped { bytes, ranges }
+}
+
+/// [`group_by_target`]'s result.
+struct Grouped {
+    bytes: Vec<u8>,
+    ranges: Vec<(u32, std::ops::Range<usize>)>,
+}
+
+/// What dividing one node needs.
+struct Context<'a> {
+    dir: &'a Path,
+    layout: PointLayout,
+    division: &'a Division,
+    options: &'a DivideOptions,
+    report: &'a mut DivideReport,
+}
+
+/// The deepest count grid, at most `wanted` levels, whose counters and lookup fit in half the
+/// budget.
+fn counting_depth(budget: u64, wanted: u32) -> u32 {
+    (1..=wanted.min(10))
+        .rev()
+        .find(|&d| counts_bytes(d) * 3 / 2 <= budget / 2)
+        .unwrap_or(1)
+}
+
+/// The lookup's levels: its offsets take 4 bytes a cell.
+const MAX_LOOKUP_DEPTH: u32 = 7;
+
+impl Context<'_> {
+    /// Levels to count under a node of `points` points: enough for subspaces of about an
+    /// eighth of the limit where the points spread evenly, and three more for uneven density
+    /// (deeper grids cost cache misses on every point, and the recursion reaches any depth).
+    fn wanted_depth(&self, points: u64) -> u32 {
+        let parts = points.div_ceil(self.division.max_points.max(1)).max(1);
+        let even = (64 - (parts - 1).leading_zeros()).div_ceil(3);
+        self.options.max_depth.unwrap_or(even + 3).clamp(1, 10)
+    }
+
+    fn file_name(&self, node: Node) -> String {
+        match self.division.generation {
+            0 => format!("{}.ply", node.name()),
+            g => format!("{}.g{g}.ply", node.name()),
+        }
+    }
+
+    /// Divides the points of `feeds` inside `top`'s core into subspaces under `top`, writing
+    /// their files (each with the points of its grown cube among `feeds`) into the staging
+    /// folder; appends them to `out`.
+    fn divide_node(&mut self, top: Node, top_points: u64, feeds: &[Feed<'_>], out: &mut Vec<Subspace>) -> Result<()> {
+        let root = self.division.root;
+        let depth =
+            counting_depth(self.options.memory_budget, self.wanted_depth(top_points)).min(GRID_BITS - top.level);
+        self.report.counting_depth = self.report.counting_depth.max(depth);
+        let layout = &self.layout;
+        let spare = self.options.memory_budget / 8;
+        let mut counts = Counts::new(top, depth, spare);
+        let bar = progress(self.options, "counts", feeds);
+        stream(
+            feeds,
+            layout,
+            &bar,
+            |block, keep| {
+                let mut runs: Vec<(usize, u64)> = Vec::new();
+                for record in block.chunks_exact(layout.record_len()) {
+                    let p = layout.position(record);
+                    if keep.is_some_and(|k| !k.contains(p)) {
+                        continue;
+                    }
+                    let Some(cell) = counts.cell(root.grid(p)) else {
+                        continue;
+                    };
+                    match runs.last_mut() {
+                        Some((c, n)) if *c == cell => *n += 1,
+                        _ => runs.push((cell, 1)),
+                    }
+                }
+                counts.add_runs(&runs);
+            },
+            |_, ()| Ok(()),
+        )?;
+        bar.finish_and_clear();
+        counts.finish();
+        let (leaves, again) = choose_leaves(&counts, self.division.max_points);
+        drop(counts);
+        let staging = self.dir.join(STAGING);
+        let mut files = Vec::new();
+        let mut grown = Vec::new();
+        for (node, count) in leaves.iter().chain(&again) {
+            let is_leaf = files.len() < leaves.len();
+            let name = if is_leaf {
+                self.file_name(*node)
+            } else {
+                format!("again-{}.ply", node.name())
+            };
+            let core = root.core(*node);
+            files.push((
+                staging.join(name),
+                format!(
+                    "core min {:?} size {:?}, overlap {}, {count} core points",
+                    core.min,
+                    core.max[0] - core.min[0],
+                    self.division.overlap
+                ),
+            ));
+            grown.push(root.grown(*node, self.division.overlap));
+        }
+        let written = self.write_targets(top, depth, feeds, files.clone(), &grown)?;
+        for (((node, count), (path, _)), points) in leaves.iter().zip(&files).zip(&written) {
+            if *count > self.division.max_points {
+                self.report.over_limit.push(node.name());
+            }
+            self.report.files_written += 1;
+            self.report.points_written += points;
+            out.push(Subspace {
+                file: path
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default(),
+                core: Cube::of(&root.core(*node)),
+                grown: Cube::of(&root.grown(*node, self.division.overlap)),
+                points: *points,
+                core_points: *count,
+                node: *node,
+            });
+        }
+        for ((node, count), (path, _)) in again.iter().zip(files.iter().skip(leaves.len())) {
+            self.report.divided_again += 1;
+            let scratch = open_point_cloud(path).map_err(PipelineError::PointCloud)?;
+            self.divide_node(
+                *node,
+                *count,
+                &[Feed {
+                    source: &scratch,
+                    keep: None,
+                }],
+                out,
+            )?;
+            std::fs::remove_file(path).map_err(io("remove", path))?;
+        }
+        Ok(())
+    }
+
+    /// The write pass: every point of `feeds` goes to each target whose grown cube holds it.
+    /// Returns the points each target received.
+    fn write_targets(
+        &self,
+        top: Node,
+        depth: u32,
+        feeds: &[Feed<'_>],
+        files: Vec<(PathBuf, String)>,
+        grown: &[Bounds],
+    ) -> Result<Vec<u64>> {
+        let root = self.division.root;
+        let layout = &self.layout;
+        let len = layout.record_len();
+        let lookup = Lookup::new(&root, top, depth.min(MAX_LOOKUP_DEPTH), grown);
+        // Buffers take at most twice their limit: a quarter of the budget.
+        let buffer_limit = usize::try_from(self.options.memory_budget / 8).unwrap_or(usize::MAX);
+        let mut appenders = Appenders::new(layout.clone(), files, buffer_limit);
+        let bar = progress(self.options, "writes", feeds);
+        stream(
+            feeds,
+            layout,
+            &bar,
+            |block, keep| {
+                let mut memberships: Vec<(u32, u32)> = Vec::with_capacity(block.len() / len + 16);
+                for (i, record) in block.chunks_exact(len).enumerate() {
+                    let p = layout.position(record);
+                    if keep.is_some_and(|k| !k.contains(p)) {
+                        continue;
+                    }
+                    for &target in lookup.candidates(root.grid(p)) {
+                        if grown.get(target as usize).is_some_and(|b| b.contains(p)) {
+                            memberships.push((target, i as u32));
+                        }
+                    }
+                }
+                group_by_target(block, len, &memberships, grown.len())
+            },
+            |_, grouped: Grouped| {
+                for (target, range) in grouped.ranges {
+                    appenders
+                        .append(target as usize, grouped.bytes.get(range).unwrap_or_default())
+                        .map_err(io("write", &self.dir.join(STAGING)))?;
+                }
+                Ok(())
+            },
+        )?;
+        bar.finish_and_clear();
+        appenders.finish().map_err(io("write", &self.dir.join(STAGING)))
+    }
+}
+
+#[cfg(test)]
+mod tests;
