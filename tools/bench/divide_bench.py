@@ -216,13 +216,18 @@ def markdown(rows):
                   "fed the pixels whose ray from the camera meets the part's grown cube (its points, and the free "
                   "space in front of what lies behind it; `--root` of the whole store, `--max-depth 9`, 100 "
                   "iterations), the part meshes merged. "
-                  "F of the merged mesh against the whole one at 1 / 0.5 / 0.2 % of the diagonal, and both "
-                  "against the true bunny at 0.5 %:", "",
-                  "| points | subspaces | F vs whole 1 % | 0.5 % | 0.2 % | F truth merged | F truth whole | "
-                  "boundary edges after merge | whole s | parts s |", "|---|---|---|---|---|---|---|---|---|---|"]
+                  "F of the merged mesh against the whole one at 1 / 0.5 / 0.2 % of the diagonal (of the room; "
+                  "near the bunny: both cut to its box, tau a fraction of its diagonal), and both against the "
+                  "true bunny at 0.5 %:", "",
+                  "| points | subspaces | F vs whole 1 % | 0.5 % | 0.2 % | near bunny 0.5 % | 0.2 % | F truth merged | "
+                  "F truth whole | boundary edges after merge | whole s | parts s |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in merges:
+            near = [r.get(f"f_vs_whole_near_{t}") for t in ("0.005", "0.002")]
+            near = " | ".join("-" if v is None else f"{v:.4f}" for v in near)
             lines.append(f"| {r['points']:,} | {r['subspaces']} | {r['f_vs_whole_0.01']:.4f} | "
-                         f"{r['f_vs_whole_0.005']:.4f} | {r['f_vs_whole_0.002']:.4f} | {r['f_truth_0.005_merged']:.4f} | "
+                         f"{r['f_vs_whole_0.005']:.4f} | {r['f_vs_whole_0.002']:.4f} | {near} | "
+                         f"{r['f_truth_0.005_merged']:.4f} | "
                          f"{r['f_truth_0.005_whole']:.4f} | {r['merge_boundary_edges']} | {r['wall_whole_s']:.0f} | "
                          f"{r['wall_parts_s']:.0f} |")
     return lines + [""]
