@@ -349,7 +349,9 @@ pub struct ExtractArgs {
 #[derive(Args, Debug)]
 pub struct DivideArgs {
     /// Point clouds: PLY (ASCII or binary, any scalar vertex properties), XYZ or TXT (x y z,
-    /// optionally nx ny nz, then red green blue). All must have the same properties.
+    /// optionally nx ny nz, then red green blue); PTX or E57 scans (their returns in world
+    /// coordinates); an octstore store's folder (its depth maps' samples, with normals and
+    /// radii). All must have the same properties.
     #[arg(required_unless_present = "synthetic")]
     pub inputs: Vec<PathBuf>,
     /// The folder of subspace PLYs and subspaces.json; one that holds a division already gets

@@ -35,6 +35,14 @@ pub enum InputError {
     },
 }
 
+/// A file's extension in lower case (empty when it has none): what the readers dispatch on.
+pub fn extension_of(path: &Path) -> String {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default()
+}
+
 /// An [`InputError::Bad`] for `file`.
 pub fn bad(file: &Path, problem: impl Into<String>) -> InputError {
     InputError::Bad {

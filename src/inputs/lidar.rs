@@ -21,7 +21,9 @@ use std::path::Path;
 
 use glam::{DMat4, DQuat, DVec3};
 
-use super::depth_map::{DepthImage, DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose};
+use super::depth_map::{
+    DepthImage, DepthMapSource, ImageFormat, InputError, Kind, Projection, bad, check_pose, extension_of,
+};
 
 /// Valid returns measured per scan to estimate its angular step.
 pub const STEP_SAMPLE_POINTS: usize = 200_000;
@@ -402,6 +404,47 @@ fn read_e57_scan(source: &DepthMapSource, scan: u32) -> Result<DepthImage, Input
         true
     })?;
     Ok(grid.image)
+}
+
+/// Calls `each` with every valid return of every scan of a PTX or E57 file, in world (file)
+/// coordinates, scan by scan in file order, until it returns false; returns the returns read.
+/// (`divide` reads LIDAR files as point clouds through it.)
+pub fn scan_points_in_world(path: &Path, mut each: impl FnMut(DVec3) -> bool) -> Result<u64, InputError> {
+    let extension = extension_of(path);
+    let mut points = 0u64;
+    // After `each` says stop, the rest is read through without calling it.
+    let mut wanted = true;
+    let mut posed = |to_world: &DMat4, p: DVec3| {
+        points += 1;
+        wanted = wanted && each(to_world.transform_point3(p));
+        wanted
+    };
+    match extension.as_str() {
+        "ptx" => {
+            let mut reader = PtxReader::open(path)?;
+            let mut scans = 0;
+            while let Some(header) = reader.header()? {
+                scans += 1;
+                reader.points(header.points, |p| posed(&header.camera_to_world, p))?;
+            }
+            if scans == 0 {
+                return Err(bad(path, "PTX file has no scans"));
+            }
+        }
+        "e57" => {
+            let mut reader = e57::E57Reader::from_file(path).map_err(e57_error(path))?;
+            let clouds = reader.pointclouds();
+            if clouds.is_empty() {
+                return Err(bad(path, "E57 file has no point clouds"));
+            }
+            for cloud in &clouds {
+                let to_world = e57_pose(path, cloud)?;
+                e57_points(path, &mut reader, cloud, |p| posed(&to_world, p))?;
+            }
+        }
+        _ => return Err(bad(path, "not a LIDAR scan file (.ptx or .e57)")),
+    }
+    Ok(points)
 }
 
 /// Reads a registered LIDAR scan back as its spherical depth image.

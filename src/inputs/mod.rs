@@ -22,11 +22,11 @@ mod tum;
 pub use colmap::{WorkspaceWriter, write_colmap_depth};
 pub use depth_map::{
     DEFAULT_NOISE_FOOTPRINTS, DEFAULT_NOISE_SIGMAS, DepthImage, DepthMapSource, DepthNoise, ImageFormat, InputError,
-    Kind, Projection, bad, check_pose,
+    Kind, Projection, bad, check_pose, extension_of,
 };
 pub use depth_rows::DepthRows;
 pub use discover::{DiscoverOptions, InputFormat, discover};
 pub use image_files::{FloatLayout, npy_layout, pfm_layout, read_npy, read_pfm, read_png16, write_pfm};
-pub use lidar::write_ptx_scan;
+pub use lidar::{scan_points_in_world, write_ptx_scan};
 pub use point_clouds::{PointCloudFile, PointLayout, open_point_cloud};
 pub use tum::{MAX_TIME_DIFFERENCE, TUM_DEPTH_SCALE};

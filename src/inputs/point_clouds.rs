@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use crate::format::ply_header::{PlyEncoding, PlyProperty, PlyScalar, parse_ply_header};
 
-use super::depth_map::{InputError, bad};
+use super::depth_map::{InputError, bad, extension_of};
 
 /// The vertex properties of a point record, in order; records are binary little-endian.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -128,11 +128,7 @@ pub fn open_point_cloud(path: &Path) -> Result<PointCloudFile, InputError> {
         file: path.to_path_buf(),
         source: e,
     };
-    let extension = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase)
-        .unwrap_or_default();
+    let extension = extension_of(path);
     match extension.as_str() {
         "ply" => open_ply(path),
         "xyz" | "txt" => {

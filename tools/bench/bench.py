@@ -1078,6 +1078,8 @@ def main():
                         help="points of the generated cloud of the divide section")
     parser.add_argument("--divide-budgets", nargs="+", default=["256MiB", "1GiB"],
                         help="--memory-budget values of the divide section")
+    parser.add_argument("--divide-cases", nargs="+", default=["synthetic", "bunny"], choices=["synthetic", "bunny"],
+                        help="cases of the divide section to run; the others keep their rows")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks", help="plots and raw results")
     parser.add_argument("--markdown", type=Path, default=ROOT / "BENCHMARKS.md")
     args = parser.parse_args()
@@ -1101,17 +1103,25 @@ def main():
             elif section == "divide":
                 import divide_bench
 
-                rows = [divide_bench.synthetic(BIN, work, args.divide_points, budget, 10_000_000, run_measured)
-                        for budget in args.divide_budgets]
+                rows = []
+                if "synthetic" in args.divide_cases:
+                    rows += [divide_bench.synthetic(BIN, work, args.divide_points, budget, 10_000_000, run_measured)
+                             for budget in args.divide_budgets]
+                if "bunny" in args.divide_cases:
+                    rows.append(divide_bench.bunny_merge(BIN, work, GT_MESHES["bunny"], octstore, evaluate,
+                                                         read_manifest))
                 for row in rows:
                     print(json.dumps(row), flush=True)
-                rows.append(divide_bench.bunny_merge(BIN, work, GT_MESHES["bunny"], octstore, evaluate, read_manifest))
-                print(json.dumps(rows[-1]), flush=True)
             else:
                 raise SystemExit(f"unknown section {section}")
             for row in rows:
                 row["commit"] = commit()
             path = args.out / f"results-{section}.json"
+            if section == "divide" and path.exists():
+                # Cases this run did not make stay, with the commit that measured them.
+                made = {r["case"] for r in rows}
+                rows = [r for r in json.loads(path.read_text()) if r["case"] not in made] + rows
+                rows.sort(key=lambda r: r["case"] != "synthetic")
             if section == "scale" and path.exists():
                 # Sweeps at other budgets stay.
                 rows = [r for r in json.loads(path.read_text()) if r["budget"] != args.scale_budget] + rows

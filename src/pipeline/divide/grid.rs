@@ -54,6 +54,16 @@ impl Bounds {
         (0..3).all(|a| self.min[a] <= p[a] && p[a] < self.max[a])
     }
 
+    /// [`Bounds::contains`] with all six comparisons made: in the write pass most candidates
+    /// fail one of them at random, and a mispredicted branch costs more than the rest.
+    #[inline]
+    pub fn contains_branchless(&self, p: [f64; 3]) -> bool {
+        let [x, y, z] = p;
+        let [x0, y0, z0] = self.min;
+        let [x1, y1, z1] = self.max;
+        (x0 <= x) & (x < x1) & (y0 <= y) & (y < y1) & (z0 <= z) & (z < z1)
+    }
+
     /// Whether the two boxes share a point.
     pub fn meets(&self, other: &Bounds) -> bool {
         (0..3).all(|a| self.min[a] < other.max[a] && other.min[a] < self.max[a])
@@ -137,6 +147,23 @@ impl Root {
         ]
     }
 
+    /// Finds the nodes of `level` that hold points, quickly ([`NodeLocator`]).
+    pub fn locator(&self, level: u32) -> NodeLocator {
+        let level = level.min(GRID_BITS);
+        let nodes = (1u64 << level) as f64;
+        NodeLocator {
+            root: *self,
+            level,
+            nodes,
+            // Exact: powers of two.
+            per_node: nodes / self.size,
+            // The subtraction errs by at most half a grid unit, 2^(level - GRID_BITS - 1) of a
+            // node (see `grid_axis`): a fraction farther than four times that from both faces
+            // names the node exactly.
+            margin: nodes * (4.0 * 0.5 * UNIT_PER_SIDE),
+        }
+    }
+
     /// Whether `p` lies in the root cube.
     pub fn contains(&self, p: [f64; 3]) -> bool {
         self.bounds().contains(p)
@@ -167,6 +194,47 @@ impl Root {
             min,
             max: min.map(|m| m + grown_side),
         }
+    }
+}
+
+/// The index of the node of one level that holds a point (clamped to the root), as
+/// `Node::holding(root.grid(p), level).index` gives it, without the grid's exact correction for
+/// the points (nearly all) that lie clearly inside a node: the hot loop of every pass.
+#[derive(Clone, Copy, Debug)]
+pub struct NodeLocator {
+    root: Root,
+    level: u32,
+    nodes: f64,
+    per_node: f64,
+    margin: f64,
+}
+
+impl NodeLocator {
+    /// The level of the nodes it finds.
+    pub fn level(&self) -> u32 {
+        self.level
+    }
+
+    /// The index of the node that holds `p`.
+    #[inline]
+    pub fn index(&self, p: [f64; 3]) -> [u32; 3] {
+        let mut index = [0u32; 3];
+        let mut clear = true;
+        for ((i, &pa), &min) in index.iter_mut().zip(&p).zip(&self.root.min) {
+            let t = (pa - min) * self.per_node;
+            let whole = t as i64;
+            // Exact: `t` and `whole` are within one of each other (or `whole` is 0).
+            let fraction = t - whole as f64;
+            clear &= (t >= 0.0) & (t < self.nodes) & (fraction > self.margin) & (fraction < 1.0 - self.margin);
+            *i = whole as u32;
+        }
+        if clear { index } else { self.exact(p) }
+    }
+
+    #[cold]
+    #[inline(never)]
+    fn exact(&self, p: [f64; 3]) -> [u32; 3] {
+        Node::holding(self.root.grid(p), self.level).index
     }
 }
 
@@ -256,20 +324,33 @@ impl Counts {
         }
     }
 
-    /// Adds the `(cell, count)` runs of one block.
-    pub fn add_runs(&self, runs: &[(usize, u64)]) {
+    /// Adds one point to each cell of `cells` (cells of [`Counts::cell`]): to this thread's
+    /// private copy when there is one (locked once for the whole block), else atomically, one
+    /// add per run of equal cells.
+    pub fn add_cells(&self, cells: impl Iterator<Item = usize>) {
         let copy = rayon::current_thread_index().and_then(|t| self.per_thread.get(t));
         match copy.map(|m| m.lock()) {
             Some(Ok(mut counts)) => {
-                for &(cell, n) in runs {
+                for cell in cells {
                     if let Some(c) = counts.get_mut(cell) {
-                        *c += n;
+                        *c += 1;
                     }
                 }
             }
             _ => {
-                for &(cell, n) in runs {
-                    self.add(cell, n);
+                let mut run: Option<(usize, u64)> = None;
+                for cell in cells {
+                    match &mut run {
+                        Some((c, n)) if *c == cell => *n += 1,
+                        _ => {
+                            if let Some((c, n)) = run.replace((cell, 1)) {
+                                self.add(c, n);
+                            }
+                        }
+                    }
+                }
+                if let Some((c, n)) = run {
+                    self.add(c, n);
                 }
             }
         }
@@ -280,13 +361,18 @@ impl Counts {
         relative[0] as usize + n * (relative[1] as usize + n * relative[2] as usize)
     }
 
-    /// The finest counted cell of grid coordinates `g`, `None` outside `top`.
+    /// The level of the finest counted cells.
+    pub fn level(&self) -> u32 {
+        self.top.level + self.depth
+    }
+
+    /// The finest counted cell of the node of index `index` at [`Counts::level`], `None`
+    /// outside `top`.
     #[inline]
-    pub fn cell(&self, g: [u32; 3]) -> Option<usize> {
-        let node = Node::holding(g, self.top.level + self.depth);
+    pub fn cell_of_index(&self, index: [u32; 3]) -> Option<usize> {
         let base = self.top.index.map(|c| c << self.depth);
         let n = 1u32 << self.depth;
-        let relative = [0, 1, 2].map(|a| node.index[a].wrapping_sub(base[a]));
+        let relative = [0, 1, 2].map(|a| index[a].wrapping_sub(base[a]));
         relative
             .iter()
             .all(|r| *r < n)
@@ -380,6 +466,7 @@ pub fn choose_leaves(counts: &Counts, max_points: u64) -> (Vec<NodeCount>, Vec<N
 /// target whose grown cube reaches them (a target lies inside the node and its grown cube is a
 /// box, so it also holds the point's projection onto the node).
 pub struct Lookup {
+    locator: NodeLocator,
     top: Node,
     depth: u32,
     offsets: Vec<u32>,
@@ -436,6 +523,7 @@ impl Lookup {
             });
         }
         Lookup {
+            locator: root.locator(top.level + depth),
             top,
             depth,
             offsets,
@@ -446,12 +534,21 @@ impl Lookup {
     /// The candidate targets of a point with grid coordinates `g`.
     #[inline]
     pub fn candidates(&self, g: [u32; 3]) -> &[u32] {
-        let node = Node::holding(g, self.top.level + self.depth);
+        self.candidates_of_index(Node::holding(g, self.top.level + self.depth).index)
+    }
+
+    /// The candidate targets of the point `p`.
+    #[inline]
+    pub fn candidates_of_point(&self, p: [f64; 3]) -> &[u32] {
+        self.candidates_of_index(self.locator.index(p))
+    }
+
+    fn candidates_of_index(&self, index: [u32; 3]) -> &[u32] {
         let n = 1u32 << self.depth;
         let base = self.top.index.map(|c| c << self.depth);
         // Clamped to the node: below it wraps to a huge value, so compare signed.
         let relative =
-            [0, 1, 2].map(|a| (i64::from(node.index[a]) - i64::from(base[a])).clamp(0, i64::from(n) - 1) as usize);
+            [0, 1, 2].map(|a| (i64::from(index[a]) - i64::from(base[a])).clamp(0, i64::from(n) - 1) as usize);
         let n = n as usize;
         let cell = relative[0] + n * (relative[1] + n * relative[2]);
         let from = self.offsets.get(cell).copied().unwrap_or(0) as usize;
@@ -489,6 +586,39 @@ mod tests {
     }
 
     #[test]
+    fn node_locator_agrees_with_the_exact_grid() {
+        let root = Root::around([-3.7, 100.25, 1e-3], [12.1, 101.0, 5.0]).expect("a box");
+        let mut points = vec![[-3.7, 100.25, 1e-3], [12.1, 101.0, 5.0], [-50.0, 1e9, -1.0]];
+        // Node faces and their neighbouring doubles, where the fast path must step aside.
+        for level in [0, 3, 9, 20, 32] {
+            let side = root.side(level);
+            for k in [1.0, 5.0, 17.0] {
+                let face = root.min[0] + (k * side).min(root.size);
+                for x in [face, face.next_down(), face.next_up()] {
+                    points.push([x, 100.5, 2.5]);
+                }
+            }
+        }
+        let mut state = 1u64;
+        for _ in 0..10_000 {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            let unit = |shift: u32| ((state >> shift) & 0xFFFF) as f64 / 65_536.0;
+            points.push([-4.0 + 17.0 * unit(0), 100.0 + 1.5 * unit(16), -0.5 + 6.0 * unit(32)]);
+        }
+        for p in points {
+            for level in [0, 1, 4, 7, 10, 21, 32] {
+                assert_eq!(
+                    root.locator(level).index(p),
+                    Node::holding(root.grid(p), level).index,
+                    "{p:?} at level {level}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn counts_sum_up_and_leaves_respect_the_limit() {
         let root = Root::around([0.0; 3], [1.0; 3]).expect("a box");
         let mut counts = Counts::new(Node::ROOT, 3, 0);
@@ -499,7 +629,9 @@ mod tests {
             points.push([t * t, t * t * t, t * 0.5]);
         }
         for p in &points {
-            let cell = counts.cell(root.grid(*p)).expect("inside");
+            let cell = counts
+                .cell_of_index(root.locator(counts.level()).index(*p))
+                .expect("inside");
             counts.add(cell, 1);
         }
         counts.finish();

@@ -20,6 +20,7 @@ mod grid;
 mod incremental;
 mod manifest;
 pub mod merge;
+mod sources;
 mod subspace_files;
 mod synthetic;
 
@@ -30,10 +31,11 @@ use rayon::prelude::*;
 
 pub use grid::{Bounds, GRID_BITS, Node, Root};
 pub use manifest::{Cube, Division, MANIFEST, Manifest, Subspace, read_manifest_file};
+pub use sources::{ScanPoints, StoreSamples, open_input};
 pub use synthetic::SyntheticCloud;
 
 use super::error::{PipelineError, Result};
-use crate::inputs::{InputError, PointCloudFile, PointLayout, open_point_cloud};
+use crate::inputs::{PointCloudFile, PointLayout, open_point_cloud};
 use grid::{Counts, Lookup, choose_leaves, counts_bytes};
 use subspace_files::Appenders;
 
@@ -142,15 +144,15 @@ fn io<'a>(action: &'static str, path: &'a Path) -> impl Fn(std::io::Error) -> Pi
     }
 }
 
-/// Divides the point clouds `inputs` (PLY, XYZ, TXT) into the folder `dir`; a folder that
-/// already holds a division gets the new points added to it.
+/// Divides the point clouds `inputs` (PLY, XYZ, TXT files, PTX or E57 scans, octstore stores:
+/// [`open_input`]) into the folder `dir`; a folder that already holds a division gets the new
+/// points added to it.
 pub fn divide(inputs: &[PathBuf], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
-    let files = inputs
+    let opened = inputs
         .iter()
-        .map(|path| open_point_cloud(path))
-        .collect::<std::result::Result<Vec<_>, InputError>>()
-        .map_err(PipelineError::PointCloud)?;
-    let sources: Vec<&dyn PointSource> = files.iter().map(|f| f as &dyn PointSource).collect();
+        .map(|path| open_input(path, options.memory_budget))
+        .collect::<Result<Vec<_>>>()?;
+    let sources: Vec<&dyn PointSource> = opened.iter().map(|s| s.as_ref()).collect();
     divide_sources(&sources, dir, options)
 }
 
@@ -434,10 +436,47 @@ fn stream<T: Send>(
     Ok(points)
 }
 
+/// The write pass's work on one block: its records grouped by the targets whose grown cube
+/// holds them (a record goes to each of them), ignoring records outside `keep`.
+#[inline(never)]
+fn place_block(
+    block: &[u8],
+    layout: &PointLayout,
+    lookup: &Lookup,
+    grown: &[Bounds],
+    keep: Option<&Bounds>,
+) -> Grouped {
+    let len = layout.record_len();
+    let mut memberships: Vec<(u32, u32)> = Vec::with_capacity(block.len() / len.max(1) * 2 + 16);
+    for (i, record) in block.chunks_exact(len).enumerate() {
+        let p = layout.position(record);
+        if keep.is_some_and(|k| !k.contains(p)) {
+            continue;
+        }
+        for &target in lookup.candidates_of_point(p) {
+            if grown.get(target as usize).is_some_and(|b| b.contains_branchless(p)) {
+                memberships.push((target, i as u32));
+            }
+        }
+    }
+    // Common record lengths get copies of a known size (a call to memmove per record costs
+    // more than the rest of the placement).
+    let targets = grown.len();
+    match len {
+        12 => group_by_target::<12>(block, len, &memberships, targets),
+        15 => group_by_target::<15>(block, len, &memberships, targets),
+        24 => group_by_target::<24>(block, len, &memberships, targets),
+        27 => group_by_target::<27>(block, len, &memberships, targets),
+        _ => group_by_target::<0>(block, len, &memberships, targets),
+    }
+}
+
 /// The records of `block` that `memberships` (target, record index; in record order) send
 /// to each target, grouped by target (a counting sort: records keep their order within a
-/// target): one buffer, and each target's range in it.
-fn group_by_target(block: &[u8], len: usize, memberships: &[(u32, u32)], targets: usize) -> Grouped {
+/// target): one buffer, and each target's range in it. `LEN`, when not 0, is `len` known at
+/// compile time.
+fn group_by_target<const LEN: usize>(block: &[u8], len: usize, memberships: &[(u32, u32)], targets: usize) -> Grouped {
+    let len = if LEN > 0 { LEN } else { len };
     let mut starts = vec![0usize; targets + 1];
     for &(target, _) in memberships {
         if let Some(s) = starts.get_mut(target as usize + 1) {
@@ -536,21 +575,13 @@ impl Context<'_> {
             layout,
             &bar,
             |block, keep| {
-                let mut runs: Vec<(usize, u64)> = Vec::new();
-                for record in block.chunks_exact(layout.record_len()) {
-                    let p = layout.position(record);
-                    if keep.is_some_and(|k| !k.contains(p)) {
-                        continue;
-                    }
-                    let Some(cell) = counts.cell(root.grid(p)) else {
-                        continue;
-                    };
-                    match runs.last_mut() {
-                        Some((c, n)) if *c == cell => *n += 1,
-                        _ => runs.push((cell, 1)),
-                    }
-                }
-                counts.add_runs(&runs);
+                let locator = root.locator(counts.level());
+                let cells = block
+                    .chunks_exact(layout.record_len())
+                    .map(|record| layout.position(record))
+                    .filter(|p| keep.is_none_or(|k| k.contains(*p)))
+                    .filter_map(|p| counts.cell_of_index(locator.index(p)));
+                counts.add_cells(cells);
             },
             |_, ()| Ok(()),
         )?;
@@ -628,7 +659,7 @@ impl Context<'_> {
     ) -> Result<Vec<u64>> {
         let root = self.division.root;
         let layout = &self.layout;
-        let len = layout.record_len();
+
         let lookup = Lookup::new(&root, top, depth.min(MAX_LOOKUP_DEPTH), grown);
         // Buffers take at most twice their limit: a quarter of the budget.
         let buffer_limit = usize::try_from(self.options.memory_budget / 8).unwrap_or(usize::MAX);
@@ -638,21 +669,7 @@ impl Context<'_> {
             feeds,
             layout,
             &bar,
-            |block, keep| {
-                let mut memberships: Vec<(u32, u32)> = Vec::with_capacity(block.len() / len + 16);
-                for (i, record) in block.chunks_exact(len).enumerate() {
-                    let p = layout.position(record);
-                    if keep.is_some_and(|k| !k.contains(p)) {
-                        continue;
-                    }
-                    for &target in lookup.candidates(root.grid(p)) {
-                        if grown.get(target as usize).is_some_and(|b| b.contains(p)) {
-                            memberships.push((target, i as u32));
-                        }
-                    }
-                }
-                group_by_target(block, len, &memberships, grown.len())
-            },
+            |block, keep| place_block(block, layout, &lookup, grown, keep),
             |_, grouped: Grouped| {
                 for (target, range) in grouped.ranges {
                     appenders

@@ -65,8 +65,28 @@ fn file_records(path: &Path) -> Result<Vec<Vec<u8>>, InputError> {
     Ok(out)
 }
 
-/// Checks the division in `dir` against all the points given to it.
+/// Checks the division in `dir` against all the points given to it (float x, y, z first).
 fn check_division(dir: &Path, points: &[Vec<u8>], max_points: u64) -> Result<Manifest, Box<dyn std::error::Error>> {
+    check_division_of(dir, points, max_points, position)
+}
+
+/// The position of a record that starts with double x, y, z.
+fn position_f64(record: &[u8]) -> [f64; 3] {
+    [0, 1, 2].map(|i| {
+        record
+            .get(i * 8..i * 8 + 8)
+            .and_then(|b| b.try_into().ok())
+            .map_or(f64::NAN, f64::from_le_bytes)
+    })
+}
+
+/// [`check_division`] of records whose position `position` reads.
+fn check_division_of(
+    dir: &Path,
+    points: &[Vec<u8>],
+    max_points: u64,
+    position: fn(&[u8]) -> [f64; 3],
+) -> Result<Manifest, Box<dyn std::error::Error>> {
     let manifest = read_manifest_file(&dir.join(MANIFEST))?;
     let mut core_total = 0;
     for subspace in &manifest.subspaces {
@@ -182,6 +202,7 @@ fn a_later_divide_rewrites_only_the_subspaces_its_points_touch() -> TestResult {
     write_ply(&first, &old)?;
     let dir = temp.path().join("division");
     divide(&[first], &dir, &options(1_000, 3))?;
+    check_division(&dir, &old, 1_000)?;
     let before = folder_bytes(&dir)?;
     // New points around the corner of four cubes of level 1 and 2: dense enough to split the
     // subspaces they land in, and inside the grown cubes of their neighbours.
@@ -338,5 +359,170 @@ fn merging_keeps_each_triangle_once_and_welds_the_cuts() -> TestResult {
         .unwrap_err()
         .to_string();
     assert!(message.contains("stray.ply"), "{message}");
+    Ok(())
+}
+
+#[test]
+fn scans_are_divided_as_their_returns_in_world_coordinates() -> TestResult {
+    use glam::{DMat4, DQuat, DVec3};
+    let temp = tempfile::tempdir()?;
+    let path = temp.path().join("scans.ptx");
+    let mut text = Vec::new();
+    let mut expected = Vec::new();
+    let mut e57 = e57::E57Writer::from_file(temp.path().join("scans.e57"), "octstore-divide-test")?;
+    for (scan, pose) in [
+        DMat4::from_rotation_translation(DQuat::from_rotation_z(0.3), DVec3::new(1000.0, -20.0, 3.0)),
+        DMat4::from_rotation_translation(DQuat::from_rotation_x(-1.1), DVec3::new(1004.5, -18.0, 2.5)),
+    ]
+    .iter()
+    .enumerate()
+    {
+        let (columns, rows) = (9, 7);
+        let points: Vec<Option<DVec3>> = (0..columns * rows)
+            .map(|i| {
+                // Every seventh return missing.
+                (i % 7 != 3).then(|| DVec3::new(1.0 + (i % 5) as f64, (i / 5) as f64 * 0.37, 0.25 * scan as f64 - 0.5))
+            })
+            .collect();
+        crate::inputs::write_ptx_scan(&mut text, columns, rows, pose, &points)?;
+        write_e57_scan(&mut e57, scan, pose, &points)?;
+        for p in points.iter().flatten() {
+            let w = pose.transform_point3(*p);
+            expected.push(
+                [w.x, w.y, w.z]
+                    .iter()
+                    .flat_map(|c| c.to_le_bytes())
+                    .collect::<Vec<u8>>(),
+            );
+        }
+    }
+    std::fs::write(&path, text)?;
+    let dir = temp.path().join("division");
+    let report = divide(&[path], &dir, &options(10, 4))?;
+    assert_eq!(report.input_points, expected.len() as u64);
+    assert!(report.subspaces > 4, "{report:?}");
+    let manifest = check_division_of(&dir, &expected, 10, position_f64)?;
+    let names: Vec<&str> = manifest.division.properties.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, ["x", "y", "z"]);
+    // The same scans as E57: the same points, up to the rounding of the poses' quaternions.
+    e57.finalize()?;
+    let dir = temp.path().join("division-e57");
+    let report = divide(&[temp.path().join("scans.e57")], &dir, &options(10, 4))?;
+    assert_eq!(report.input_points, expected.len() as u64);
+    let manifest = read_manifest_file(&dir.join(MANIFEST))?;
+    let mut cores = Vec::new();
+    for subspace in &manifest.subspaces {
+        let records = file_records(&dir.join(&subspace.file))?;
+        cores.extend(
+            records
+                .iter()
+                .map(|r| position_f64(r))
+                .filter(|p| subspace.core.contains(*p)),
+        );
+    }
+    assert_eq!(cores.len(), expected.len());
+    for e in &expected {
+        let e = position_f64(e);
+        assert!(
+            cores.iter().any(|c| (0..3).all(|a| (c[a] - e[a]).abs() < 1e-9)),
+            "{e:?} missing from the E57 division"
+        );
+    }
+    Ok(())
+}
+
+/// One scan of `points` (sensor frame; `None` missing) with its pose, in an E57 file.
+fn write_e57_scan(
+    writer: &mut e57::E57Writer<std::fs::File>,
+    scan: usize,
+    pose: &glam::DMat4,
+    points: &[Option<glam::DVec3>],
+) -> Result<(), Box<dyn std::error::Error>> {
+    use e57::{Quaternion, Record, RecordDataType, RecordName, RecordValue, Transform, Translation};
+    let prototype = [RecordName::CartesianX, RecordName::CartesianY, RecordName::CartesianZ]
+        .map(|name| Record {
+            name,
+            data_type: RecordDataType::F64,
+        })
+        .to_vec();
+    let mut cloud = writer.add_pointcloud(&format!("scan-{scan}"), prototype)?;
+    let (_, q, t) = pose.to_scale_rotation_translation();
+    cloud.set_transform(Some(Transform {
+        rotation: Quaternion {
+            w: q.w,
+            x: q.x,
+            y: q.y,
+            z: q.z,
+        },
+        translation: Translation { x: t.x, y: t.y, z: t.z },
+    }));
+    for p in points.iter().flatten() {
+        cloud.add_point(vec![
+            RecordValue::Double(p.x),
+            RecordValue::Double(p.y),
+            RecordValue::Double(p.z),
+        ])?;
+    }
+    cloud.finalize()?;
+    Ok(())
+}
+
+#[test]
+fn a_store_is_divided_as_its_depth_maps_samples() -> TestResult {
+    use crate::stages::ingest::{SampleStream, open_rows, registered_depth_maps};
+    let temp = tempfile::tempdir()?;
+    let scene = crate::SceneSpec::demo();
+    let manifest_path = scene.write(&temp.path().join("input"))?;
+    let store_path = temp.path().join("store");
+    let store = crate::Store::create(&store_path)?;
+    let ingest_options = crate::IngestOptions {
+        max_depth: 6,
+        root_margin: 0.05,
+        ..crate::IngestOptions::default()
+    };
+    crate::pipeline::ingest(
+        &store,
+        &[manifest_path],
+        &crate::DiscoverOptions::default(),
+        &ingest_options,
+        &Default::default(),
+    )?;
+    // The samples the store's depth maps give, read here without `divide`.
+    let mut expected = Vec::new();
+    for (_, map) in registered_depth_maps(&store)? {
+        let rows = open_rows(&map.source, 1 << 30)?;
+        SampleStream::new(&map.source, rows)?.for_each(|s| {
+            if !s.spike {
+                expected.push(super::sources::record_of(s.point, s.normal, s.radius).to_vec());
+            }
+        })?;
+    }
+    drop(store);
+    let dir = temp.path().join("division");
+    let report = divide(&[store_path], &dir, &options(20_000, 4))?;
+    assert_eq!(report.input_points, expected.len() as u64);
+    let manifest = check_division_of(&dir, &expected, 20_000, position_f64)?;
+    let names: Vec<&str> = manifest.division.properties.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, ["x", "y", "z", "nx", "ny", "nz", "radius"]);
+    // Normals are unit (or zero where a map has none) and radii positive.
+    let float = |r: &[u8], i: usize| {
+        r.get(24 + 4 * i..28 + 4 * i)
+            .and_then(|b| b.try_into().ok())
+            .map_or(f32::NAN, f32::from_le_bytes)
+    };
+    for r in &expected {
+        let length = (0..3).map(|i| float(r, i).powi(2)).sum::<f32>().sqrt();
+        assert!(length == 0.0 || (length - 1.0).abs() < 1e-4, "normal length {length}");
+        assert!(float(r, 3) > 0.0);
+    }
+    // A folder that is not a store is refused by name.
+    let error = divide(
+        &[temp.path().join("input")],
+        &temp.path().join("other"),
+        &options(10, 4),
+    )
+    .err()
+    .ok_or("a plain folder was divided")?;
+    assert!(error.to_string().contains("not an octstore store"), "{error}");
     Ok(())
 }
