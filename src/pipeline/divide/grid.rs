@@ -48,16 +48,11 @@ pub struct Bounds {
 }
 
 impl Bounds {
-    /// Whether `p` lies inside (half-open).
+    /// Whether `p` lies inside (half-open). All six comparisons are made: in the write pass
+    /// most candidates fail one of them at random, and a mispredicted branch costs more than
+    /// the rest.
     #[inline]
     pub fn contains(&self, p: [f64; 3]) -> bool {
-        (0..3).all(|a| self.min[a] <= p[a] && p[a] < self.max[a])
-    }
-
-    /// [`Bounds::contains`] with all six comparisons made: in the write pass most candidates
-    /// fail one of them at random, and a mispredicted branch costs more than the rest.
-    #[inline]
-    pub fn contains_branchless(&self, p: [f64; 3]) -> bool {
         let [x, y, z] = p;
         let [x0, y0, z0] = self.min;
         let [x1, y1, z1] = self.max;
@@ -324,7 +319,7 @@ impl Counts {
         }
     }
 
-    /// Adds one point to each cell of `cells` (cells of [`Counts::cell`]): to this thread's
+    /// Adds one point to each cell of `cells` (cells of [`Counts::cell_of_index`]): to this thread's
     /// private copy when there is one (locked once for the whole block), else atomically, one
     /// add per run of equal cells.
     pub fn add_cells(&self, cells: impl Iterator<Item = usize>) {

@@ -454,7 +454,7 @@ fn place_block(
             continue;
         }
         for &target in lookup.candidates_of_point(p) {
-            if grown.get(target as usize).is_some_and(|b| b.contains_branchless(p)) {
+            if grown.get(target as usize).is_some_and(|b| b.contains(p)) {
                 memberships.push((target, i as u32));
             }
         }

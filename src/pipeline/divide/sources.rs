@@ -17,7 +17,7 @@ use glam::DVec3;
 
 use super::{PointSource, Result, divide_error};
 use crate::format::ply_header::PlyScalar;
-use crate::inputs::{InputError, PointLayout, extension_of, open_point_cloud, scan_points_in_world};
+use crate::inputs::{PointLayout, extension_of, open_point_cloud, scan_points_in_world};
 use crate::pipeline::PipelineError;
 use crate::stages::ingest::{DepthMapRecord, SampleStream, open_rows, registered_depth_maps};
 use crate::store::{CATALOG_FILE, Store};
@@ -148,7 +148,6 @@ impl StoreSamples {
         if maps.is_empty() {
             return Err(divide_error(format!("{}: the store has no depth maps", path.display())));
         }
-        let f32_property = PlyScalar::F32;
         Ok(StoreSamples {
             path: path.to_path_buf(),
             maps,
@@ -156,10 +155,10 @@ impl StoreSamples {
                 ("x", PlyScalar::F64),
                 ("y", PlyScalar::F64),
                 ("z", PlyScalar::F64),
-                ("nx", f32_property),
-                ("ny", f32_property),
-                ("nz", f32_property),
-                ("radius", f32_property),
+                ("nx", PlyScalar::F32),
+                ("ny", PlyScalar::F32),
+                ("nz", PlyScalar::F32),
+                ("radius", PlyScalar::F32),
             ]),
             memory_budget,
         })
@@ -210,7 +209,7 @@ impl PointSource for StoreSamples {
                         going = blocks.push(&record_of(sample.point, sample.normal, sample.radius));
                     }
                 })
-                .map_err(|e: InputError| PipelineError::PointCloud(e))?;
+                .map_err(PipelineError::PointCloud)?;
             if !going {
                 break;
             }
