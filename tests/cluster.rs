@@ -63,13 +63,22 @@ fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
-/// The scene ingested and its octree built in `dir/cluster`, copied to `dir/single`.
+/// The scene ingested (with the SSD sample sums) and its octree built in `dir/cluster`, copied
+/// to `dir/single`.
 fn ingested_twice(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
     let manifest = scene().write(&dir.join("input")).unwrap();
     let cluster = dir.join("cluster");
     let single = dir.join("single");
     let c = cluster.to_str().unwrap();
-    run(&["ingest", c, manifest.to_str().unwrap(), "--max-depth", "6", "--quiet"]);
+    run(&[
+        "ingest",
+        c,
+        manifest.to_str().unwrap(),
+        "--max-depth",
+        "6",
+        "--sample-sums",
+        "--quiet",
+    ]);
     run(&["solve", c, "--until", "octree", "--leaf-cubes", "400", "--quiet"]);
     copy_dir(&cluster, &single);
     (cluster, single)

@@ -72,6 +72,7 @@ fn kill_trials_of(trials: u64, args: &dyn Fn(&std::path::Path, bool) -> Vec<Stri
             manifest.to_str().unwrap(),
             "--max-depth",
             "6",
+            "--sample-sums",
             "--quiet",
         ],
         &[],

@@ -21,32 +21,92 @@ fn run(threads: usize) -> RunOptions {
     }
 }
 
-/// A clean sphere in a room, ingested at `max_depth` into `dir/store`.
-fn ingested_sphere(dir: &std::path::Path, max_depth: u8) -> Store {
-    let spec = SceneSpec {
+/// A clean sphere in a room, seen by 16 cameras at `distance` from it.
+fn sphere_spec(distance: f64) -> SceneSpec {
+    SceneSpec {
         shapes: vec![Shape::Sphere {
             center: CENTRE,
             radius: RADIUS,
         }],
         cameras: 16,
-        distance: 2.0,
+        distance,
         target: CENTRE,
         width: 96,
         height: 72,
         fov_degrees: 45.0,
         noise: None,
         room: Some(2.5),
-    };
-    let manifest = spec.write(&dir.join("input")).unwrap();
-    let store = Store::create(dir.join("store")).unwrap();
-    let options = IngestOptions {
+    }
+}
+
+fn ingest_options(max_depth: u8, sample_sums: bool) -> IngestOptions {
+    IngestOptions {
         root: None,
         root_margin: 0.2,
         max_depth,
+        sample_sums,
         ..IngestOptions::default()
-    };
+    }
+}
+
+/// The sphere seen from 2 units, ingested at `max_depth` into `dir/store` with sample sums.
+fn ingested_sphere(dir: &std::path::Path, max_depth: u8) -> Store {
+    ingested_sphere_with(dir, max_depth, true)
+}
+
+fn ingested_sphere_with(dir: &std::path::Path, max_depth: u8, sample_sums: bool) -> Store {
+    let manifest = sphere_spec(2.0).write(&dir.join("input")).unwrap();
+    let store = Store::create(dir.join("store")).unwrap();
+    let options = ingest_options(max_depth, sample_sums);
     ingest(&store, &[manifest], &DiscoverOptions::default(), &options, &run(2)).unwrap();
     store
+}
+
+fn ssd_options() -> SolveOptions {
+    SolveOptions {
+        method: Method::Ssd(SsdParams::default()),
+        run: run(2),
+        device: octstore::gpu::DeviceChoice::Cpu,
+        ..SolveOptions::default()
+    }
+}
+
+/// Sample sums are a store's choice at its first ingest: without them (the default) `--method
+/// ssd` is refused naming `--sample-sums`; later ingests keep the store's choice (asking for
+/// sums in a store without them is refused, the store unchanged; a store with them gathers
+/// them for new depth maps without being asked again, or its SSD solve would fail).
+#[test]
+fn sample_sums_are_chosen_at_the_first_ingest_and_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let closer = sphere_spec(1.8).write(&dir.path().join("closer")).unwrap();
+    let plain = ingested_sphere_with(&dir.path().join("plain"), 5, false);
+    let error = solve(&plain, &ssd_options(), |_| {}).unwrap_err().to_string();
+    assert!(error.contains("samples") && error.contains("--sample-sums"), "{error}");
+    let before = plain.current_version().unwrap();
+    let error = ingest(
+        &plain,
+        std::slice::from_ref(&closer),
+        &DiscoverOptions::default(),
+        &ingest_options(5, true),
+        &run(2),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(error.contains("created without sample sums"), "{error}");
+    assert_eq!(plain.current_version().unwrap(), before);
+
+    let summed = ingested_sphere_with(&dir.path().join("summed"), 5, true);
+    let maps = |store: &Store| octstore::stages::ingest::registered_depth_maps(store).unwrap().len();
+    ingest(
+        &summed,
+        &[closer],
+        &DiscoverOptions::default(),
+        &ingest_options(5, false),
+        &run(2),
+    )
+    .unwrap();
+    assert_eq!(maps(&summed), 32);
+    solve(&summed, &ssd_options(), |_| {}).unwrap();
 }
 
 fn solve_with(store: &Store, method: Method, threads: usize) {
@@ -150,14 +210,8 @@ fn stores_ingested_without_sample_moments_are_refused_by_name() {
         std::fs::copy(entry.path(), copy.join("segments").join(entry.file_name())).unwrap();
     }
     let store = Store::open(&copy).unwrap();
-    let options = SolveOptions {
-        method: Method::Ssd(SsdParams::default()),
-        run: run(2),
-        device: octstore::gpu::DeviceChoice::Cpu,
-        ..SolveOptions::default()
-    };
     let before = store.current_version().unwrap();
-    let error = solve(&store, &options, |_| {}).unwrap_err().to_string();
+    let error = solve(&store, &ssd_options(), |_| {}).unwrap_err().to_string();
     assert!(
         error.contains("samples") && error.contains("ingest the depth maps into a new store"),
         "{error}"

@@ -186,7 +186,8 @@ def ingest(store: Store, inputs: Union[PathLike, Sequence[PathLike]], **options:
     """Registers the depth maps `inputs` names (files, folders, manifests, as the command line
     reads them) and writes their cubes, as one new version. Keywords are `octstore ingest`'s
     options (``max_depth``, ``root_margin``, ``root=(x, y, z, side)``, ``format``, ``stride``,
-    ``limit``, ``intrinsics``, ``depth_noise``, ``resume``, ``memory_budget``, ``threads``,
+    ``limit``, ``intrinsics``, ``depth_noise``, ``sample_sums=True`` for a store that will be
+    solved with ``method="ssd"`` or ``"hybrid"``, ``resume``, ``memory_budget``, ``threads``,
     ``quiet``)."""
     if isinstance(inputs, (str, os.PathLike)):
         inputs = [inputs]

@@ -205,6 +205,11 @@ pub struct IngestArgs {
     /// limit).
     #[arg(long, default_value_t = 24, value_parser = clap::value_parser!(u8).range(1..=i64::from(crate::format::MAX_DEPTH)))]
     pub max_depth: u8,
+    /// Also gather the samples' sums (weights, centroids, normals per cube) that `solve
+    /// --method ssd|hybrid` needs (first ingest only: later ingests into the store keep its
+    /// setting). About a quarter more ingest time; the default TGV solver does not use them.
+    #[arg(long)]
+    pub sample_sums: bool,
     #[arg(long)]
     pub resume: bool,
 }

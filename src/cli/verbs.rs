@@ -38,6 +38,7 @@ pub(super) fn ingest_options(
         root_margin: args.root_margin,
         max_depth: args.max_depth,
         memory_budget: global.memory_budget,
+        sample_sums: args.sample_sums,
     };
     (discover, options, run_options(global, args.resume))
 }

@@ -87,6 +87,7 @@ pub fn demo(options: &DemoOptions, mut on_report: impl FnMut(&RunReport)) -> Res
         root_margin: 0.05,
         max_depth: DEMO_MAX_DEPTH,
         memory_budget: options.memory_budget,
+        sample_sums: false,
     };
     on_report(&ingest(
         &store,

@@ -14,7 +14,7 @@ use glam::DVec3;
 
 use super::treetop::Treetop;
 use super::{INGEST, OCTREE};
-use crate::format::{Column, ColumnValues, CubeKey, Scene};
+use crate::format::{Column, ColumnValues, CubeKey, Scene, round_half_away_from_zero};
 use crate::store::catalog::{self, UnitRecord};
 use crate::store::{Plan, Replace, Result, SegmentFile, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
@@ -40,15 +40,17 @@ pub struct Moments {
 }
 
 fn fixed(x: f64) -> i64 {
-    (x * FIXED_POINT).round() as i64
+    round_half_away_from_zero(x * FIXED_POINT) as i64
 }
 
 impl Moments {
     /// One sample's share: `area` in world units squared, `normal` a unit vector.
     pub fn of_sample(scene: &Scene, key: CubeKey, point: DVec3, area: f64, normal: DVec3) -> Moments {
         let side = scene.cube_side(key.depth());
-        let a = area / (side * side);
-        let offset = (point - scene.cube_center(key)) / side;
+        // One division, not five: ingest computes this for every sample.
+        let per_side = 1.0 / side;
+        let a = area * (per_side * per_side);
+        let offset = (point - scene.cube_center(key)) * per_side;
         Moments {
             weight: fixed(a),
             offset: [fixed(a * offset.x), fixed(a * offset.y), fixed(a * offset.z)],
@@ -199,7 +201,7 @@ impl SamplesStage {
             if reader.column(SAMPLE_WEIGHT).is_err() {
                 return Err(Self::error(
                     name,
-                    "this depth map's run carries no sample moments (it was ingested by an octstore older than `--method ssd`): ingest the depth maps into a new store to solve with ssd".into(),
+                    "this depth map's run carries no sample sums (the store was created without `ingest --sample-sums`, or by an octstore older than `--method ssd`): ingest the depth maps into a new store with `--sample-sums` to solve with ssd or hybrid".into(),
                 ));
             }
             let mut first_keys = Vec::with_capacity(reader.block_count());

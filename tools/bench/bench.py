@@ -393,7 +393,9 @@ def groundtruth(work, quick, noises=GT_NOISE, outlier_levels=GT_OUTLIERS, method
                     solver = method.removeprefix("octstore").removeprefix("-") or "tgv"
                     mesh = case / f"{method}.ply"
                     store = case / f"store-{solver}"
-                    wall, cpu, peak, _ = octstore(store, manifest, ["--max-depth", "9"],
+                    # SSD and hybrid read the samples' sums, which ingest gathers on request.
+                    sums = [] if solver == "tgv" else ["--sample-sums"]
+                    wall, cpu, peak, _ = octstore(store, manifest, ["--max-depth", "9", *sums],
                                                   ["--iterations", "100", "--method", solver], mesh)
                     results[method] = (mesh, wall, cpu, peak)
                     info = json.loads(subprocess.run(
@@ -910,7 +912,7 @@ def write_markdown(results, out_dir, path):
                   "ends on a surface), with Gaussian depth noise (a fraction of the depth) and outlier pixels (a "
                   "random depth between 0.2 and 2 times the true one). All three methods read the same depth maps. "
                   "octstore: `--max-depth 9`, 100 iterations per level (TGV); octstore-ssd and octstore-hybrid: "
-                  "`solve --method ssd|hybrid`, default SSD settings. TSDF: Open3D VoxelBlockGrid at octstore's "
+                  "`ingest --sample-sums`, `solve --method ssd|hybrid`, default SSD settings. TSDF: Open3D VoxelBlockGrid at octstore's "
                   "finest cube size, truncation 4 voxels. Poisson: Open3D screened Poisson, depth 9, on the "
                   "back-projected pixels (every second one) with normals oriented to their camera, lowest 2 % "
                   "density trimmed. `octstore-evaluate` measures each mesh against the ground truth: tau = 1 % of "

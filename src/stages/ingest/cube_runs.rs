@@ -131,6 +131,8 @@ fn drain_in_key_order(table: &mut SumsTable, mut each: impl FnMut(CubeSums) -> R
 /// Column builders for cube sums.
 #[derive(Default)]
 struct CubeColumns {
+    /// Whether the run carries the SSD sample moments (the store's `sample_sums` setting).
+    with_moments: bool,
     keys: Vec<CubeKey>,
     sums: Vec<u64>,
     counts: Vec<u32>,
@@ -144,11 +146,20 @@ impl CubeColumns {
         self.sums.push(c.radius_sum);
         self.counts.push(c.count);
         self.spike_counts.push(c.spikes);
-        self.moments.push(c.moments);
+        if self.with_moments {
+            self.moments.push(c.moments);
+        }
     }
 
     fn len(&self) -> usize {
         self.keys.len()
+    }
+
+    fn empty(with_moments: bool) -> CubeColumns {
+        CubeColumns {
+            with_moments,
+            ..CubeColumns::default()
+        }
     }
 
     /// An ingest run's columns (format-spec.md, "Columns used by stages").
@@ -159,7 +170,9 @@ impl CubeColumns {
             Column::new("radius_count", 1, ColumnValues::U32(self.counts)),
             Column::new(SPIKE_COUNT, 1, ColumnValues::U32(self.spike_counts)),
         ];
-        columns.extend(moment_columns(&self.moments));
+        if self.with_moments {
+            columns.extend(moment_columns(&self.moments));
+        }
         columns
     }
 }
@@ -176,6 +189,8 @@ fn scratch_error<'a>(dir: &'a Path, action: &'static str) -> impl Fn(std::io::Er
 pub(super) struct CubeRuns<'a> {
     scratch: &'a Path,
     capacity: usize,
+    /// Whether the runs' columns carry the entries' moments (they are summed either way).
+    with_moments: bool,
     /// The cube of the latest entries, not yet in `table`: a row of pixels falls in one cube
     /// several times in a row, and adding to it here saves a hash lookup each time.
     current: Option<CubeSums>,
@@ -187,12 +202,14 @@ pub(super) struct CubeRuns<'a> {
 impl<'a> CubeRuns<'a> {
     /// Runs of at most `capacity` cubes; at most `expected` entries are likely (the map's valid
     /// pixels), so the table is sized once for the lesser (grown by doubling, a table costs up
-    /// to twice its size, and its moves are paid again).
-    pub(super) fn new(scratch: &'a Path, capacity: usize, expected: usize) -> CubeRuns<'a> {
+    /// to twice its size, and its moves are paid again). `with_moments`: the segment has the
+    /// sample moment columns.
+    pub(super) fn new(scratch: &'a Path, capacity: usize, expected: usize, with_moments: bool) -> CubeRuns<'a> {
         let capacity = capacity.max(1);
         CubeRuns {
             scratch,
             capacity,
+            with_moments,
             current: None,
             table: SumsTable::with_capacity_and_hasher(
                 capacity.min(expected / EXPECTED_ENTRIES_PER_CUBE),
@@ -253,7 +270,7 @@ impl<'a> CubeRuns<'a> {
             self.add_to_table(done)?;
         }
         if self.runs.is_empty() {
-            let mut columns = CubeColumns::default();
+            let mut columns = CubeColumns::empty(self.with_moments);
             drain_in_key_order(&mut self.table, |c| {
                 columns.push(c);
                 Ok(())
@@ -265,7 +282,7 @@ impl<'a> CubeRuns<'a> {
         if !self.table.is_empty() {
             self.spill()?;
         }
-        let shapes: Vec<ColumnShape> = CubeColumns::default()
+        let shapes: Vec<ColumnShape> = CubeColumns::empty(self.with_moments)
             .into_columns()
             .iter()
             .map(ColumnShape::of)
@@ -298,7 +315,7 @@ impl<'a> CubeRuns<'a> {
             }
             pending.push(head);
         }
-        let mut batch = CubeColumns::default();
+        let mut batch = CubeColumns::empty(self.with_moments);
         let mut current: Option<CubeSums> = None;
         while let Some(Reverse((_, run))) = heads.pop() {
             let Some(c) = pending.get_mut(run).and_then(Option::take) else {
@@ -310,7 +327,8 @@ impl<'a> CubeRuns<'a> {
                     if let Some(done) = current.replace(c) {
                         batch.push(done);
                         if batch.len() >= SPILL_BATCH_ROWS {
-                            spill.append(&std::mem::take(&mut batch).into_columns())?;
+                            let full = std::mem::replace(&mut batch, CubeColumns::empty(self.with_moments));
+                            spill.append(&full.into_columns())?;
                         }
                     }
                 }
@@ -355,7 +373,8 @@ mod tests {
     }
 
     /// Spilled runs merge into exactly the columns the in-memory path gives, for any buffer
-    /// size (the encoder then writes the same bytes: `store::spill`).
+    /// size (the encoder then writes the same bytes: `store::spill`), with and without the
+    /// moment columns.
     #[test]
     fn spilled_runs_sum_to_the_in_memory_columns() {
         let dir = tempfile::tempdir().unwrap();
@@ -366,29 +385,34 @@ mod tests {
                 entry((r % 700) as u32, r % 1000, r.is_multiple_of(7), (r % 50) as i64 - 20)
             })
             .collect();
-        let mut whole = CubeRuns::new(dir.path(), usize::MAX, 100);
-        for e in &entries {
-            whole.push(*e).unwrap();
-        }
-        let (content, cubes) = whole.finish().unwrap();
-        let expected = columns_of(content.unwrap());
-        assert_eq!(cubes as usize, expected[0].rows());
-        for capacity in [1, 7, 499, 699] {
-            let mut runs = CubeRuns::new(dir.path(), capacity, 100);
+        for with_moments in [true, false] {
+            let mut whole = CubeRuns::new(dir.path(), usize::MAX, 100, with_moments);
             for e in &entries {
-                runs.push(*e).unwrap();
+                whole.push(*e).unwrap();
             }
-            let (content, spilled_cubes) = runs.finish().unwrap();
-            assert_eq!(spilled_cubes, cubes);
-            let Some(SegmentContent::Spilled(spill)) = content else {
-                panic!("capacity {capacity} should spill")
-            };
-            let mut direct = Vec::new();
-            crate::format::segment::encode_segment_with_block_rows(&expected, 1024, &mut direct).unwrap();
-            let (shapes, rows, mut sources) = spill.into_sources().unwrap();
-            let mut streamed = Vec::new();
-            crate::format::segment::encode_segment_streamed(&shapes, rows, &mut sources, 1024, &mut streamed).unwrap();
-            assert!(direct == streamed, "capacity {capacity}: the spilled segment differs");
+            let (content, cubes) = whole.finish().unwrap();
+            let expected = columns_of(content.unwrap());
+            assert_eq!(cubes as usize, expected[0].rows());
+            for capacity in [1, 7, 499, 699] {
+                let mut runs = CubeRuns::new(dir.path(), capacity, 100, with_moments);
+                for e in &entries {
+                    runs.push(*e).unwrap();
+                }
+                let (content, spilled_cubes) = runs.finish().unwrap();
+                assert_eq!(spilled_cubes, cubes);
+                let Some(SegmentContent::Spilled(spill)) = content else {
+                    panic!("capacity {capacity} should spill")
+                };
+                let mut direct = Vec::new();
+                crate::format::segment::encode_segment_with_block_rows(&expected, 1024, &mut direct).unwrap();
+                let (shapes, rows, mut sources) = spill.into_sources().unwrap();
+                let mut streamed = Vec::new();
+                crate::format::segment::encode_segment_streamed(&shapes, rows, &mut sources, 1024, &mut streamed)
+                    .unwrap();
+                assert!(direct == streamed, "capacity {capacity}: the spilled segment differs");
+            }
+            // Without moments the run has the four columns the TGV stages read.
+            assert_eq!(expected.len(), if with_moments { 7 } else { 4 });
         }
         // Nothing stays in the scratch folder: run and column files are unlinked at creation.
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);

@@ -138,6 +138,11 @@ pub struct IngestOptions {
     pub max_depth: u8,
     /// The memory the ingest may use, shared by the depth maps read at once.
     pub memory_budget: u64,
+    /// Gather the samples' SSD sums (weights, centroids, normals per cube) that `solve
+    /// --method ssd|hybrid` needs: set at a store's first ingest and kept by later ones
+    /// ([`META_SAMPLE_SUMS`]). They cost about a quarter of ingest's time, which the default
+    /// TGV solver does not use.
+    pub sample_sums: bool,
 }
 
 impl Default for IngestOptions {
@@ -147,6 +152,7 @@ impl Default for IngestOptions {
             root_margin: 0.1,
             max_depth: 24,
             memory_budget: 1 << 30,
+            sample_sums: false,
         }
     }
 }
@@ -158,10 +164,35 @@ fn memory_per_map(budget: u64) -> u64 {
     budget / (2 * rayon::current_num_threads().max(1) as u64)
 }
 
+/// Meta key: `[1]` when the store's ingest runs carry the SSD sample moments, `[0]` when they
+/// do not; written by the first ingest. Stores from before the key existed lack it: their runs
+/// carry the moments if a build since `--method ssd` wrote them, so absent reads as `[1]` (a
+/// run without the columns is still named by the samples stage).
+pub const META_SAMPLE_SUMS: &str = "sample_sums";
+
+/// Whether the store's ingests gather sample sums ([`META_SAMPLE_SUMS`]).
+pub fn records_sample_sums(store: &Store) -> Result<bool> {
+    let txn = store.catalog().begin_read()?;
+    let meta = txn.open_table(META)?;
+    match meta.get(META_SAMPLE_SUMS)? {
+        Some(v) => match catalog::unseal("meta", META_SAMPLE_SUMS, v.value())? {
+            [0] => Ok(false),
+            [1] => Ok(true),
+            other => Err(StoreError::CatalogCorruption {
+                table: "meta",
+                reason: format!("{META_SAMPLE_SUMS} is {other:?}, not [0] or [1]"),
+            }),
+        },
+        None => Ok(true),
+    }
+}
+
 pub struct IngestStage {
     /// The scene the new maps are keyed in (grown, if they needed it).
     scene: Scene,
     scene_is_new: bool,
+    /// The runs carry the SSD sample moments ([`META_SAMPLE_SUMS`]).
+    sample_sums: bool,
     /// Given with `--root` at the first ingest: recorded so that the root never grows.
     root_is_fixed: bool,
     /// The store's scene before this ingest and the doublings (octants) that grew it into
@@ -302,6 +333,19 @@ impl IngestStage {
         } else {
             root_is_fixed(store)?
         };
+        let sample_sums = if scene_is_new {
+            options.sample_sums
+        } else {
+            let recorded = records_sample_sums(store)?;
+            if options.sample_sums && !recorded {
+                return Err(StoreError::Stage {
+                    stage: INGEST.into(),
+                    unit: "options".into(),
+                    message: "--sample-sums: this store was created without sample sums, and its depth maps' runs lack them; ingest the depth maps into a new store with --sample-sums to solve with ssd or hybrid".into(),
+                });
+            }
+            recorded
+        };
         let mut growth = None;
         let mut scene = scene;
         if !scene_is_new && !root_is_fixed && !maps.is_empty() {
@@ -321,6 +365,7 @@ impl IngestStage {
         Ok(IngestStage {
             scene,
             scene_is_new,
+            sample_sums,
             root_is_fixed,
             growth,
             maps,
@@ -349,35 +394,45 @@ impl IngestStage {
     pub fn cubes(&self, source: &DepthMapSource) -> Result<(Option<SegmentContent>, SampleStats)> {
         let stream = map_samples(source, self.map_memory / 4)?;
         let capacity = (self.map_memory * 3 / 4 / cube_runs::BYTES_PER_CUBE).max(1 << 12) as usize;
-        let mut runs = CubeRuns::new(&self.scratch, capacity, stream.valid_pixels() as usize);
+        let mut runs = CubeRuns::new(
+            &self.scratch,
+            capacity,
+            stream.valid_pixels() as usize,
+            self.sample_sums,
+        );
         // Consistent samples outside the root mean the map sees beyond the scene the store was
         // sized for; spikes outside it are noise.
         let (mut outside, mut consistent_outside) = (0u64, 0u64);
         let weight = f64::from(source.weight);
         let mut failure = None;
-        let mut stats = stream
-            .for_each(|sample| {
-                if failure.is_some() {
-                    return;
-                }
-                if !self.scene.contains(sample.point) {
-                    outside += 1;
-                    consistent_outside += u64::from(!sample.spike);
-                    return;
-                }
-                let depth = self.scene.depth_for_radius(sample.radius);
-                let key = self.scene.key_at(sample.point, depth);
-                // Spikes and samples without a normal say nothing SSD can use.
-                let moments = if sample.spike || sample.normal == DVec3::ZERO {
-                    Moments::default()
-                } else {
-                    Moments::of_sample(&self.scene, key, sample.point, sample.area * weight, sample.normal)
-                };
-                if let Err(e) = runs.push((key, self.scene.quantize_radius(sample.radius), sample.spike, moments)) {
-                    failure = Some(e);
-                }
-            })
-            .map_err(input_error)?;
+        let each = |sample: &Sample| {
+            if failure.is_some() {
+                return;
+            }
+            if !self.scene.contains(sample.point) {
+                outside += 1;
+                consistent_outside += u64::from(!sample.spike);
+                return;
+            }
+            let depth = self.scene.depth_for_radius(sample.radius);
+            let key = self.scene.key_at(sample.point, depth);
+            // Spikes and samples without a normal say nothing SSD can use.
+            let moments = if !self.sample_sums || sample.spike || sample.normal == DVec3::ZERO {
+                Moments::default()
+            } else {
+                Moments::of_sample(&self.scene, key, sample.point, sample.area * weight, sample.normal)
+            };
+            if let Err(e) = runs.push((key, self.scene.quantize_radius(sample.radius), sample.spike, moments)) {
+                failure = Some(e);
+            }
+        };
+        // Only the moments use the normals.
+        let mut stats = if self.sample_sums {
+            stream.for_each(each)
+        } else {
+            stream.for_each_without_normals(each)
+        }
+        .map_err(input_error)?;
         if let Some(e) = failure {
             return Err(e);
         }
@@ -423,7 +478,9 @@ impl Stage for IngestStage {
 
     fn params(&self) -> Vec<u8> {
         let maps: Vec<(u64, DepthNoise)> = self.maps.iter().map(|(id, source)| (*id, source.noise)).collect();
-        catalog::encode(&(maps, self.scene))
+        // A resumed ingest with the other sample-sums setting starts over, so a store's runs
+        // all carry the moments or none does.
+        catalog::encode(&(maps, self.scene, self.sample_sums))
     }
 
     fn plan(&self, base: &Snapshot<'_>) -> Result<Plan> {
@@ -513,6 +570,10 @@ impl Stage for IngestStage {
                     catalog::seal("meta", META_ROOT_FIXED, &[1u8]).as_slice(),
                 )?;
             }
+            meta.insert(
+                META_SAMPLE_SUMS,
+                catalog::seal("meta", META_SAMPLE_SUMS, &[u8::from(self.sample_sums)]).as_slice(),
+            )?;
         }
         let grown = match &self.growth {
             Some((old, octants)) => {

@@ -22,6 +22,58 @@ fn camera(width: u32, height: u32) -> DepthMapSource {
     )
 }
 
+/// The samples of every third (and every seventh) row are exactly the full stream's samples on
+/// those rows (point, radius and spike flag), although the other rows are not back-projected;
+/// the image has invalid pixels, a depth edge and spikes.
+#[test]
+fn samples_on_strided_rows_equal_the_full_streams() {
+    // 25 rows: the last (24) is sampled at a step of 7.
+    let (w, h) = (23u32, 25u32);
+    let source = camera(w, h);
+    let mut state = 11u64;
+    let depth: Vec<f32> = (0..w * h)
+        .map(|i| {
+            let r = crate::kernels::random::uniform(&mut state);
+            if r < 0.05 {
+                f32::NAN
+            } else if r < 0.1 {
+                (0.2 + 1.8 * crate::kernels::random::uniform(&mut state)) as f32
+            } else if i % w < 9 {
+                1.0 + 0.01 * (i / w) as f32
+            } else {
+                2.5
+            }
+        })
+        .collect();
+    let image = DepthImage {
+        width: w,
+        height: h,
+        depth,
+    };
+    let stream = || SampleStream::new(&source, Box::new(ImageRows::new(&image))).unwrap();
+    // The camera is at the origin with the identity pose: y / z * f + cy is the pixel row.
+    let mut full = Vec::new();
+    stream()
+        .for_each_without_normals(|s| {
+            let row = (s.point.y / s.point.z * 100.0 + f64::from(h) / 2.0).round() as usize;
+            full.push((row, s.point, s.radius, s.spike));
+        })
+        .unwrap();
+    for row_step in [3usize, 7] {
+        let mut strided = Vec::new();
+        stream()
+            .for_each_on_rows(row_step, |s| strided.push((s.point, s.radius, s.spike)))
+            .unwrap();
+        let expected: Vec<_> = full
+            .iter()
+            .filter(|(j, ..)| j % row_step == row_step / 2)
+            .map(|&(_, p, r, spike)| (p, r, spike))
+            .collect();
+        assert!(expected.len() > 20, "row step {row_step}: {}", expected.len());
+        assert_eq!(strided, expected, "row step {row_step}");
+    }
+}
+
 /// A wall at depth 1 seen head-on, with one pixel in ten replaced by a depth between 0.2 and
 /// 2.0 (the synthetic outlier model): the spikes would push the 99.9 % quantile of z to
 /// about 1.9; without them the box ends at the wall.
