@@ -375,8 +375,16 @@ fn ingest_cli_reports_and_info_counts() {
     assert!(json["cubes"].as_u64().unwrap() > 100);
     assert!(json["treetop_leaves"].as_u64().unwrap() >= 1);
     assert!(json["digest"]["octree"].is_string());
+    // Ingested without --sample-sums: `solve --method ssd` would need a new store.
+    assert_eq!(json["sample_sums"], false);
     let verify = octstore(&["verify", store.to_str().unwrap()], &[]);
     assert!(verify.status.success(), "{}", stderr(&verify));
+    let with_sums = root.path().join("with-sums");
+    let s = with_sums.to_str().unwrap();
+    let out = octstore(&["ingest", s, &frame(0), "--max-depth", "6", "--sample-sums"], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let info = octstore(&["info", s], &[]);
+    assert!(stdout(&info).contains("sample sums    yes"), "{}", stdout(&info));
 }
 
 /// Key -> (radius sum, radius count) of every cube of `stage`'s segments, summed over segments.

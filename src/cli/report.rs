@@ -41,6 +41,9 @@ pub struct InfoJson {
     pub finest_cube_side: Option<f64>,
     /// The solver of the finest level: `tgv`, `ssd` or `hybrid` (absent before a solve).
     pub solver: Option<String>,
+    /// Whether the store's ingests gather the sample sums `--method ssd|hybrid` needs (`ingest
+    /// --sample-sums` at its first ingest; absent before the first ingest).
+    pub sample_sums: Option<bool>,
 }
 
 /// The `info` report of the latest version, or of `version`.
@@ -67,6 +70,7 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
         finest_level,
         finest_cube_side: scene.zip(finest_level).map(|(s, level)| s.cube_side(level)),
         solver: snapshot.method()?.map(str::to_string),
+        sample_sums: scene.map(|_| stages::ingest::records_sample_sums(store)).transpose()?,
         store: store.root().display().to_string(),
         version: snapshot.version(),
         depth_maps: maps.len() as u64,

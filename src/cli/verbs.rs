@@ -270,6 +270,13 @@ pub(super) fn info_verb(args: InfoArgs) -> Result<()> {
     if let Some(solver) = &info.solver {
         println!("solver         {solver}");
     }
+    match info.sample_sums {
+        Some(true) => println!("sample sums    yes (solve --method tgv, ssd or hybrid)"),
+        Some(false) => println!(
+            "sample sums    no (solve --method tgv; for ssd or hybrid, ingest into a new store with --sample-sums)"
+        ),
+        None => {}
+    }
     for (stage, digest) in &info.digest {
         println!("digest         {stage:<12} {digest}");
     }
