@@ -266,7 +266,11 @@ impl SsdProblem {
 
     /// A f.
     pub fn apply(&self, f: &[f64]) -> Vec<f64> {
-        self.energy_gradient(f, false).into_iter().map(|x| 0.5 * x).collect()
+        let operator = Operator::new(self);
+        let mut workspace = Workspace::new(self.n);
+        let mut af = vec![0.0; self.n];
+        operator.apply(f, &mut workspace, &mut af);
+        af
     }
 
     /// b: minus half the energy's gradient at f = 0.
@@ -369,13 +373,167 @@ fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// Elements per piece of the parallel loops: every piece's result depends on its elements
+/// only, and reductions add the pieces' sums in piece order, so the results are the same for
+/// any thread count.
+const PIECE: usize = 1 << 13;
+
+/// sum a_i b_i, deterministic for any thread count ([`PIECE`]).
 fn inner(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
+    let partial: Vec<f64> = a
+        .par_chunks(PIECE)
+        .zip(b.par_chunks(PIECE))
+        .map(|(a, b)| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>())
+        .collect();
+    partial.into_iter().sum()
+}
+
+/// The homogeneous product A f of an [`SsdProblem`] (frozen values, normals and anchors read
+/// as zero), with what every product would recompute computed once: the halved energy
+/// gradient of [`SsdProblem::energy_gradient`] in three gathers (g = D f; r_c = dE/dg_c / 2
+/// with the scalar part of the cube's own row; then D^T r), each output written by one piece
+/// of work and summed in a fixed order.
+struct Operator<'a> {
+    problem: &'a SsdProblem,
+    /// smoothness h^5 per free cube: a term's pair weight is this times the term's w.
+    pair_scale: Vec<f64>,
+    /// The coefficient of g_c in r_c: lambda1 h^2 W plus the pair weights of the cube's terms
+    /// and of the terms that target it.
+    own_coupling: Vec<f64>,
+    /// ANCHOR h^2: the anchor's coefficient of f_c.
+    anchor_weight: Vec<f64>,
+}
+
+/// The buffers of [`Operator::apply`], kept between products.
+struct Workspace {
+    /// g_c, and the cube's pair scale beside it (read together by the cubes its rows target).
+    gradient: Vec<[f64; 4]>,
+    /// r_c.
+    response: Vec<[f64; 3]>,
+    /// The part of (A f)_c from the cube's own terms.
+    own: Vec<f64>,
+}
+
+impl Workspace {
+    fn new(n: usize) -> Workspace {
+        Workspace {
+            gradient: vec![[0.0; 4]; n],
+            response: vec![[0.0; 3]; n],
+            own: vec![0.0; n],
+        }
+    }
+}
+
+impl<'a> Operator<'a> {
+    fn new(problem: &'a SsdProblem) -> Operator<'a> {
+        let n = problem.n;
+        let reverse = problem.reverse();
+        let pair_scale: Vec<f64> = (0..n).map(|c| problem.pair_weight(c, 1.0)).collect();
+        let own_coupling = (0..n)
+            .into_par_iter()
+            .map(|c| {
+                let h = problem.side.get(c).copied().unwrap_or(0.0);
+                let weight = problem.samples.get(c).map_or(0.0, |s| s.weight);
+                let scale = pair_scale.get(c).copied().unwrap_or(0.0);
+                let own: f64 = (0..3)
+                    .flat_map(|axis| problem.row(3 * c + axis))
+                    .map(|(_, w)| scale * f64::from(*w))
+                    .sum();
+                let targeting: f64 = reverse
+                    .of(c)
+                    .iter()
+                    .map(|(row, w)| pair_scale.get(*row as usize / 3).copied().unwrap_or(0.0) * f64::from(*w))
+                    .sum();
+                problem.normal_weight * h * h * weight + own + targeting
+            })
+            .collect();
+        let anchor_weight = problem.side.iter().map(|h| ANCHOR * h * h).collect();
+        Operator {
+            problem,
+            pair_scale,
+            own_coupling,
+            anchor_weight,
+        }
+    }
+
+    /// `af` = A `f`.
+    fn apply(&self, f: &[f64], work: &mut Workspace, af: &mut [f64]) {
+        let problem = self.problem;
+        let n = problem.n;
+        let reverse = problem.reverse();
+        work.gradient
+            .par_chunks_mut(PIECE)
+            .enumerate()
+            .for_each(|(piece, out)| {
+                for (c, g) in (piece * PIECE..).zip(out.iter_mut()) {
+                    let fc = f.get(c).copied().unwrap_or(0.0);
+                    let mut gc = [0.0; 4];
+                    for (axis, value) in gc.iter_mut().take(3).enumerate() {
+                        *value = problem
+                            .row(3 * c + axis)
+                            .iter()
+                            .map(|(t, w)| f64::from(*w) * (f.get(*t as usize).copied().unwrap_or(0.0) - fc))
+                            .sum();
+                    }
+                    gc[3] = self.pair_scale.get(c).copied().unwrap_or(0.0);
+                    *g = gc;
+                }
+            });
+        let gradient = &work.gradient;
+        work.response
+            .par_chunks_mut(PIECE)
+            .zip(work.own.par_chunks_mut(PIECE))
+            .enumerate()
+            .for_each(|(piece, (responses, owns))| {
+                for ((c, rc), own) in (piece * PIECE..).zip(responses.iter_mut()).zip(owns.iter_mut()) {
+                    let (Some(s), Some(g), Some(coupling)) =
+                        (problem.samples.get(c), gradient.get(c), self.own_coupling.get(c))
+                    else {
+                        continue;
+                    };
+                    let fc = f.get(c).copied().unwrap_or(0.0);
+                    let gc = [g[0], g[1], g[2]];
+                    let we = s.weight * (fc + dot(gc, s.centroid));
+                    let mut r: [f64; 3] = std::array::from_fn(|k| we * s.centroid[k] + coupling * gc[k]);
+                    let scale = g[3];
+                    for axis in 0..3 {
+                        for (t, w) in problem.row(3 * c + axis) {
+                            if let Some(gt) = gradient.get(*t as usize).filter(|_| (*t as usize) < n) {
+                                let sigma = scale * f64::from(*w);
+                                (0..3).for_each(|k| r[k] -= sigma * gt[k]);
+                            }
+                        }
+                    }
+                    for (row, w) in reverse.of(c) {
+                        if let Some(gs) = gradient.get(*row as usize / 3) {
+                            let sigma = gs[3] * f64::from(*w);
+                            (0..3).for_each(|k| r[k] -= sigma * gs[k]);
+                        }
+                    }
+                    let row_sum = reverse.row_sum.get(3 * c..3 * c + 3).unwrap_or(&[0.0; 3]);
+                    *own = we + self.anchor_weight.get(c).copied().unwrap_or(0.0) * fc
+                        - (row_sum[0] * r[0] + row_sum[1] * r[1] + row_sum[2] * r[2]);
+                    *rc = r;
+                }
+            });
+        let (response, own) = (&work.response, &work.own);
+        af.par_chunks_mut(PIECE).enumerate().for_each(|(piece, out)| {
+            for (c, value) in (piece * PIECE..).zip(out.iter_mut()) {
+                let mut total = own.get(c).copied().unwrap_or(0.0);
+                for (row, w) in reverse.of(c) {
+                    let row = *row as usize;
+                    total += f64::from(*w) * response.get(row / 3).map_or(0.0, |r| r[row % 3]);
+                }
+                *value = total;
+            }
+        });
+    }
 }
 
 /// Minimises the unit's energy from `f` (the start values) by conjugate gradients with A's
 /// diagonal as preconditioner, until |A f - b| <= tolerance |b| or `max_iterations`.
 pub fn solve(problem: &SsdProblem, f: &mut [f64], tolerance: f64, max_iterations: usize) -> Solved {
+    let n = problem.n;
     let energy_before = problem.energy(f);
     let b = problem.rhs();
     let b_norm = inner(&b, &b).sqrt();
@@ -384,42 +542,56 @@ pub fn solve(problem: &SsdProblem, f: &mut [f64], tolerance: f64, max_iterations
         .into_iter()
         .map(|d| if d > 0.0 { 1.0 / d } else { 0.0 })
         .collect();
-    let af = problem.apply(f);
-    let mut r: Vec<f64> = b.iter().zip(&af).map(|(b, a)| b - a).collect();
+    let operator = Operator::new(problem);
+    let mut work = Workspace::new(n);
+    let mut ap = vec![0.0; n];
+    operator.apply(f, &mut work, &mut ap);
+    let mut r: Vec<f64> = b.iter().zip(&ap).map(|(b, a)| b - a).collect();
     let mut z: Vec<f64> = r.iter().zip(&inverse_diagonal).map(|(r, m)| r * m).collect();
     let mut p = z.clone();
     let mut rz = inner(&r, &z);
+    let mut rr = inner(&r, &r);
     let mut iterations = 0;
     let target = tolerance * b_norm;
-    while iterations < max_iterations && inner(&r, &r).sqrt() > target && rz > 0.0 {
-        let ap = problem.apply(&p);
+    while iterations < max_iterations && rr.sqrt() > target && rz > 0.0 {
+        operator.apply(&p, &mut work, &mut ap);
         let pap = inner(&p, &ap);
         if pap <= 0.0 {
             break;
         }
         let alpha = rz / pap;
-        for i in 0..f.len() {
-            f[i] += alpha * p[i];
-            r[i] -= alpha * ap[i];
-        }
-        for i in 0..z.len() {
-            z[i] = r[i] * inverse_diagonal[i];
-        }
-        let rz_next = inner(&r, &z);
+        // f += alpha p, r -= alpha A p, z = M^-1 r, with r.z and r.r of the pieces.
+        let sums: Vec<(f64, f64)> = f
+            .par_chunks_mut(PIECE)
+            .zip(r.par_chunks_mut(PIECE))
+            .zip(z.par_chunks_mut(PIECE))
+            .zip(p.par_chunks(PIECE))
+            .zip(ap.par_chunks(PIECE))
+            .zip(inverse_diagonal.par_chunks(PIECE))
+            .map(|(((((f, r), z), p), ap), m)| {
+                let (mut rz, mut rr) = (0.0, 0.0);
+                for (((((f, r), z), p), ap), m) in f.iter_mut().zip(r).zip(z).zip(p).zip(ap).zip(m) {
+                    *f += alpha * p;
+                    *r -= alpha * ap;
+                    *z = *r * m;
+                    rz += *r * *z;
+                    rr += *r * *r;
+                }
+                (rz, rr)
+            })
+            .collect();
+        let rz_next: f64 = sums.iter().map(|s| s.0).sum();
+        rr = sums.iter().map(|s| s.1).sum();
         let beta = rz_next / rz;
         rz = rz_next;
-        for i in 0..p.len() {
-            p[i] = z[i] + beta * p[i];
-        }
+        p.par_chunks_mut(PIECE)
+            .zip(z.par_chunks(PIECE))
+            .for_each(|(p, z)| p.iter_mut().zip(z).for_each(|(p, z)| *p = z + beta * *p));
         iterations += 1;
     }
     Solved {
         iterations,
-        relative_residual: if b_norm > 0.0 {
-            inner(&r, &r).sqrt() / b_norm
-        } else {
-            0.0
-        },
+        relative_residual: if b_norm > 0.0 { rr.sqrt() / b_norm } else { 0.0 },
         energy_before,
         energy_after: problem.energy(f),
     }

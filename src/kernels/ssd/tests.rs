@@ -214,19 +214,53 @@ fn conjugate_gradients_reach_the_residual_target_and_the_dense_solution() {
 
 #[test]
 fn solutions_are_bit_identical_for_any_thread_count() {
-    let p = random_problem(11);
-    let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .expect("pool");
-        pool.install(|| {
-            let mut f = vec![0.0; p.n];
-            solve(&p, &mut f, 1e-12, 500);
-            f.iter().map(|x| x.to_bits()).collect::<Vec<u64>>()
-        })
-    };
-    assert_eq!(run(1), run(3));
+    // Several pieces of the parallel loops: a grid of 24^3 cubes, 13,824 > PIECE.
+    let mut large = sphere_problem(24, 0.3, [0.5, 0.47, 0.52]);
+    large.anchor = vec![0.01; large.n];
+    assert!(large.n > PIECE);
+    for (p, iterations) in [(random_problem(11), 500), (large, 60)] {
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool");
+            pool.install(|| {
+                let mut f = p.anchor.clone();
+                let solved = solve(&p, &mut f, 1e-12, iterations);
+                (f.iter().map(|x| x.to_bits()).collect::<Vec<u64>>(), solved.iterations)
+            })
+        };
+        let one = run(1);
+        assert_eq!(one, run(3));
+        assert!(one.1 > 0);
+    }
+}
+
+#[test]
+fn the_products_of_the_solver_equal_the_energys_gradient() {
+    // The solver's product (`Operator`, pieces of PIECE cubes, precomputed pair weights) and
+    // the energy's gradient written term by term agree on a problem of several pieces with
+    // frozen borders and every kind of data.
+    let mut p = sphere_problem(24, 0.3, [0.5, 0.47, 0.52]);
+    let frozen_border = grid(24, 1.0 / 24.0, true);
+    p.start = frozen_border.start;
+    p.terms = frozen_border.terms;
+    p.frozen_f = frozen_border.frozen_f;
+    p.frozen_gradient = frozen_border.frozen_gradient;
+    p.normal_weight = 0.7;
+    p.smoothness = 1.3;
+    let mut state = 5;
+    // Sides differ from cube to cube, as in an adaptive cut: each pair weight belongs to its
+    // row's cube.
+    p.side = p.side.iter().map(|h| h * (0.5 + uniform(&mut state))).collect();
+    let f: Vec<f64> = (0..p.n).map(|_| uniform(&mut state) - 0.5).collect();
+    let fast = p.apply(&f);
+    let reference: Vec<f64> = p.energy_gradient(&f, false).into_iter().map(|x| 0.5 * x).collect();
+    let scale = reference.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    assert!(scale > 0.0);
+    for (c, (x, y)) in fast.iter().zip(&reference).enumerate() {
+        assert!((x - y).abs() <= 1e-12 * scale, "cube {c}: {x} vs {y}");
+    }
 }
 
 /// Samples of a sphere (Fibonacci points, outward normals, equal areas) binned into a grid of
