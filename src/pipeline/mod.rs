@@ -186,10 +186,12 @@ pub fn solve_with_gpu(
         on_report(&store.run_stage(&stage, &options.run)?);
     }
     if options.until >= SolveUntil::Solution {
+        let coarse_samples = crate::stages::solve::CoarseSamplesCache::default();
         for level in 0..=octree_max_depth(store)? {
             let stage = LevelStage::new(level, scene, options.params)
                 .with_gpu(gpu.clone())
-                .with_method(options.method);
+                .with_method(options.method)
+                .with_coarse_samples(coarse_samples.clone());
             on_report(&store.run_stage(&stage, &options.run)?);
         }
     }

@@ -28,7 +28,7 @@ mod cut;
 mod params;
 mod ssd;
 
-pub use ssd::{METHOD_COLUMN, method_of_segment};
+pub use ssd::{CoarseSamplesCache, METHOD_COLUMN, method_of_segment};
 
 pub use cut::{CutValue, LeafValues, LevelCut, cut_cube_ending_at};
 
@@ -316,6 +316,8 @@ pub struct LevelStage {
     /// Where the iterations run; `None` is the CPU kernel.
     gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
     method: Method,
+    /// SSD: the units' samples summed for the coarse levels, shared by the levels of a solve.
+    coarse_samples: ssd::CoarseSamplesCache,
 }
 
 #[derive(Serialize, Deserialize, Default, Clone, Copy)]
@@ -337,12 +339,19 @@ impl LevelStage {
             groups: std::sync::OnceLock::new(),
             gpu: None,
             method: Method::Tgv,
+            coarse_samples: ssd::CoarseSamplesCache::default(),
         }
     }
 
     /// Minimises `method`'s energy rather than TGV's.
     pub fn with_method(mut self, method: Method) -> LevelStage {
         self.method = method;
+        self
+    }
+
+    /// Shares SSD's cache of the units' coarse sample sums with the other levels of a solve.
+    pub fn with_coarse_samples(mut self, cache: ssd::CoarseSamplesCache) -> LevelStage {
+        self.coarse_samples = cache;
         self
     }
 

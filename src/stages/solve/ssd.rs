@@ -79,62 +79,192 @@ fn probe(point: [f64; 3]) -> CubeKey {
     CubeKey::from_full_resolution(MAX_DEPTH, full(point[0]), full(point[1]), full(point[2]))
 }
 
+/// Samples added up (root units).
+#[derive(Clone, Copy, Debug, Default)]
+struct SampleTotals {
+    weight: f64,
+    /// Sum of weight times centroid.
+    position: [f64; 3],
+    normal: [f64; 3],
+}
+
+/// Levels whose cuts take a unit's samples from its [`CoarseSamples`].
+const COARSE_LEVELS: u8 = 8;
+
+/// One unit's samples as the cuts of the coarse levels take them: at level L, a node deeper
+/// than L gives its samples to the cut cube holding its ancestor at L (its centroid lies in
+/// its cube, so in that ancestor), so its samples can be summed by that ancestor beforehand.
+pub struct CoarseSamples {
+    /// Per level L below [`COARSE_LEVELS`]: the nodes deeper than L summed by their ancestor
+    /// at L, in key order.
+    by_level: Vec<Vec<(CubeKey, SampleTotals)>>,
+    /// The nodes of depth below [`COARSE_LEVELS`], taken one by one.
+    shallow: Vec<(CubeKey, Moments)>,
+}
+
+impl CoarseSamples {
+    fn of(keys: &[CubeKey], moments: &[Moments]) -> CoarseSamples {
+        let mut by_level: Vec<Vec<(CubeKey, SampleTotals)>> = vec![Vec::new(); usize::from(COARSE_LEVELS)];
+        let mut shallow = Vec::new();
+        for (key, m) in keys.iter().zip(moments) {
+            if key.depth() < COARSE_LEVELS {
+                shallow.push((*key, *m));
+            }
+            let Some((w, centroid, normal)) = m.in_root_units(*key) else {
+                continue;
+            };
+            let coords = key.coords();
+            for (level, sums) in (0..key.depth().min(COARSE_LEVELS)).zip(by_level.iter_mut()) {
+                let [x, y, z] = coords.map(|c| c >> (key.depth() - level));
+                let ancestor = CubeKey::new(level, x, y, z);
+                // Keys come in depth-first order: a cube's descendants are consecutive.
+                if sums.last().is_none_or(|(last, _)| *last != ancestor) {
+                    sums.push((ancestor, SampleTotals::default()));
+                }
+                if let Some((_, totals)) = sums.last_mut() {
+                    totals.weight += w;
+                    for k in 0..3 {
+                        totals.position[k] += w * centroid[k];
+                        totals.normal[k] += normal[k];
+                    }
+                }
+            }
+        }
+        CoarseSamples { by_level, shallow }
+    }
+}
+
+/// [`CoarseSamples`] by samples segment (segments are immutable, so a name is its content),
+/// shared by the level stages of one solve: the coarse levels' cuts take every unit's samples,
+/// and decoding all of them at every level cost SSD about half a second a level.
+pub type CoarseSamplesCache = std::sync::Arc<std::sync::Mutex<BTreeMap<String, std::sync::Arc<CoarseSamples>>>>;
+
+fn coarse_samples_of(
+    base: &Snapshot<'_>,
+    segment: &str,
+    cache: &CoarseSamplesCache,
+) -> Result<std::sync::Arc<CoarseSamples>> {
+    let cached = cache
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .get(segment)
+        .cloned();
+    if let Some(coarse) = cached {
+        return Ok(coarse);
+    }
+    let (keys, moments) = read_samples(base, segment)?;
+    let coarse = std::sync::Arc::new(CoarseSamples::of(&keys, &moments));
+    cache
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .insert(segment.to_string(), coarse.clone());
+    Ok(coarse)
+}
+
 /// Each cut cube's samples. Every octree node's own samples go to the cut cube holding their
 /// centroid: their node's ancestor at the level, the node itself, or, for a node above the
 /// level, the finer cube its samples gather in. Each node lands in exactly one unit's cut: a
 /// leaf unit takes its own nodes and the treetop's nodes above it whose centroid lies in it;
-/// the treetop's unit takes its own and every leaf unit's that lies below the level.
-fn cut_samples(base: &Snapshot<'_>, treetop: &Treetop, level: u8, cut: &UnitCut) -> Result<Vec<CubeSamples>> {
+/// the treetop's unit takes its own and every leaf unit's that lies below the level. At the
+/// coarse levels a unit's nodes deeper than the level come summed by their ancestor at the
+/// level ([`CoarseSamples`]; a centroid on the ancestor's upper face then counts in the
+/// ancestor's cut cube, where the node-by-node rule would put it in the neighbour's).
+fn cut_samples(
+    base: &Snapshot<'_>,
+    treetop: &Treetop,
+    level: u8,
+    cut: &UnitCut,
+    cache: &CoarseSamplesCache,
+) -> Result<Vec<CubeSamples>> {
     let segments: BTreeMap<u64, &str> = base
         .segments(SAMPLES)
         .iter()
         .map(|(name, record)| (record.unit, name.as_str()))
         .collect();
+    let missing = |unit: usize| StoreError::Stage {
+        stage: SAMPLES.into(),
+        unit: format!("unit {unit}"),
+        message: "no samples for this unit: run the samples stage first".into(),
+    };
     let read = |unit: usize| -> Result<(Vec<CubeKey>, Vec<Moments>)> {
         match segments.get(&(unit as u64)) {
             Some(name) => read_samples(base, name),
-            None => Err(StoreError::Stage {
-                stage: SAMPLES.into(),
-                unit: format!("unit {unit}"),
-                message: "no samples for this unit: run the samples stage first".into(),
-            }),
+            None => Err(missing(unit)),
         }
     };
     let keys = &cut.keys;
-    let mut weight = vec![0.0f64; keys.len()];
-    let mut moment = vec![[0.0f64; 3]; keys.len()];
-    let mut normal = vec![[0.0f64; 3]; keys.len()];
-    let mut add = |node: CubeKey, m: &Moments| {
+    // The cut cube that is `key` or holds it.
+    let holding = |key: CubeKey| {
+        keys.partition_point(|k| *k <= key)
+            .checked_sub(1)
+            .filter(|&i| keys.get(i).is_some_and(|k| k.is_ancestor_or_self_of(key)))
+    };
+    let sums = std::cell::RefCell::new((
+        vec![0.0f64; keys.len()],
+        vec![[0.0f64; 3]; keys.len()],
+        vec![[0.0f64; 3]; keys.len()],
+    ));
+    // Adds to cut cube i a weight, its weighted offset from the cube's centre and a normal sum.
+    let gather = |i: usize, w: f64, offset: [f64; 3], n: [f64; 3]| {
+        let (weight, moment, normal) = &mut *sums.borrow_mut();
+        if let (Some(weight), Some(moment), Some(normal)) = (weight.get_mut(i), moment.get_mut(i), normal.get_mut(i)) {
+            *weight += w;
+            for k in 0..3 {
+                moment[k] += offset[k];
+                normal[k] += n[k];
+            }
+        }
+    };
+    let add = |node: CubeKey, m: &Moments| {
         let Some((w, centroid, n)) = m.in_root_units(node) else {
             return;
         };
-        let probe = probe(centroid);
-        let position = keys.partition_point(|k| *k <= probe);
-        let Some(i) = position
-            .checked_sub(1)
-            .filter(|&i| keys.get(i).is_some_and(|k| k.is_ancestor_or_self_of(probe)))
-        else {
+        let Some(i) = holding(probe(centroid)) else {
             return;
         };
         let centre = cube_centre(keys[i]);
-        weight[i] += w;
-        for k in 0..3 {
-            moment[i][k] += w * (centroid[k] - centre[k]);
-            normal[i][k] += n[k];
-        }
+        gather(i, w, std::array::from_fn(|k| w * (centroid[k] - centre[k])), n);
     };
     let top = treetop.units.iter().position(|u| u.top);
     let members: BTreeSet<usize> = cut.members.iter().copied().collect();
+    // Every node of unit `index`, through its coarse sums at the coarse levels.
+    let add_unit = |index: usize| -> Result<()> {
+        let Some(segment) = segments.get(&(index as u64)) else {
+            return Err(missing(index));
+        };
+        if level >= COARSE_LEVELS {
+            let (node_keys, moments) = read_samples(base, segment)?;
+            node_keys.iter().zip(&moments).for_each(|(k, m)| add(*k, m));
+            return Ok(());
+        }
+        let coarse = coarse_samples_of(base, segment, cache)?;
+        for (ancestor, totals) in coarse
+            .by_level
+            .get(usize::from(level))
+            .map(Vec::as_slice)
+            .unwrap_or_default()
+        {
+            if let Some(i) = holding(*ancestor) {
+                let centre = cube_centre(keys[i]);
+                let offset = std::array::from_fn(|k| totals.position[k] - totals.weight * centre[k]);
+                gather(i, totals.weight, offset, totals.normal);
+            }
+        }
+        coarse
+            .shallow
+            .iter()
+            .filter(|(k, _)| k.depth() <= level)
+            .for_each(|(k, m)| add(*k, m));
+        Ok(())
+    };
     for &member in &members {
-        let (node_keys, moments) = read(member)?;
-        node_keys.iter().zip(&moments).for_each(|(k, m)| add(*k, m));
+        add_unit(member)?;
     }
     match top {
         Some(top) if members.contains(&top) => {
             for (index, unit) in treetop.units.iter().enumerate() {
                 if !unit.top && !members.contains(&index) && unit.key.depth() > level {
-                    let (node_keys, moments) = read(index)?;
-                    node_keys.iter().zip(&moments).for_each(|(k, m)| add(*k, m));
+                    add_unit(index)?;
                 }
             }
         }
@@ -152,15 +282,19 @@ fn cut_samples(base: &Snapshot<'_>, treetop: &Treetop, level: u8, cut: &UnitCut)
         }
         None => {}
     }
-    Ok((0..keys.len())
-        .map(|i| CubeSamples {
-            weight: weight[i],
-            centroid: if weight[i] > 0.0 {
-                moment[i].map(|x| x / weight[i])
+    let (weight, moment, normal) = sums.into_inner();
+    Ok(weight
+        .into_iter()
+        .zip(moment)
+        .zip(normal)
+        .map(|((weight, moment), normal)| CubeSamples {
+            weight,
+            centroid: if weight > 0.0 {
+                moment.map(|x| x / weight)
             } else {
                 [0.0; 3]
             },
-            normal: normal[i],
+            normal,
         })
         .collect())
 }
@@ -174,7 +308,7 @@ impl LevelStage {
         cut: &UnitCut,
         params: &SsdParams,
     ) -> Result<(SsdProblem, Vec<f64>)> {
-        let mut samples = cut_samples(base, treetop, self.level, cut)?;
+        let mut samples = cut_samples(base, treetop, self.level, cut, &self.coarse_samples)?;
         if let Method::Hybrid(_) = self.method {
             for (s, hist) in samples.iter_mut().zip(&cut.hist) {
                 let factor = evidence(hist);
@@ -295,6 +429,69 @@ mod tests {
         // 7 of 40 measure: halfway up the ramp from 0.1 to 0.25.
         let between = evidence(&hist(7.0, 33.0, 0.0));
         assert!((between - 0.5).abs() < 1e-6, "{between}");
+    }
+
+    #[test]
+    fn coarse_sums_add_each_node_into_its_ancestor_at_every_coarse_level() {
+        // Nodes of one subtree at depths 1 to 10, in key order, some without samples.
+        let mut state = 3u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as u32
+        };
+        let mut keys: Vec<CubeKey> = (0..3000)
+            .map(|_| {
+                let depth = 1 + (next() % 10) as u8;
+                let mask = (1u32 << depth) - 1;
+                CubeKey::new(depth, next() & mask, next() & mask, next() & mask)
+            })
+            .collect();
+        keys.sort();
+        keys.dedup();
+        let moments: Vec<Moments> = keys
+            .iter()
+            .map(|_| Moments {
+                weight: i64::from(next() % 3),
+                offset: [0; 3].map(|_| i64::from(next() % 7) - 3),
+                normal: [0; 3].map(|_| i64::from(next() % 9) - 4),
+            })
+            .collect();
+        let coarse = CoarseSamples::of(&keys, &moments);
+        assert_eq!(
+            coarse.shallow.len(),
+            keys.iter().filter(|k| k.depth() < COARSE_LEVELS).count()
+        );
+        for level in 0..COARSE_LEVELS {
+            let mut expected: BTreeMap<CubeKey, SampleTotals> = BTreeMap::new();
+            for (key, m) in keys.iter().zip(&moments) {
+                let Some((w, centroid, normal)) = m.in_root_units(*key).filter(|_| key.depth() > level) else {
+                    continue;
+                };
+                let mut ancestor = *key;
+                while ancestor.depth() > level {
+                    ancestor = ancestor.parent().expect("deeper than the level");
+                }
+                let entry = expected.entry(ancestor).or_default();
+                entry.weight += w;
+                for k in 0..3 {
+                    entry.position[k] += w * centroid[k];
+                    entry.normal[k] += normal[k];
+                }
+            }
+            let got = &coarse.by_level[usize::from(level)];
+            assert_eq!(got.len(), expected.len(), "level {level}: one entry per ancestor");
+            let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1e-30);
+            for ((ancestor, totals), (key, want)) in got.iter().zip(&expected) {
+                assert_eq!(ancestor, key);
+                assert!(close(totals.weight, want.weight), "level {level}");
+                for k in 0..3 {
+                    assert!(close(totals.position[k], want.position[k]), "level {level}");
+                    assert!(close(totals.normal[k], want.normal[k]), "level {level}");
+                }
+            }
+        }
     }
 
     #[test]
