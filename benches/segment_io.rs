@@ -5,6 +5,9 @@
 //! Write: encode + zstd + write + fsync, one segment per 1M cubes, single thread.
 //! Read: checksum + zstd decode of every column, single thread, then all cores.
 
+mod common;
+
+use common::setting;
 use std::time::Instant;
 
 use octstore::format::segment::{SegmentReader, encode_segment};
@@ -57,10 +60,7 @@ fn decoded_bytes(columns: &[Column]) -> u64 {
 }
 
 fn main() {
-    let total: usize = std::env::var("OCTSTORE_BENCH_CUBES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(16 << 20);
+    let total: usize = setting("OCTSTORE_BENCH_CUBES", 16 << 20);
     let dir = tempfile::tempdir().expect("temp dir");
     let segments = total.div_ceil(CUBES_PER_SEGMENT);
     let mut write_seconds = 0.0;

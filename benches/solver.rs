@@ -6,16 +6,16 @@
 //! the iterations only: the time of one iteration (upload, one step, read-back) is subtracted
 //! from the time of all of them.
 
+mod common;
+
+use common::setting;
 use std::time::Instant;
 
 use octstore::gpu::{Gpu, adapters};
 use octstore::kernels::tgv::{Kernel, Operator, Packed, Problem, State, solve};
 
 fn main() {
-    let n: usize = std::env::var("OCTSTORE_BENCH_GRID")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(100);
+    let n: usize = setting("OCTSTORE_BENCH_GRID", 100);
     let cubes = n * n * n;
     let index = |x: usize, y: usize, z: usize| (x + n * (y + n * z)) as u32;
     let h = 1.0 / n as f32;
@@ -62,10 +62,7 @@ fn main() {
         lambda: 0.1,
     };
     let state = State::zeros(cubes);
-    let iterations: usize = std::env::var("OCTSTORE_BENCH_ITERATIONS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(200);
+    let iterations: usize = setting("OCTSTORE_BENCH_ITERATIONS", 200);
     let started = Instant::now();
     let (before, after) = solve(&problem, &mut state.clone(), iterations);
     let seconds = started.elapsed().as_secs_f64();

@@ -4,19 +4,16 @@
 //! in the cubes it crosses, started from zero (the iterations of a whole solve) and run to the
 //! default residual target or OCTSTORE_BENCH_ITERATIONS (default 200), whichever comes first.
 
+mod common;
+
+use common::setting;
 use std::time::Instant;
 
 use octstore::kernels::ssd::{CubeSamples, DEFAULT_NORMAL_WEIGHT, DEFAULT_SMOOTHNESS, SsdProblem, solve};
 
 fn main() {
-    let n: usize = std::env::var("OCTSTORE_BENCH_GRID")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(100);
-    let iterations: usize = std::env::var("OCTSTORE_BENCH_ITERATIONS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(200);
+    let n: usize = setting("OCTSTORE_BENCH_GRID", 100);
+    let iterations: usize = setting("OCTSTORE_BENCH_ITERATIONS", 200);
     let cubes = n * n * n;
     let index = |x: usize, y: usize, z: usize| (x + n * (y + n * z)) as u32;
     let h = 1.0 / n as f64;

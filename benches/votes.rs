@@ -5,6 +5,9 @@
 //! OCTSTORE_BENCH_MAPS how many times the map is voted (default 20). A GPU figure counts the
 //! votes only: the time of one pass with its uploads and read-back is subtracted.
 
+mod common;
+
+use common::setting;
 use std::time::Instant;
 
 use glam::{DMat4, DVec3};
@@ -14,11 +17,8 @@ use octstore::kernels::votes::Pyramid;
 use rayon::prelude::*;
 
 fn main() {
-    let setting = |name: &str, default: usize| -> usize {
-        std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
-    };
-    let cubes = setting("OCTSTORE_BENCH_CUBES", 1_000_000);
-    let maps = setting("OCTSTORE_BENCH_MAPS", 20).max(2);
+    let cubes: usize = setting("OCTSTORE_BENCH_CUBES", 1_000_000);
+    let maps: usize = setting("OCTSTORE_BENCH_MAPS", 20).max(2);
     // A 640 x 480 view of a wavy wall 3 to 4 m away, and cubes scattered around the wall at
     // the sizes of 1 to 8 pixel footprints, some in front, some behind, some outside the view.
     let (width, height) = (640u32, 480u32);

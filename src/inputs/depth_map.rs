@@ -193,13 +193,20 @@ impl DepthNoise {
         }
     }
 
+    /// The standard deviation of a depth measured at `depth` (0 without a model).
+    pub fn sigma(&self, depth: f64) -> f64 {
+        self.parts().map_or(0.0, |[constant, quadratic, offset, ..]| {
+            constant + quadratic * (depth - offset).powi(2)
+        })
+    }
+
     /// The radius of a sample at `depth` whose footprint radius (half the distance to its
     /// nearest neighbour) is `footprint`.
     pub fn radius(&self, footprint: f64, depth: f64) -> f64 {
-        let Some([constant, quadratic, offset, sigmas, footprints]) = self.parts() else {
+        let Some([_, _, _, sigmas, footprints]) = self.parts() else {
             return footprint;
         };
-        let floor = sigmas * (constant + quadratic * (depth - offset).powi(2));
+        let floor = sigmas * self.sigma(depth);
         footprint.max(floor.min(footprints * footprint))
     }
 
@@ -417,6 +424,25 @@ impl DepthMapSource {
                     elevation.cos() * azimuth.cos(),
                     elevation.cos() * azimuth.sin(),
                     elevation.sin(),
+                )
+            }
+        }
+    }
+
+    /// The derivatives of [`ray`](Self::ray) at pixel (i, j) along i and along j.
+    pub fn ray_derivatives(&self, i: f64, j: f64) -> (DVec3, DVec3) {
+        match self.projection {
+            Projection::Pinhole { fx, fy, .. } => (DVec3::new(1.0 / fx, 0.0, 0.0), DVec3::new(0.0, 1.0 / fy, 0.0)),
+            Projection::Spherical => {
+                let azimuth_step = std::f64::consts::TAU / f64::from(self.width);
+                let elevation_step = -std::f64::consts::PI / f64::from(self.height);
+                let azimuth = azimuth_step * i;
+                let elevation = std::f64::consts::FRAC_PI_2 + elevation_step * (j + 0.5);
+                let (sin_a, cos_a) = azimuth.sin_cos();
+                let (sin_e, cos_e) = elevation.sin_cos();
+                (
+                    DVec3::new(-cos_e * sin_a, cos_e * cos_a, 0.0) * azimuth_step,
+                    DVec3::new(-sin_e * cos_a, -sin_e * sin_a, cos_e) * elevation_step,
                 )
             }
         }

@@ -168,7 +168,8 @@ impl SsdProblem {
     /// The energy's gradient dE/df for free values `f`; without `with_constants` the frozen
     /// values, normals and anchor values count as zero (then it is 2 A f). Every output is
     /// gathered in a fixed order (own rows, then the reverse lists), so the result does not
-    /// depend on the thread count.
+    /// depend on the thread count. The right-hand side takes it with the constants; without
+    /// them it is the straightforward reference that tests hold [`Operator`]'s product to.
     fn energy_gradient(&self, f: &[f64], with_constants: bool) -> Vec<f64> {
         let n = self.n;
         let reverse = self.reverse();
@@ -267,7 +268,7 @@ impl SsdProblem {
     /// A f.
     pub fn apply(&self, f: &[f64]) -> Vec<f64> {
         let operator = Operator::new(self);
-        let mut workspace = Workspace::new(self.n);
+        let mut workspace = operator.workspace();
         let mut af = vec![0.0; self.n];
         operator.apply(f, &mut workspace, &mut af);
         af
@@ -395,8 +396,6 @@ fn inner(a: &[f64], b: &[f64]) -> f64 {
 /// of work and summed in a fixed order.
 struct Operator<'a> {
     problem: &'a SsdProblem,
-    /// smoothness h^5 per free cube: a term's pair weight is this times the term's w.
-    pair_scale: Vec<f64>,
     /// The coefficient of g_c in r_c: lambda1 h^2 W plus the pair weights of the cube's terms
     /// and of the terms that target it.
     own_coupling: Vec<f64>,
@@ -406,22 +405,13 @@ struct Operator<'a> {
 
 /// The buffers of [`Operator::apply`], kept between products.
 struct Workspace {
-    /// g_c, and the cube's pair scale beside it (read together by the cubes its rows target).
+    /// g_c, and beside it the cube's pair scale, smoothness h^5 (a term's pair weight is this
+    /// times the term's w), read together by the cubes its rows target; written once.
     gradient: Vec<[f64; 4]>,
     /// r_c.
     response: Vec<[f64; 3]>,
     /// The part of (A f)_c from the cube's own terms.
     own: Vec<f64>,
-}
-
-impl Workspace {
-    fn new(n: usize) -> Workspace {
-        Workspace {
-            gradient: vec![[0.0; 4]; n],
-            response: vec![[0.0; 3]; n],
-            own: vec![0.0; n],
-        }
-    }
 }
 
 impl<'a> Operator<'a> {
@@ -450,16 +440,26 @@ impl<'a> Operator<'a> {
         let anchor_weight = problem.side.iter().map(|h| ANCHOR * h * h).collect();
         Operator {
             problem,
-            pair_scale,
             own_coupling,
             anchor_weight,
+        }
+    }
+
+    /// The buffers of [`apply`](Self::apply), the pair scales in place.
+    fn workspace(&self) -> Workspace {
+        let n = self.problem.n;
+        Workspace {
+            gradient: (0..n)
+                .map(|c| [0.0, 0.0, 0.0, self.problem.pair_weight(c, 1.0)])
+                .collect(),
+            response: vec![[0.0; 3]; n],
+            own: vec![0.0; n],
         }
     }
 
     /// `af` = A `f`.
     fn apply(&self, f: &[f64], work: &mut Workspace, af: &mut [f64]) {
         let problem = self.problem;
-        let n = problem.n;
         let reverse = problem.reverse();
         work.gradient
             .par_chunks_mut(PIECE)
@@ -467,16 +467,13 @@ impl<'a> Operator<'a> {
             .for_each(|(piece, out)| {
                 for (c, g) in (piece * PIECE..).zip(out.iter_mut()) {
                     let fc = f.get(c).copied().unwrap_or(0.0);
-                    let mut gc = [0.0; 4];
-                    for (axis, value) in gc.iter_mut().take(3).enumerate() {
+                    for (axis, value) in g.iter_mut().take(3).enumerate() {
                         *value = problem
                             .row(3 * c + axis)
                             .iter()
                             .map(|(t, w)| f64::from(*w) * (f.get(*t as usize).copied().unwrap_or(0.0) - fc))
                             .sum();
                     }
-                    gc[3] = self.pair_scale.get(c).copied().unwrap_or(0.0);
-                    *g = gc;
                 }
             });
         let gradient = &work.gradient;
@@ -498,7 +495,8 @@ impl<'a> Operator<'a> {
                     let scale = g[3];
                     for axis in 0..3 {
                         for (t, w) in problem.row(3 * c + axis) {
-                            if let Some(gt) = gradient.get(*t as usize).filter(|_| (*t as usize) < n) {
+                            // Frozen targets (t >= n) lie past the buffer and read as absent.
+                            if let Some(gt) = gradient.get(*t as usize) {
                                 let sigma = scale * f64::from(*w);
                                 (0..3).for_each(|k| r[k] -= sigma * gt[k]);
                             }
@@ -543,7 +541,7 @@ pub fn solve(problem: &SsdProblem, f: &mut [f64], tolerance: f64, max_iterations
         .map(|d| if d > 0.0 { 1.0 / d } else { 0.0 })
         .collect();
     let operator = Operator::new(problem);
-    let mut work = Workspace::new(n);
+    let mut work = operator.workspace();
     let mut ap = vec![0.0; n];
     operator.apply(f, &mut work, &mut ap);
     let mut r: Vec<f64> = b.iter().zip(&ap).map(|(b, a)| b - a).collect();

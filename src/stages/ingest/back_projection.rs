@@ -2,6 +2,9 @@
 //! need only its 4-neighbours, so a window of three rows of camera-frame points is all the
 //! back-projection holds, whatever the image's size (format-spec.md, "Ingest runs").
 //!
+//! The normals (`for_each`, for the SSD sums only) are fitted to a window of
+//! 2 [`NORMAL_WINDOW_RADIUS`] + 1 rows of depths, which the stream reads that many rows ahead.
+//!
 //! A pass over a map: the exact median of its valid depths (two passes of a radix select over
 //! the depths' bits, for the absurd-depth limit), then one pass that back-projects each row
 //! once its lower neighbour row is read. Small maps are read into memory once and every pass
@@ -21,6 +24,13 @@ const ABSURD_DEPTH_FACTOR: f32 = 1.0e4;
 /// head-on keep their neighbours within it; random outlier depths almost never have two.
 /// Spikes do not size the root, and spikes outside the root are dropped without complaint.
 const SPIKE_SPACING: f64 = 8.0;
+
+/// A sample's normal is fitted to the depths within this many pixels of it (a window of 7 x 7):
+/// sensors' depth noise is often larger than a pixel's footprint (the Kinect's at 2 m is about
+/// two footprints), and the difference to one neighbour then points the normal almost anywhere,
+/// while a least-squares slope over 7 x 7 pixels has 14 times less noise. The wider the window,
+/// the more it rounds off creases; 3 halves the noise of 2 at 2 times the cost.
+const NORMAL_WINDOW_RADIUS: usize = 3;
 
 /// Depth rows, from the top, in as many passes as needed.
 pub trait DepthRowSource {
@@ -173,7 +183,7 @@ impl<'r> SampleStream<'r> {
         let pose = self.source.pose();
         let rotation = DMat3::from_mat4(pose);
         let pixel_angle = self.source.pixel_angle();
-        let mut depth = vec![f32::NAN; width];
+        let mut depths = DepthRing::new(width, if NORMALS { NORMAL_WINDOW_RADIUS } else { 0 });
         let mut window = Window {
             rows: [vec![None; width], vec![None; width], vec![None; width]],
             vertical: [vec![None; width], vec![None; width]],
@@ -185,14 +195,14 @@ impl<'r> SampleStream<'r> {
         let sampled = |j: usize| j % row_step == row_step / 2;
         let beside_sampled = |j: usize| sampled(j) || sampled(j + 1) || j.checked_sub(1).is_some_and(sampled);
         if height > 0 {
-            self.camera_row(0, &mut depth, &mut stats, &mut window.rows[1])?;
+            self.camera_row(0, &mut depths, &mut stats, &mut window.rows[1])?;
         }
         for j in 0..height {
             if j + 1 < height {
                 if beside_sampled(j + 1) {
-                    self.camera_row(j + 1, &mut depth, &mut stats, &mut window.rows[2])?;
+                    self.camera_row(j + 1, &mut depths, &mut stats, &mut window.rows[2])?;
                 } else {
-                    self.next_row(j + 1, &mut depth)?;
+                    self.read_through(j + 1, &mut depths)?;
                 }
                 if sampled(j) || sampled(j + 1) {
                     window.steps_down();
@@ -226,7 +236,10 @@ impl<'r> SampleStream<'r> {
                     Projection::Spherical => p.length(),
                 };
                 let normal = if NORMALS {
-                    normal_direction(p, &steps).map_or(DVec3::ZERO, |n| (rotation * n).normalize_or_zero())
+                    let fitted = self.fitted_normal_direction(&depths, i, j, p);
+                    fitted
+                        .or_else(|| normal_direction(p, &steps))
+                        .map_or(DVec3::ZERO, |n| (rotation * n).normalize_or_zero())
                 } else {
                     DVec3::ZERO
                 };
@@ -246,28 +259,146 @@ impl<'r> SampleStream<'r> {
         Ok(stats)
     }
 
-    /// Row `j`'s depths.
-    fn next_row(&mut self, j: usize, depth: &mut [f32]) -> Result<(), InputError> {
-        if self.rows.next_row(depth)? {
-            Ok(())
-        } else {
-            Err(crate::inputs::bad(
-                &self.source.path,
-                format!("depth image ended before row {j}"),
-            ))
+    /// Reads the rows up to row `j` and the ring's look-ahead past it (to the image's last row).
+    fn read_through(&mut self, j: usize, depths: &mut DepthRing) -> Result<(), InputError> {
+        let last = (j + depths.ahead).min((self.rows.height() as usize).saturating_sub(1));
+        while depths.read <= last {
+            let row = depths.read;
+            let (depth, inverse) = depths.slot(row);
+            if !self.rows.next_row(depth)? {
+                return Err(crate::inputs::bad(
+                    &self.source.path,
+                    format!("depth image ended before row {row}"),
+                ));
+            }
+            // Empty without a look-ahead.
+            for (w, d) in inverse.iter_mut().zip(depth.iter()) {
+                *w = if d.is_finite() && *d > 0.0 && *d <= self.limit {
+                    1.0 / f64::from(*d)
+                } else {
+                    f64::NAN
+                };
+            }
+            depths.read += 1;
         }
+        Ok(())
+    }
+
+    /// The camera-frame normal direction at pixel (i, j), whose point is `p`, from the plane
+    /// fitted to the depths of its window (`NORMAL_WINDOW_RADIUS`): a least-squares fit of the
+    /// inverse depth w as w0 + a du + b dv over the window's valid pixels (du, dv) whose depth
+    /// is within 8 footprints a pixel of distance, plus 3 sigma of the map's noise, of the
+    /// centre's (a fit across a depth edge would tilt it). A plane n . x = c holds
+    /// n . ray = c w along every ray, so n solves [ray; ray_i; ray_j] n = c [w0; a; b]
+    /// (`DepthMapSource::ray_derivatives`): n = w0 ray_i x ray_j + a ray_j x ray + b ray x ray_i,
+    /// exact for pinhole maps (a plane's inverse depth is linear in their pixels); spherical
+    /// maps' is not, and where the window is cut off to one side the fit tilts by a little
+    /// (`normals_of_spherical_maps_are_the_planes`). Oriented towards the
+    /// camera, not normalised ([`normal_direction`]). `None` without a look-ahead, or where the
+    /// kept pixels do not span both axes.
+    fn fitted_normal_direction(&self, depths: &DepthRing, i: usize, j: usize, p: DVec3) -> Option<DVec3> {
+        let radius = depths.ahead as isize;
+        if radius == 0 {
+            return None;
+        }
+        let centre = depths.inverses(j)?.get(i).copied().filter(|w| w.is_finite())?;
+        let width = depths.depths(j).len() as isize;
+        let height = self.rows.height() as usize;
+        let wraps = matches!(self.source.projection, Projection::Spherical);
+        let per_pixel = SPIKE_SPACING * self.source.pixel_angle() / centre;
+        let noise = 3.0 * std::f64::consts::SQRT_2 * self.source.noise.sigma(1.0 / centre);
+        // Sums over the kept pixels of 1, u, v, u u, u v and v v (the whole window's, less the
+        // pixels left out: most windows keep all), and of y, y u and y v with y = w - centre.
+        let side = 2 * radius + 1;
+        let squares: f64 = (-radius..=radius).map(|u| (u * u) as f64).sum();
+        let mut design = [
+            (side * side) as f64,
+            0.0,
+            0.0,
+            side as f64 * squares,
+            0.0,
+            side as f64 * squares,
+        ];
+        let mut leave_out = |u: f64, v: f64| {
+            for (sum, term) in design.iter_mut().zip([1.0, u, v, u * u, u * v, v * v]) {
+                *sum -= term;
+            }
+        };
+        let (mut sy, mut syu, mut syv) = (0.0, 0.0, 0.0);
+        for dv in -radius..=radius {
+            let v = dv as f64;
+            let row = j
+                .checked_add_signed(dv)
+                .filter(|r| *r < height)
+                .and_then(|r| depths.inverses(r));
+            let (mut row_y, mut row_yu) = (0.0, 0.0);
+            // |1/w - 1/centre| <= reach, without a division; NaN (invalid) is left out.
+            let mut add = |du: isize, w: f64| {
+                let u = du as f64;
+                let reach = per_pixel * du.abs().max(dv.abs()) as f64 + noise;
+                if (w - centre).abs() <= reach * w * centre {
+                    row_y += w - centre;
+                    row_yu += (w - centre) * u;
+                } else {
+                    leave_out(u, v);
+                }
+            };
+            let first = i as isize - radius;
+            // Most windows lie inside the image: their row is one slice.
+            match row.and_then(|row| row.get(usize::try_from(first).ok()?..i + 1 + radius as usize)) {
+                Some(window) if !wraps => (-radius..).zip(window).for_each(|(du, w)| add(du, *w)),
+                _ => {
+                    for du in -radius..=radius {
+                        let column = if wraps {
+                            (i as isize + du).rem_euclid(width)
+                        } else {
+                            i as isize + du
+                        };
+                        let w = row
+                            .zip(usize::try_from(column).ok())
+                            .and_then(|(row, c)| row.get(c))
+                            .copied()
+                            .unwrap_or(f64::NAN);
+                        add(du, w);
+                    }
+                }
+            }
+            sy += row_y;
+            syu += row_yu;
+            syv += row_y * v;
+        }
+        let [n, su, sv, suu, suv, svv] = design;
+        if n < 6.0 {
+            return None;
+        }
+        let (cuu, cuv, cvv) = (suu - su * su / n, suv - su * sv / n, svv - sv * sv / n);
+        let (cuy, cvy) = (syu - su * sy / n, syv - sv * sy / n);
+        let det = cuu * cvv - cuv * cuv;
+        if cuu < 0.5 || cvv < 0.5 || det <= 0.1 * cuu * cvv {
+            return None;
+        }
+        let a = (cvv * cuy - cuv * cvy) / det;
+        let b = (cuu * cvy - cuv * cuy) / det;
+        let w0 = centre + (sy - a * su - b * sv) / n;
+        let ray = self.source.ray(i as f64, j as f64);
+        let (ray_i, ray_j) = self.source.ray_derivatives(i as f64, j as f64);
+        let normal = w0 * ray_i.cross(ray_j) + a * ray_j.cross(ray) + b * ray.cross(ray_i);
+        if !normal.is_finite() || normal == DVec3::ZERO {
+            return None;
+        }
+        Some(if normal.dot(p) > 0.0 { -normal } else { normal })
     }
 
     /// Row `j`'s camera-frame points (`None` where invalid or absurd).
     fn camera_row(
         &mut self,
         j: usize,
-        depth: &mut [f32],
+        depths: &mut DepthRing,
         stats: &mut SampleStats,
         out: &mut [Option<DVec3>],
     ) -> Result<(), InputError> {
-        self.next_row(j, depth)?;
-        for (i, (d, point)) in depth.iter().zip(out.iter_mut()).enumerate() {
+        self.read_through(j, depths)?;
+        for (i, (d, point)) in depths.depths(j).iter().zip(out.iter_mut()).enumerate() {
             let valid = d.is_finite() && *d > 0.0;
             if valid && *d > self.limit {
                 stats.absurd += 1;
@@ -333,6 +464,59 @@ fn select_bucket(histogram: &[u64], rank: u64) -> Option<(usize, u64)> {
         before += count;
     }
     None
+}
+
+/// The depth rows a stream holds: its look-ahead `ahead` rows past the row being sampled, as
+/// many before it, and the row being read, each row `r` in slot `r % (2 ahead + 2)`. With a
+/// look-ahead, also each row's inverse depths (NaN where invalid or absurd), which a plane's
+/// are linear in along a pinhole map's pixels.
+struct DepthRing {
+    depths: Vec<Vec<f32>>,
+    inverses: Vec<Vec<f64>>,
+    ahead: usize,
+    /// Rows read so far: rows `read - slots ..= read - 1` are held.
+    read: usize,
+}
+
+impl DepthRing {
+    fn new(width: usize, ahead: usize) -> Self {
+        let slots = 2 * ahead + 2;
+        DepthRing {
+            depths: vec![vec![f32::NAN; width]; slots],
+            inverses: vec![vec![f64::NAN; if ahead > 0 { width } else { 0 }]; slots],
+            ahead,
+            read: 0,
+        }
+    }
+
+    /// The slot of row `r`, to read it into.
+    fn slot(&mut self, r: usize) -> (&mut [f32], &mut [f64]) {
+        let index = r % self.depths.len();
+        match (self.depths.get_mut(index), self.inverses.get_mut(index)) {
+            (Some(depth), Some(inverse)) => (depth, inverse),
+            _ => (&mut [], &mut []),
+        }
+    }
+
+    fn held(&self, r: usize) -> bool {
+        r < self.read && r + self.depths.len() >= self.read
+    }
+
+    /// Row `r`'s depths; empty if it is not held.
+    fn depths(&self, r: usize) -> &[f32] {
+        match self.depths.get(r % self.depths.len()) {
+            Some(row) if self.held(r) => row,
+            _ => &[],
+        }
+    }
+
+    /// Row `r`'s inverse depths, if it is held.
+    fn inverses(&self, r: usize) -> Option<&[f64]> {
+        self.inverses
+            .get(r % self.inverses.len().max(1))
+            .filter(|_| self.held(r))
+            .map(Vec::as_slice)
+    }
 }
 
 /// The vector from one valid pixel's point to a neighbour's, and its length.

@@ -229,14 +229,12 @@ fn cut_samples(
     let members: BTreeSet<usize> = cut.members.iter().copied().collect();
     // Every node of unit `index`, through its coarse sums at the coarse levels.
     let add_unit = |index: usize| -> Result<()> {
-        let Some(segment) = segments.get(&(index as u64)) else {
-            return Err(missing(index));
-        };
         if level >= COARSE_LEVELS {
-            let (node_keys, moments) = read_samples(base, segment)?;
+            let (node_keys, moments) = read(index)?;
             node_keys.iter().zip(&moments).for_each(|(k, m)| add(*k, m));
             return Ok(());
         }
+        let segment = segments.get(&(index as u64)).ok_or_else(|| missing(index))?;
         let coarse = coarse_samples_of(base, segment, cache)?;
         for (ancestor, totals) in coarse
             .by_level
