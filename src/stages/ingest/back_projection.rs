@@ -184,6 +184,7 @@ impl<'r> SampleStream<'r> {
         let rotation = DMat3::from_mat4(pose);
         let pixel_angle = self.source.pixel_angle();
         let mut depths = DepthRing::new(width, if NORMALS { NORMAL_WINDOW_RADIUS } else { 0 });
+        let fit = NormalFit::new(self.source, NORMAL_WINDOW_RADIUS, height);
         let mut window = Window {
             rows: [vec![None; width], vec![None; width], vec![None; width]],
             vertical: [vec![None; width], vec![None; width]],
@@ -236,8 +237,7 @@ impl<'r> SampleStream<'r> {
                     Projection::Spherical => p.length(),
                 };
                 let normal = if NORMALS {
-                    let fitted = self.fitted_normal_direction(&depths, i, j, p);
-                    fitted
+                    fit.normal_direction(self.source, &depths, i, j, p)
                         .or_else(|| normal_direction(p, &steps))
                         .map_or(DVec3::ZERO, |n| (rotation * n).normalize_or_zero())
                 } else {
@@ -282,111 +282,6 @@ impl<'r> SampleStream<'r> {
             depths.read += 1;
         }
         Ok(())
-    }
-
-    /// The camera-frame normal direction at pixel (i, j), whose point is `p`, from the plane
-    /// fitted to the depths of its window (`NORMAL_WINDOW_RADIUS`): a least-squares fit of the
-    /// inverse depth w as w0 + a du + b dv over the window's valid pixels (du, dv) whose depth
-    /// is within 8 footprints a pixel of distance, plus 3 sigma of the map's noise, of the
-    /// centre's (a fit across a depth edge would tilt it). A plane n . x = c holds
-    /// n . ray = c w along every ray, so n solves [ray; ray_i; ray_j] n = c [w0; a; b]
-    /// (`DepthMapSource::ray_derivatives`): n = w0 ray_i x ray_j + a ray_j x ray + b ray x ray_i,
-    /// exact for pinhole maps (a plane's inverse depth is linear in their pixels); spherical
-    /// maps' is not, and where the window is cut off to one side the fit tilts by a little
-    /// (`normals_of_spherical_maps_are_the_planes`). Oriented towards the
-    /// camera, not normalised ([`normal_direction`]). `None` without a look-ahead, or where the
-    /// kept pixels do not span both axes.
-    fn fitted_normal_direction(&self, depths: &DepthRing, i: usize, j: usize, p: DVec3) -> Option<DVec3> {
-        let radius = depths.ahead as isize;
-        if radius == 0 {
-            return None;
-        }
-        let centre = depths.inverses(j)?.get(i).copied().filter(|w| w.is_finite())?;
-        let width = depths.depths(j).len() as isize;
-        let height = self.rows.height() as usize;
-        let wraps = matches!(self.source.projection, Projection::Spherical);
-        let per_pixel = SPIKE_SPACING * self.source.pixel_angle() / centre;
-        let noise = 3.0 * std::f64::consts::SQRT_2 * self.source.noise.sigma(1.0 / centre);
-        // Sums over the kept pixels of 1, u, v, u u, u v and v v (the whole window's, less the
-        // pixels left out: most windows keep all), and of y, y u and y v with y = w - centre.
-        let side = 2 * radius + 1;
-        let squares: f64 = (-radius..=radius).map(|u| (u * u) as f64).sum();
-        let mut design = [
-            (side * side) as f64,
-            0.0,
-            0.0,
-            side as f64 * squares,
-            0.0,
-            side as f64 * squares,
-        ];
-        let mut leave_out = |u: f64, v: f64| {
-            for (sum, term) in design.iter_mut().zip([1.0, u, v, u * u, u * v, v * v]) {
-                *sum -= term;
-            }
-        };
-        let (mut sy, mut syu, mut syv) = (0.0, 0.0, 0.0);
-        for dv in -radius..=radius {
-            let v = dv as f64;
-            let row = j
-                .checked_add_signed(dv)
-                .filter(|r| *r < height)
-                .and_then(|r| depths.inverses(r));
-            let (mut row_y, mut row_yu) = (0.0, 0.0);
-            // |1/w - 1/centre| <= reach, without a division; NaN (invalid) is left out.
-            let mut add = |du: isize, w: f64| {
-                let u = du as f64;
-                let reach = per_pixel * du.abs().max(dv.abs()) as f64 + noise;
-                if (w - centre).abs() <= reach * w * centre {
-                    row_y += w - centre;
-                    row_yu += (w - centre) * u;
-                } else {
-                    leave_out(u, v);
-                }
-            };
-            let first = i as isize - radius;
-            // Most windows lie inside the image: their row is one slice.
-            match row.and_then(|row| row.get(usize::try_from(first).ok()?..i + 1 + radius as usize)) {
-                Some(window) if !wraps => (-radius..).zip(window).for_each(|(du, w)| add(du, *w)),
-                _ => {
-                    for du in -radius..=radius {
-                        let column = if wraps {
-                            (i as isize + du).rem_euclid(width)
-                        } else {
-                            i as isize + du
-                        };
-                        let w = row
-                            .zip(usize::try_from(column).ok())
-                            .and_then(|(row, c)| row.get(c))
-                            .copied()
-                            .unwrap_or(f64::NAN);
-                        add(du, w);
-                    }
-                }
-            }
-            sy += row_y;
-            syu += row_yu;
-            syv += row_y * v;
-        }
-        let [n, su, sv, suu, suv, svv] = design;
-        if n < 6.0 {
-            return None;
-        }
-        let (cuu, cuv, cvv) = (suu - su * su / n, suv - su * sv / n, svv - sv * sv / n);
-        let (cuy, cvy) = (syu - su * sy / n, syv - sv * sy / n);
-        let det = cuu * cvv - cuv * cuv;
-        if cuu < 0.5 || cvv < 0.5 || det <= 0.1 * cuu * cvv {
-            return None;
-        }
-        let a = (cvv * cuy - cuv * cvy) / det;
-        let b = (cuu * cvy - cuv * cuy) / det;
-        let w0 = centre + (sy - a * su - b * sv) / n;
-        let ray = self.source.ray(i as f64, j as f64);
-        let (ray_i, ray_j) = self.source.ray_derivatives(i as f64, j as f64);
-        let normal = w0 * ray_i.cross(ray_j) + a * ray_j.cross(ray) + b * ray.cross(ray_i);
-        if !normal.is_finite() || normal == DVec3::ZERO {
-            return None;
-        }
-        Some(if normal.dot(p) > 0.0 { -normal } else { normal })
     }
 
     /// Row `j`'s camera-frame points (`None` where invalid or absurd).
@@ -466,6 +361,132 @@ fn select_bucket(histogram: &[u64], rank: u64) -> Option<(usize, u64)> {
     None
 }
 
+/// What [`NormalFit::normal_direction`] needs of a map, worked out once per map.
+struct NormalFit {
+    /// The depth gate's reach per pixel of distance, over the inverse depth: 8 footprints.
+    spacing: f64,
+    /// Spherical maps wrap around horizontally.
+    wraps: bool,
+    height: usize,
+    /// The sums of 1, u, v, u u, u v and v v over a whole window of the radius.
+    full_window: [f64; 6],
+}
+
+impl NormalFit {
+    fn new(source: &DepthMapSource, radius: usize, height: usize) -> NormalFit {
+        let side = (2 * radius + 1) as f64;
+        let squares: f64 = (0..=radius).map(|u| 2.0 * (u * u) as f64).sum();
+        NormalFit {
+            spacing: SPIKE_SPACING * source.pixel_angle(),
+            wraps: matches!(source.projection, Projection::Spherical),
+            height,
+            full_window: [side * side, 0.0, 0.0, side * squares, 0.0, side * squares],
+        }
+    }
+
+    /// The camera-frame normal direction at pixel (i, j), whose point is `p`, from the plane
+    /// fitted to the depths of its window (`NORMAL_WINDOW_RADIUS`): a least-squares fit of the
+    /// inverse depth w as w0 + a du + b dv over the window's valid pixels (du, dv) whose depth
+    /// is within 8 footprints a pixel of distance, plus 3 sigma of the map's noise, of the
+    /// centre's (a fit across a depth edge would tilt it). A plane n . x = c holds
+    /// n . ray = c w along every ray, so n solves [ray; ray_i; ray_j] n = c [w0; a; b]
+    /// (`DepthMapSource::ray_derivatives`): n = w0 ray_i x ray_j + a ray_j x ray + b ray x ray_i,
+    /// exact for pinhole maps (a plane's inverse depth is linear in their pixels); spherical
+    /// maps' is not, and where the window is cut off to one side the fit tilts by a little
+    /// (`normals_of_spherical_maps_are_the_planes`). Oriented towards the
+    /// camera, not normalised ([`normal_direction`]). `None` without a look-ahead, or where the
+    /// kept pixels do not span both axes.
+    fn normal_direction(
+        &self,
+        source: &DepthMapSource,
+        depths: &DepthRing,
+        i: usize,
+        j: usize,
+        p: DVec3,
+    ) -> Option<DVec3> {
+        let radius = depths.ahead as isize;
+        if radius == 0 {
+            return None;
+        }
+        let centre = depths.inverses(j)?.get(i).copied().filter(|w| w.is_finite())?;
+        let width = depths.depths(j).len() as isize;
+        let (height, wraps) = (self.height, self.wraps);
+        let per_pixel = self.spacing / centre;
+        let noise = 3.0 * std::f64::consts::SQRT_2 * source.noise.sigma(1.0 / centre);
+        // Sums over the kept pixels of 1, u, v, u u, u v and v v (the whole window's, less the
+        // pixels left out: most windows keep all), and of y, y u and y v with y = w - centre.
+        let mut design = self.full_window;
+        let mut leave_out = |u: f64, v: f64| {
+            for (sum, term) in design.iter_mut().zip([1.0, u, v, u * u, u * v, v * v]) {
+                *sum -= term;
+            }
+        };
+        let (mut sy, mut syu, mut syv) = (0.0, 0.0, 0.0);
+        for dv in -radius..=radius {
+            let v = dv as f64;
+            let row = j
+                .checked_add_signed(dv)
+                .filter(|r| *r < height)
+                .and_then(|r| depths.inverses(r));
+            let (mut row_y, mut row_yu) = (0.0, 0.0);
+            // |1/w - 1/centre| <= reach, without a division; NaN (invalid) is left out.
+            let mut add = |du: isize, w: f64| {
+                let u = du as f64;
+                let reach = per_pixel * du.abs().max(dv.abs()) as f64 + noise;
+                if (w - centre).abs() <= reach * w * centre {
+                    row_y += w - centre;
+                    row_yu += (w - centre) * u;
+                } else {
+                    leave_out(u, v);
+                }
+            };
+            let first = i as isize - radius;
+            // Most windows lie inside the image: their row is one slice.
+            match row.and_then(|row| row.get(usize::try_from(first).ok()?..i + 1 + radius as usize)) {
+                Some(window) if !wraps => (-radius..).zip(window).for_each(|(du, w)| add(du, *w)),
+                _ => {
+                    for du in -radius..=radius {
+                        let column = if wraps {
+                            (i as isize + du).rem_euclid(width)
+                        } else {
+                            i as isize + du
+                        };
+                        let w = row
+                            .zip(usize::try_from(column).ok())
+                            .and_then(|(row, c)| row.get(c))
+                            .copied()
+                            .unwrap_or(f64::NAN);
+                        add(du, w);
+                    }
+                }
+            }
+            sy += row_y;
+            syu += row_yu;
+            syv += row_y * v;
+        }
+        let [n, su, sv, suu, suv, svv] = design;
+        if n < 6.0 {
+            return None;
+        }
+        let (cuu, cuv, cvv) = (suu - su * su / n, suv - su * sv / n, svv - sv * sv / n);
+        let (cuy, cvy) = (syu - su * sy / n, syv - sv * sy / n);
+        let det = cuu * cvv - cuv * cuv;
+        if cuu < 0.5 || cvv < 0.5 || det <= 0.1 * cuu * cvv {
+            return None;
+        }
+        let a = (cvv * cuy - cuv * cvy) / det;
+        let b = (cuu * cvy - cuv * cuy) / det;
+        let w0 = centre + (sy - a * su - b * sv) / n;
+        let ray = source.ray(i as f64, j as f64);
+        let (ray_i, ray_j) = source.ray_derivatives(i as f64, j as f64);
+        let normal = w0 * ray_i.cross(ray_j) + a * ray_j.cross(ray) + b * ray.cross(ray_i);
+        if !normal.is_finite() || normal == DVec3::ZERO {
+            return None;
+        }
+        Some(if normal.dot(p) > 0.0 { -normal } else { normal })
+    }
+}
+
 /// The depth rows a stream holds: its look-ahead `ahead` rows past the row being sampled, as
 /// many before it, and the row being read, each row `r` in slot `r % (2 ahead + 2)`. With a
 /// look-ahead, also each row's inverse depths (NaN where invalid or absurd), which a plane's
@@ -513,7 +534,7 @@ impl DepthRing {
     /// Row `r`'s inverse depths, if it is held.
     fn inverses(&self, r: usize) -> Option<&[f64]> {
         self.inverses
-            .get(r % self.inverses.len().max(1))
+            .get(r % self.inverses.len())
             .filter(|_| self.held(r))
             .map(Vec::as_slice)
     }

@@ -12,6 +12,19 @@ fn sample_of(source: &DepthMapSource, image: &DepthImage, count: usize) -> Vec<D
     .unwrap()
 }
 
+/// Every sample of a `w` x `h` image of depths.
+fn samples_of_depths(source: &DepthMapSource, (w, h): (u32, u32), depth: Vec<f32>) -> Samples {
+    back_project(
+        source,
+        &DepthImage {
+            width: w,
+            height: h,
+            depth,
+        },
+    )
+    .unwrap()
+}
+
 fn camera(width: u32, height: u32) -> DepthMapSource {
     let (cx, cy) = (f64::from(width) / 2.0, f64::from(height) / 2.0);
     DepthMapSource::test_pinhole(
@@ -128,15 +141,7 @@ fn normals_follow_the_depth_gradient_and_face_the_camera() {
             (1.0 / (1.0 - slope * x) + step) as f32
         })
         .collect();
-    let samples = back_project(
-        &source,
-        &DepthImage {
-            width: w,
-            height: h,
-            depth,
-        },
-    )
-    .unwrap();
+    let samples = samples_of_depths(&source, (w, h), depth);
     let expected = (turn.transform_vector3(DVec3::new(slope, 0.0, -1.0))).normalize();
     let mut checked = 0;
     for ((p, n), area) in samples.points.iter().zip(&samples.normals).zip(&samples.areas) {
@@ -168,15 +173,7 @@ fn normals_of_noisy_depths_are_fitted_to_a_window() {
             (z * (1.0 + 0.025 * crate::kernels::random::gaussian(&mut state))) as f32
         })
         .collect();
-    let samples = back_project(
-        &source,
-        &DepthImage {
-            width: w,
-            height: h,
-            depth,
-        },
-    )
-    .unwrap();
+    let samples = samples_of_depths(&source, (w, h), depth);
     let expected = DVec3::new(slope, 0.0, -1.0).normalize();
     let angles: Vec<f64> = samples
         .normals
@@ -217,15 +214,7 @@ fn normals_of_spherical_maps_are_the_planes() {
             }
         })
         .collect();
-    let samples = back_project(
-        &source,
-        &DepthImage {
-            width: w,
-            height: h,
-            depth,
-        },
-    )
-    .unwrap();
+    let samples = samples_of_depths(&source, (w, h), depth);
     assert!(samples.normals.len() > 1000, "{} samples", samples.normals.len());
     let mut errors: Vec<f64> = samples
         .normals
