@@ -11,14 +11,16 @@
 //!   E(f) = sum_c W_c (f_c + g_c . d_c)^2                               (f = 0 at the samples)
 //!        + lambda1 sum_c h_c^2 (W_c |g_c|^2 - 2 g_c . N_c + W_c)        (grad f = n there)
 //!        + lambda2 sum_(c,t) sigma_ct h^3 |g_c - g_t|^2                  (smooth gradient)
-//!        + ANCHOR sum_c h_c^2 (f_c - f0_c)^2
+//!        + sum_c a_c h_c^2 (f_c - f0_c)^2                                 (a_c: ANCHOR, more
+//!                                                                          where W_c = 0)
 //!
 //! over the pairs (c, t) of each difference row, sigma_ct the shared face area over the centre
 //! distance (the paper's sigma), h the row's cube side. The factors of h make every term scale
 //! as h^4 (W is an area, f a length): each level solves the same problem in its own units,
 //! which is what lets a coarse level's solution start the next (cascadic multigrid). The
-//! anchor ties f, very weakly, to the start f0 (the coarser level's f carried to the cube
-//! centre), so that cubes without data or neighbours still have a unique solution. A target t
+//! anchor ties f to the start f0 (the coarser level's f carried to the cube centre): very
+//! weakly where samples lie, so that they place the surface, and firmly enough where none lies
+//! that the level follows the coarse solution there ([`UNSAMPLED_ANCHOR`]). A target t
 //! outside the unit is frozen: its f and g are constants.
 //!
 //! E(f) = f^T A f - 2 b^T f + const with A symmetric positive definite; [`solve`] runs
@@ -34,6 +36,21 @@ mod tests;
 /// weight: small enough not to move a surface that data constrains, large enough to make A
 /// positive definite in a cube no sample and no neighbour reaches.
 pub const ANCHOR: f64 = 1.0e-10;
+
+/// The anchor's weight, on top of [`ANCHOR`] and in the same units, in cubes farther than
+/// [`SAMPLED_RING`] face steps from every cube that holds samples (under `hybrid`, samples
+/// with evidence). There f is only the smoothest extension of the surface's distance, which
+/// the coarser level has already found, so a level refines f near its data and elsewhere
+/// follows the coarse solution carried to its cubes (the cascadic start). With [`ANCHOR`]
+/// alone that extension, held only by the frozen borders, was what the conjugate gradients
+/// spent most of their iterations on (README, "Solvers", gives the figures).
+pub const UNSAMPLED_ANCHOR: f64 = 0.1;
+
+/// Face steps from a sampled cube within which the anchor stays [`ANCHOR`]: a sampled cube's
+/// terms reach its neighbours' values (its gradient) and their gradients (the smoothness), so
+/// pinning them to the coarse level would carry the coarse level's interpolation error into
+/// the surface.
+pub const SAMPLED_RING: usize = 2;
 
 /// lambda1 and lambda2 by default, in the cube-relative units above: on a sphere 4.8 cubes in
 /// radius (the kernel's test), 1 and 1 put the zero set 0.07 cubes off on average, 0.1 and
@@ -95,9 +112,15 @@ pub struct SsdProblem {
     pub normal_weight: f64,
     /// lambda2: the smoothness term's weight.
     pub smoothness: f64,
+    /// The anchor's weight on top of [`ANCHOR`] away from the samples ([`SAMPLED_RING`]):
+    /// [`UNSAMPLED_ANCHOR`] in the level stages; zero holds f there only by the smoothness.
+    /// Set it before the first use, like `start` and `terms`.
+    pub unsampled_anchor: f64,
     /// Built from `start` and `terms` on first use: set those first (construct with
     /// `..SsdProblem::default()`).
     pub reverse: std::sync::OnceLock<Reverse>,
+    /// Each free cube's anchor coefficient, built on first use like `reverse`.
+    pub anchor_weights: std::sync::OnceLock<Vec<f64>>,
 }
 
 /// How a solve ended.
@@ -131,6 +154,36 @@ impl SsdProblem {
         // w = 1 / (count * distance), and the shared area is h^2 / count for `count` finer
         // neighbours or h^2 for one coarser one: sigma = w h^2 either way.
         self.smoothness * f64::from(w) * h.powi(5)
+    }
+
+    /// The anchor's coefficient of (f_c - f0_c)^2: [`ANCHOR`] h^2, plus
+    /// [`unsampled_anchor`](Self::unsampled_anchor) h^2 where no cube within
+    /// [`SAMPLED_RING`] face steps holds sample weight.
+    fn anchor_weight(&self, c: usize) -> f64 {
+        self.anchor_weights
+            .get_or_init(|| {
+                let mut near: Vec<bool> = self.samples.iter().map(|s| s.weight > 0.0).collect();
+                let reverse = self.reverse();
+                for _ in 0..SAMPLED_RING {
+                    let previous = near.clone();
+                    let marked = |t: usize| previous.get(t).copied().unwrap_or(false);
+                    for (c, near) in near.iter_mut().enumerate() {
+                        *near = *near
+                            || (3 * c..3 * c + 3).any(|row| self.row(row).iter().any(|(t, _)| marked(*t as usize)))
+                            || reverse.of(c).iter().any(|(row, _)| marked(*row as usize / 3));
+                    }
+                }
+                near.iter()
+                    .zip(&self.side)
+                    .map(|(near, h)| {
+                        let weight = if *near { ANCHOR } else { ANCHOR + self.unsampled_anchor };
+                        weight * h * h
+                    })
+                    .collect()
+            })
+            .get(c)
+            .copied()
+            .unwrap_or(0.0)
     }
 
     /// g_c for free values `f`, frozen values included when `with_frozen`.
@@ -208,9 +261,10 @@ impl SsdProblem {
         (0..n)
             .into_par_iter()
             .map(|c| {
-                let (s, gc, h) = (self.samples[c], g[c], self.side[c]);
+                let (s, gc) = (self.samples[c], g[c]);
                 let anchor = if with_constants { self.anchor[c] } else { 0.0 };
-                let mut total = 2.0 * s.weight * (f[c] + dot(gc, s.centroid)) + 2.0 * ANCHOR * h * h * (f[c] - anchor);
+                let mut total =
+                    2.0 * s.weight * (f[c] + dot(gc, s.centroid)) + 2.0 * self.anchor_weight(c) * (f[c] - anchor);
                 for (axis, rc) in r[c].iter().enumerate() {
                     total -= reverse.row_sum[3 * c + axis] * rc;
                 }
@@ -293,7 +347,7 @@ impl SsdProblem {
             let e = f[c] + dot(gc, s.centroid);
             total += s.weight * e * e;
             total += self.normal_weight * h2 * (s.weight * dot(gc, gc) - 2.0 * dot(gc, s.normal) + s.weight);
-            total += ANCHOR * h2 * (f[c] - self.anchor[c]).powi(2);
+            total += self.anchor_weight(c) * (f[c] - self.anchor[c]).powi(2);
             for axis in 0..3 {
                 for (t, w) in self.row(3 * c + axis) {
                     let gt = self.target_gradient(*t as usize, &g, true);
@@ -341,7 +395,7 @@ impl SsdProblem {
         for c in 0..n {
             let (s, h) = (self.samples[c], self.side[c]);
             let h2 = h * h;
-            diagonal[c] += ANCHOR * h2;
+            diagonal[c] += self.anchor_weight(c);
             for (index, (j, coefficient)) in supports[c].iter().enumerate() {
                 let de = if index == 0 { 1.0 } else { 0.0 } + dot(*coefficient, s.centroid);
                 diagonal[*j] +=
@@ -399,7 +453,7 @@ struct Operator<'a> {
     /// The coefficient of g_c in r_c: lambda1 h^2 W plus the pair weights of the cube's terms
     /// and of the terms that target it.
     own_coupling: Vec<f64>,
-    /// ANCHOR h^2: the anchor's coefficient of f_c.
+    /// The anchor's coefficient of f_c ([`SsdProblem::anchor_weight`]).
     anchor_weight: Vec<f64>,
 }
 
@@ -437,7 +491,7 @@ impl<'a> Operator<'a> {
                 problem.normal_weight * h * h * weight + own + targeting
             })
             .collect();
-        let anchor_weight = problem.side.iter().map(|h| ANCHOR * h * h).collect();
+        let anchor_weight = (0..n).map(|c| problem.anchor_weight(c)).collect();
         Operator {
             problem,
             own_coupling,

@@ -9,7 +9,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use super::{Inherited, LevelStage, LevelUnitExtra, LevelValues, ObservedColumns, UnitCut, columns_of};
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
-use crate::kernels::ssd::{CubeSamples, Solved, SsdProblem, solve};
+use crate::kernels::ssd::{CubeSamples, Solved, SsdProblem, UNSAMPLED_ANCHOR, solve};
 use crate::stages::observed::{measured_weight, sampled_of, seen_weight};
 use crate::stages::samples::{Moments, SAMPLES, cube_centre, read_samples};
 use crate::stages::treetop::Treetop;
@@ -336,6 +336,7 @@ impl LevelStage {
             frozen_gradient,
             normal_weight: params.normal_weight,
             smoothness: params.smoothness,
+            unsampled_anchor: UNSAMPLED_ANCHOR,
             ..SsdProblem::default()
         };
         Ok((problem, start))
