@@ -244,8 +244,11 @@ fn seams_between_units_cost_the_ssd_sphere_a_twentieth_of_a_cube() {
         "ssd sphere error in finest cubes: {one_units} unit(s) mean {one_mean:.3} p95 {one_p95:.3}; {many_units} units mean {many_mean:.3} p95 {many_p95:.3}"
     );
     assert!(one_units == 1 && many_units > 20, "{one_units} and {many_units} units");
+    // The coarse-level anchor of the cubes without samples (kernels::ssd::UNSAMPLED_ANCHOR)
+    // costs the sphere in one unit (0.044 without it, 0.085 with it) and helps it in many
+    // (0.100 without, 0.051 with).
     assert!(
-        one_mean < 0.07 && one_p95 < 0.2,
+        one_mean < 0.11 && one_p95 < 0.25,
         "one unit: {one_mean:.3}, {one_p95:.3}"
     );
     assert!(

