@@ -82,6 +82,32 @@ impl Moments {
     }
 }
 
+/// How much the normals of the samples in one node disagree, taken over a whole samples
+/// segment: the median, by sample weight, of each node's 1 - |sum a n| / sum a (0 where its
+/// samples' normals agree, 1 - cos t for two halves t apart), with the weight it is taken over
+/// (`None` without samples). A node's own samples spawned it at their radius, so the node
+/// spans a few of their pixel footprints whatever the scene's scale: a surface's curvature
+/// barely turns the normals across it, and what is left is the normal fit's noise, which
+/// grows with the depth maps' noise ([`crate::kernels::ssd`]'s normal weight follows it).
+pub fn normal_disagreement(moments: &[Moments]) -> Option<(f64, f64)> {
+    let mut nodes: Vec<(f64, f64)> = moments
+        .iter()
+        .filter(|m| m.weight > 0)
+        .map(|m| {
+            let w = m.weight as f64;
+            let length = m.normal.map(|n| n as f64).iter().map(|n| n * n).sum::<f64>().sqrt();
+            ((1.0 - length / w).clamp(0.0, 1.0), w)
+        })
+        .collect();
+    nodes.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    let total: f64 = nodes.iter().map(|(_, w)| w).sum();
+    let mut below = 0.0;
+    nodes.into_iter().find_map(|(value, w)| {
+        below += w;
+        (below >= 0.5 * total).then_some((value, total))
+    })
+}
+
 /// A cube's centre in root units.
 pub fn cube_centre(key: CubeKey) -> [f64; 3] {
     let side = 0.5f64.powi(i32::from(key.depth()));

@@ -55,8 +55,11 @@ pub const UNSAMPLED_ANCHOR: f64 = 0.1;
 /// lambda1 and lambda2 by default, in the cube-relative units above: on a sphere 4.8 cubes in
 /// radius (the kernel's test), 1 and 1 put the zero set 0.07 cubes off on average, 0.1 and
 /// 0.1 0.02 cubes; 10 times more normal weight or smoothness doubles to sextuples the error.
+/// The level stages raise the normal weight where the depth maps are noisy
+/// (`stages::solve::ssd::noise_normal_weight`).
 pub const DEFAULT_NORMAL_WEIGHT: f64 = 0.1;
-/// See [`DEFAULT_NORMAL_WEIGHT`].
+/// See [`DEFAULT_NORMAL_WEIGHT`]. More smoothness smooths noisy surfaces but pulls them inwards
+/// where they curve (README, "Solvers").
 pub const DEFAULT_SMOOTHNESS: f64 = 0.1;
 
 /// Index of a difference-term target: a free cube (< n) or a frozen one (n + index).

@@ -11,7 +11,7 @@ use super::{Inherited, LevelStage, LevelUnitExtra, LevelValues, ObservedColumns,
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
 use crate::kernels::ssd::{CubeSamples, Solved, SsdProblem, UNSAMPLED_ANCHOR, solve};
 use crate::stages::observed::{measured_weight, sampled_of, seen_weight};
-use crate::stages::samples::{Moments, SAMPLES, cube_centre, read_samples};
+use crate::stages::samples::{Moments, SAMPLES, cube_centre, normal_disagreement, read_samples};
 use crate::stages::treetop::Treetop;
 use crate::store::catalog;
 use crate::store::{Result, Snapshot, StoreError};
@@ -100,6 +100,8 @@ pub struct CoarseSamples {
     by_level: Vec<Vec<(CubeKey, SampleTotals)>>,
     /// The nodes of depth below [`COARSE_LEVELS`], taken one by one.
     shallow: Vec<(CubeKey, Moments)>,
+    /// The segment's [`normal_disagreement`].
+    disagreement: Option<(f64, f64)>,
 }
 
 impl CoarseSamples {
@@ -130,7 +132,11 @@ impl CoarseSamples {
                 }
             }
         }
-        CoarseSamples { by_level, shallow }
+        CoarseSamples {
+            by_level,
+            shallow,
+            disagreement: normal_disagreement(moments),
+        }
     }
 }
 
@@ -297,6 +303,75 @@ fn cut_samples(
         .collect())
 }
 
+/// The [`normal_disagreement`] of a level unit's samples: that of the treetop units whose
+/// samples its cut takes (its members and, where the treetop's own unit is one, every leaf unit
+/// below the level, as [`cut_samples`] takes them), averaged by their sample weight; 0
+/// without samples.
+fn unit_disagreement(
+    base: &Snapshot<'_>,
+    treetop: &Treetop,
+    level: u8,
+    cut: &UnitCut,
+    cache: &CoarseSamplesCache,
+) -> Result<f64> {
+    let segments: BTreeMap<u64, &str> = base
+        .segments(SAMPLES)
+        .iter()
+        .map(|(name, record)| (record.unit, name.as_str()))
+        .collect();
+    let mut units: BTreeSet<usize> = cut.members.iter().copied().collect();
+    if treetop
+        .units
+        .iter()
+        .position(|u| u.top)
+        .is_some_and(|top| units.contains(&top))
+    {
+        units.extend(
+            treetop
+                .units
+                .iter()
+                .enumerate()
+                .filter(|(_, unit)| !unit.top && unit.key.depth() > level)
+                .map(|(index, _)| index),
+        );
+    }
+    let (mut sum, mut total) = (0.0, 0.0);
+    for unit in units {
+        let Some(segment) = segments.get(&(unit as u64)) else {
+            continue;
+        };
+        if let Some((median, weight)) = coarse_samples_of(base, segment, cache)?.disagreement {
+            sum += median * weight;
+            total += weight;
+        }
+    }
+    Ok(if total > 0.0 { sum / total } else { 0.0 })
+}
+
+/// The [`normal_disagreement`] up to which a unit keeps `--ssd-normal-weight`, and from which
+/// on it takes [`NOISY_NORMAL_FACTOR`] times it (log-linear between). Measured on the
+/// groundtruth bench's views (README, "Solvers"): a clean sphere's units 0.003 to 0.004, the
+/// bunny's at 0.2 % depth noise 0.002 to 0.007, at 1 % 0.013 to 0.025, RedKitchen's (Kinect
+/// depths) 0.008 to 0.084.
+const QUIET_DISAGREEMENT: f64 = 0.006;
+/// See [`QUIET_DISAGREEMENT`].
+const NOISY_DISAGREEMENT: f64 = 0.012;
+/// How much a noisy unit raises the normal weight. Each sample's normal is a plane fitted to
+/// 7 x 7 pixels, far less noisy than its position where the depths are, so f should follow
+/// the normals more there: on the bunny at 1 % depth noise with 5 % outlier pixels (`hybrid`)
+/// a normal weight of 0.1 gave F at 1 % 0.980 and Chamfer 0.00378, 0.5 0.994 and 0.00288, 1
+/// 0.997 and 0.00262, 3 0.999 and 0.00248 (TGV 0.996 and 0.00288); at 0.2 % noise 0.1 is best
+/// (Chamfer 0.00088; 0.00095 at 0.5, 0.00101 at 1, 0.00122 at 3), and on the clean sphere of
+/// `tests/ssd.rs` a weight of 1 everywhere doubled the error (0.085 to 0.179 finest cubes).
+const NOISY_NORMAL_FACTOR: f64 = 10.0;
+
+/// The normal weight of a unit whose samples' normals disagree by `disagreement`
+/// ([`normal_disagreement`]), from `--ssd-normal-weight` (`base`).
+pub fn noise_normal_weight(base: f64, disagreement: f64) -> f64 {
+    let t = ((disagreement - QUIET_DISAGREEMENT) / (NOISY_DISAGREEMENT - QUIET_DISAGREEMENT)).clamp(0.0, 1.0);
+    base * NOISY_NORMAL_FACTOR.powf(t)
+}
+
 impl LevelStage {
     /// The unit's SSD problem and start values.
     pub(super) fn ssd_problem(
@@ -320,6 +395,7 @@ impl LevelStage {
             .zip(&cut.previous)
             .map(|(key, previous)| carried(*key, self.source_key(*key), previous.as_ref()).0)
             .collect();
+        let disagreement = unit_disagreement(base, treetop, self.level, cut, &self.coarse_samples)?;
         let (frozen_f, frozen_gradient) = cut
             .frozen
             .iter()
@@ -334,7 +410,7 @@ impl LevelStage {
             anchor: start.clone(),
             frozen_f,
             frozen_gradient,
-            normal_weight: params.normal_weight,
+            normal_weight: noise_normal_weight(params.normal_weight, disagreement),
             smoothness: params.smoothness,
             unsampled_anchor: UNSAMPLED_ANCHOR,
             ..SsdProblem::default()
@@ -409,6 +485,45 @@ impl LevelStage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A node whose samples weigh `weight` (fixed point) in two halves with unit normals
+    /// `angle` radians apart.
+    fn node(weight: i64, angle: f64) -> Moments {
+        let half = weight as f64 / 2.0;
+        let (x, y) = (half * (1.0 + angle.cos()), half * angle.sin());
+        Moments {
+            weight,
+            offset: [0; 3],
+            normal: [x.round() as i64, y.round() as i64, 0],
+        }
+    }
+
+    #[test]
+    fn normal_disagreement_is_the_weighted_median_of_one_minus_the_mean_normals_length() {
+        let w = 1 << 24;
+        // Agreeing normals: nothing to disagree about.
+        let (agreeing, total) = normal_disagreement(&[node(w, 0.0), node(3 * w, 0.0)]).unwrap();
+        assert!(agreeing.abs() < 1e-6 && total == (4 * w) as f64, "{agreeing} {total}");
+        // Two halves t apart: 1 - cos(t / 2).
+        let (value, _) = normal_disagreement(&[node(w, 0.4)]).unwrap();
+        assert!((value - (1.0 - 0.2f64.cos())).abs() < 1e-6, "{value}");
+        // The median by weight: the heavy node decides, however many light ones disagree.
+        let mut nodes = vec![node(10 * w, 0.1)];
+        nodes.extend((0..5).map(|_| node(w, 1.0)));
+        let (median, _) = normal_disagreement(&nodes).unwrap();
+        assert!((median - (1.0 - 0.05f64.cos())).abs() < 1e-6, "{median}");
+        assert_eq!(normal_disagreement(&[Moments::default()]), None);
+    }
+
+    #[test]
+    fn the_normal_weight_rises_tenfold_from_quiet_to_noisy_samples() {
+        assert_eq!(noise_normal_weight(0.1, 0.0), 0.1);
+        assert_eq!(noise_normal_weight(0.1, QUIET_DISAGREEMENT), 0.1);
+        assert!((noise_normal_weight(0.1, NOISY_DISAGREEMENT) - 1.0).abs() < 1e-12);
+        assert!((noise_normal_weight(0.1, 0.5) - 1.0).abs() < 1e-12);
+        let middle = noise_normal_weight(0.1, 0.5 * (QUIET_DISAGREEMENT + NOISY_DISAGREEMENT));
+        assert!((middle - 0.1 * 10f64.sqrt()).abs() < 1e-12, "{middle}");
+    }
 
     #[test]
     fn hybrid_evidence_ramps_with_the_share_of_measuring_votes() {
