@@ -71,11 +71,12 @@ pub struct SolverArgs {
     /// clean data) or hybrid (ssd from the samples the histograms confirm). README, "Solvers".
     #[arg(long, value_enum, default_value = "tgv")]
     method: MethodChoice,
-    /// ssd and hybrid: weight of the normal term, relative to the position term (> 0).
+    /// ssd and hybrid: weight of the normal term, relative to the position term (> 0), where
+    /// the samples' normals agree; units whose normals disagree (noisy depth maps) take up to
+    /// 10 times it (README, "Solvers").
     #[arg(long, default_value_t = SsdParams::default().normal_weight, value_parser = parse_ssd_weight)]
     ssd_normal_weight: f64,
-    /// ssd and hybrid: weight of the smoothness term, relative to the position term (> 0;
-    /// noisy RGB-D data wants more than the default: README, "Solvers").
+    /// ssd and hybrid: weight of the smoothness term, relative to the position term (> 0).
     #[arg(long, default_value_t = SsdParams::default().smoothness, value_parser = parse_ssd_weight)]
     ssd_smoothness: f64,
     /// ssd and hybrid: a unit's conjugate gradients stop when the residual is at most this
