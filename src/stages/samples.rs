@@ -183,6 +183,23 @@ pub fn read_samples(snapshot: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeK
     Ok((keys, moments))
 }
 
+/// The first index at or after `from` whose key is not below `key` (`keys` sorted), galloping
+/// forwards: O(log d) comparisons for an answer d keys on (a search of the whole rest was a
+/// tenth of the stage's CPU on RedKitchen's 1000 frames).
+fn first_not_below(keys: &[CubeKey], from: usize, key: CubeKey) -> usize {
+    // Every key in from..low is below `key`; the answer is at most `high`.
+    let (mut low, mut high, mut step) = (from, from, 1);
+    while keys.get(high).is_some_and(|k| *k < key) {
+        low = high + 1;
+        high = from.saturating_add(step);
+        step = step.saturating_mul(2);
+    }
+    let high = high.min(keys.len()).max(low);
+    low + keys
+        .get(low..high)
+        .map_or(0, |range| range.partition_point(|k| *k < key))
+}
+
 /// An ingest run, where it lies, and the first key of each of its blocks. Every unit opens
 /// the runs it overlaps by path and record, without searching the version's segment list.
 struct RunIndex {
@@ -240,13 +257,11 @@ impl SamplesStage {
                     "this depth map's run carries no sample sums (the store was created without `ingest --sample-sums`, or by an octstore older than `--method ssd`): ingest the depth maps into a new store with `--sample-sums` to solve with ssd or hybrid".into(),
                 ));
             }
-            let mut first_keys = Vec::with_capacity(reader.block_count());
-            for block in 0..reader.block_count() {
-                match reader.read_block("key", block).map_err(|e| file.corruption(e))? {
-                    ColumnValues::Key(keys) => first_keys.extend(keys.first().copied()),
-                    _ => return Err(Self::error(name, "the key column holds no keys".into())),
-                }
-            }
+            // The directory holds each block's key range; decoding the key columns of
+            // RedKitchen's 1000 runs for it, under this lock, cost the stage 0.8 of its 11.8 s.
+            let first_keys = (0..reader.block_count())
+                .filter_map(|block| reader.block_key_range(block).map(|(first, _)| first))
+                .collect();
             runs.push(RunIndex {
                 name: name.clone(),
                 path,
@@ -299,7 +314,7 @@ impl SamplesStage {
                 // Both lists are sorted: one walk matches them.
                 let mut at = from;
                 for (key, m) in block_keys.iter().zip(&moments) {
-                    at += keys.get(at..).map_or(0, |rest| rest.partition_point(|k| k < key));
+                    at = first_not_below(keys, at, *key);
                     if keys.get(at) == Some(key)
                         && let Some(sum) = sums.get_mut(at)
                     {
@@ -384,6 +399,22 @@ impl Stage for SamplesStage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn galloping_finds_what_a_search_of_the_rest_finds() {
+        let keys: Vec<CubeKey> = (0..300u32).map(|i| CubeKey::new(12, 3 * i, 0, 0)).collect();
+        for from in [0, 1, 7, 150, 299, 300] {
+            for probe in (0..905u32).step_by(4) {
+                let key = CubeKey::new(12, probe, 0, 0);
+                let expected = from + keys.get(from..).map_or(0, |rest| rest.partition_point(|k| *k < key));
+                assert_eq!(
+                    first_not_below(&keys, from, key),
+                    expected,
+                    "from {from}, probe {probe}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn a_samples_moments_are_relative_to_its_cube_and_sum_exactly() {
