@@ -175,13 +175,16 @@ fn coarse_samples_of(
 /// coarse levels a unit's nodes deeper than the level come summed by their ancestor at the
 /// level ([`CoarseSamples`]; a centroid on the ancestor's upper face then counts in the
 /// ancestor's cut cube, where the node-by-node rule would put it in the neighbour's).
+///
+/// Also the [`normal_disagreement`] of the units whose nodes the cut takes whole, averaged by
+/// their sample weight (0 without samples): the noise the unit's normal weight follows.
 fn cut_samples(
     base: &Snapshot<'_>,
     treetop: &Treetop,
     level: u8,
     cut: &UnitCut,
     cache: &CoarseSamplesCache,
-) -> Result<Vec<CubeSamples>> {
+) -> Result<(Vec<CubeSamples>, f64)> {
     let segments: BTreeMap<u64, &str> = base
         .segments(SAMPLES)
         .iter()
@@ -261,6 +264,8 @@ fn cut_samples(
             .for_each(|(k, m)| add(*k, m));
         Ok(())
     };
+    // The units whose every node this cut takes.
+    let mut whole = members.clone();
     for &member in &members {
         add_unit(member)?;
     }
@@ -269,6 +274,7 @@ fn cut_samples(
             for (index, unit) in treetop.units.iter().enumerate() {
                 if !unit.top && !members.contains(&index) && unit.key.depth() > level {
                     add_unit(index)?;
+                    whole.insert(index);
                 }
             }
         }
@@ -286,8 +292,18 @@ fn cut_samples(
         }
         None => {}
     }
+    // The normal disagreement of the units taken whole, averaged by their sample weight.
+    let (mut sum, mut total) = (0.0, 0.0);
+    for unit in whole {
+        let segment = segments.get(&(unit as u64)).ok_or_else(|| missing(unit))?;
+        if let Some((quartile, weight)) = coarse_samples_of(base, segment, cache)?.disagreement {
+            sum += quartile * weight;
+            total += weight;
+        }
+    }
+    let disagreement = if total > 0.0 { sum / total } else { 0.0 };
     let (weight, moment, normal) = sums.into_inner();
-    Ok(weight
+    let samples = weight
         .into_iter()
         .zip(moment)
         .zip(normal)
@@ -300,52 +316,8 @@ fn cut_samples(
             },
             normal,
         })
-        .collect())
-}
-
-/// The [`normal_disagreement`] of a level unit's samples: that of the treetop units whose
-/// samples its cut takes (its members and, where the treetop's own unit is one, every leaf unit
-/// below the level, as [`cut_samples`] takes them), averaged by their sample weight; 0
-/// without samples.
-fn unit_disagreement(
-    base: &Snapshot<'_>,
-    treetop: &Treetop,
-    level: u8,
-    cut: &UnitCut,
-    cache: &CoarseSamplesCache,
-) -> Result<f64> {
-    let segments: BTreeMap<u64, &str> = base
-        .segments(SAMPLES)
-        .iter()
-        .map(|(name, record)| (record.unit, name.as_str()))
         .collect();
-    let mut units: BTreeSet<usize> = cut.members.iter().copied().collect();
-    if treetop
-        .units
-        .iter()
-        .position(|u| u.top)
-        .is_some_and(|top| units.contains(&top))
-    {
-        units.extend(
-            treetop
-                .units
-                .iter()
-                .enumerate()
-                .filter(|(_, unit)| !unit.top && unit.key.depth() > level)
-                .map(|(index, _)| index),
-        );
-    }
-    let (mut sum, mut total) = (0.0, 0.0);
-    for unit in units {
-        let Some(segment) = segments.get(&(unit as u64)) else {
-            continue;
-        };
-        if let Some((quartile, weight)) = coarse_samples_of(base, segment, cache)?.disagreement {
-            sum += quartile * weight;
-            total += weight;
-        }
-    }
-    Ok(if total > 0.0 { sum / total } else { 0.0 })
+    Ok((samples, disagreement))
 }
 
 /// The [`normal_disagreement`] up to which a unit keeps `--ssd-normal-weight`, and from which
@@ -382,7 +354,7 @@ impl LevelStage {
         cut: &UnitCut,
         params: &SsdParams,
     ) -> Result<(SsdProblem, Vec<f64>)> {
-        let mut samples = cut_samples(base, treetop, self.level, cut, &self.coarse_samples)?;
+        let (mut samples, disagreement) = cut_samples(base, treetop, self.level, cut, &self.coarse_samples)?;
         if let Method::Hybrid(_) = self.method {
             for (s, hist) in samples.iter_mut().zip(&cut.hist) {
                 let factor = evidence(hist);
@@ -396,7 +368,6 @@ impl LevelStage {
             .zip(&cut.previous)
             .map(|(key, previous)| carried(*key, self.source_key(*key), previous.as_ref()).0)
             .collect();
-        let disagreement = unit_disagreement(base, treetop, self.level, cut, &self.coarse_samples)?;
         let (frozen_f, frozen_gradient) = cut
             .frozen
             .iter()
