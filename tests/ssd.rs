@@ -6,8 +6,9 @@ use octstore::inputs::DiscoverOptions;
 use octstore::pipeline::{ingest, solve};
 use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
 use octstore::stages::extract::{ExtractOptions, extract};
+use octstore::stages::octree_max_depth;
+use octstore::stages::samples::{SAMPLES, SamplesStage};
 use octstore::stages::solve::LEVEL_STAGES;
-use octstore::stages::{octree_max_depth, samples::SAMPLES};
 use octstore::{IndicatorField, IngestOptions, Method, RunOptions, SolveOptions, SsdParams, Store};
 
 const CENTRE: DVec3 = DVec3::new(0.1, -0.05, 0.2);
@@ -193,6 +194,44 @@ fn ssd_levels_are_byte_identical_for_any_thread_count() {
         digests
     };
     assert_eq!(digests(1), digests(3));
+}
+
+/// Leaf units whose key ranges meet the same ingest run block share one decode of it
+/// (`stages::samples`): fewer decodes, and the same sums as when every unit decodes its own,
+/// for any thread count.
+#[test]
+fn samples_units_share_the_run_blocks_they_all_read_and_sum_the_same() {
+    let dir = tempfile::tempdir().unwrap();
+    let sums = |name: &str, stage: &SamplesStage, threads: usize| {
+        let store = ingested_sphere(&dir.path().join(name), 7);
+        let octree = SolveOptions {
+            until: octstore::SolveUntil::Octree,
+            leaf_cubes: 1000,
+            ..ssd_options()
+        };
+        solve(&store, &octree, |_| {}).unwrap();
+        store.run_stage(stage, &run(threads)).unwrap();
+        let snapshot = store.latest().unwrap();
+        let units = snapshot.segments(SAMPLES).len();
+        (snapshot.digest(SAMPLES), units)
+    };
+    let alone = SamplesStage::new().with_cache_bytes(0);
+    let (digest, units) = sums("alone", &alone, 2);
+    for threads in [1, 3] {
+        let shared = SamplesStage::new();
+        assert_eq!(sums(&format!("shared-{threads}"), &shared, threads), (digest, units));
+        eprintln!(
+            "{units} units, {threads} thread(s): {} run blocks decoded sharing, {} alone",
+            shared.blocks_decoded(),
+            alone.blocks_decoded()
+        );
+        assert!(
+            shared.blocks_decoded() < alone.blocks_decoded(),
+            "{threads} thread(s): {} blocks decoded sharing, {} alone, in {units} units",
+            shared.blocks_decoded(),
+            alone.blocks_decoded()
+        );
+    }
 }
 
 /// A store whose depth maps were ingested before runs carried sample moments (the golden

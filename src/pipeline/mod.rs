@@ -174,8 +174,11 @@ pub fn solve_with_gpu(
         on_report(&report?);
     }
     if options.until >= SolveUntil::Solution && options.method.ssd().is_some() {
-        // Before the histograms: a store ingested without sample moments fails in seconds.
-        on_report(&store.run_stage(&SamplesStage::new(), &options.run)?);
+        // Before the histograms: a store ingested without sample moments fails in seconds. An
+        // eighth of the budget for run blocks that several units read, as the histograms give
+        // their decoded depth maps.
+        let stage = SamplesStage::new().with_cache_bytes(options.memory_budget / 8);
+        on_report(&store.run_stage(&stage, &options.run)?);
     }
     if options.until >= SolveUntil::Histograms {
         // Stages run one at a time: an eighth of the budget for decoded depth maps, beside the

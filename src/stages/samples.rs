@@ -200,19 +200,73 @@ fn first_not_below(keys: &[CubeKey], from: usize, key: CubeKey) -> usize {
         .map_or(0, |range| range.partition_point(|k| *k < key))
 }
 
-/// An ingest run, where it lies, and the first key of each of its blocks. Every unit opens
-/// the runs it overlaps by path and record, without searching the version's segment list.
+/// An ingest run, where it lies, each of its blocks' key range, and how many leaf units read
+/// each block. Every unit opens the runs it overlaps by path and record, without searching the
+/// version's segment list.
 struct RunIndex {
     name: String,
     path: std::path::PathBuf,
     record: catalog::SegmentRecord,
-    first_keys: Vec<CubeKey>,
-    last_key: CubeKey,
+    /// (first key, last key) of each block.
+    blocks: Vec<(CubeKey, CubeKey)>,
+    /// Per block, the leaf units whose key range meets it and that have not yet read it.
+    readers_left: Vec<std::sync::atomic::AtomicUsize>,
 }
+
+/// One decoded block of an ingest run.
+struct RunBlock {
+    keys: Vec<CubeKey>,
+    moments: Vec<Moments>,
+}
+
+impl RunBlock {
+    fn decode(
+        run: &RunIndex,
+        reader: &crate::format::segment::SegmentReader<'_>,
+        file: &SegmentFile,
+        block: usize,
+    ) -> Result<RunBlock> {
+        let c = |e| file.corruption(e);
+        let (ColumnValues::Key(keys), ColumnValues::U64(w), ColumnValues::U64(o), ColumnValues::U64(n)) = (
+            reader.read_block("key", block).map_err(c)?,
+            reader.read_block(SAMPLE_WEIGHT, block).map_err(c)?,
+            reader.read_block(SAMPLE_OFFSET, block).map_err(c)?,
+            reader.read_block(SAMPLE_NORMAL, block).map_err(c)?,
+        ) else {
+            return Err(SamplesStage::error(
+                &run.name,
+                "sample columns of the wrong type".into(),
+            ));
+        };
+        let moments = moments_of(&w, &o, &n, keys.len())
+            .ok_or_else(|| SamplesStage::error(&run.name, "sample columns of unequal lengths".into()))?;
+        Ok(RunBlock { keys, moments })
+    }
+}
+
+/// The decoded run blocks that leaf units still to come will read, by (run, block), and how
+/// many may be held at once. A run's 1024-row blocks are few beside the treetop's leaves
+/// (RedKitchen's 1000 runs hold 66 blocks each, spread over up to 71 leaves), so without
+/// sharing every block was decoded 2.05 times on average, and zstd was half the stage's CPU.
+struct SharedBlocks {
+    /// The entry's lock is held while its block decodes: a second reader waits for the first
+    /// instead of decoding it again.
+    entries: Mutex<std::collections::HashMap<(usize, usize), SharedSlot>>,
+    capacity: usize,
+}
+
+/// A shared block: empty until its first reader has decoded it.
+type SharedSlot = Arc<Mutex<Option<Arc<RunBlock>>>>;
+
+/// A decoded block's size: its keys and moments (1024 rows per ingest run block).
+const RUN_BLOCK_BYTES: u64 = 1024 * (16 + 56);
 
 pub struct SamplesStage {
     /// Built by the first unit that needs it: every run's block boundaries.
     runs: Mutex<Option<Arc<Vec<RunIndex>>>>,
+    shared: SharedBlocks,
+    /// Run blocks decoded so far, by every unit.
+    decoded: std::sync::atomic::AtomicU64,
     treetop: std::sync::OnceLock<Treetop>,
 }
 
@@ -223,11 +277,31 @@ impl Default for SamplesStage {
 }
 
 impl SamplesStage {
+    /// The stage holding up to 64 MiB of decoded run blocks that several units read.
     pub fn new() -> SamplesStage {
         SamplesStage {
             runs: Mutex::new(None),
+            shared: SharedBlocks {
+                entries: Mutex::new(std::collections::HashMap::new()),
+                capacity: 0,
+            },
+            decoded: std::sync::atomic::AtomicU64::new(0),
             treetop: std::sync::OnceLock::new(),
         }
+        .with_cache_bytes(64 << 20)
+    }
+
+    /// Holds up to `bytes` of decoded run blocks that several units read. A unit that finds
+    /// the cache full decodes the block itself, so the bound costs time, never a result.
+    pub fn with_cache_bytes(mut self, bytes: u64) -> SamplesStage {
+        self.shared.capacity = usize::try_from(bytes / RUN_BLOCK_BYTES).unwrap_or(usize::MAX);
+        self
+    }
+
+    /// How many ingest run blocks this stage's units have decoded (a block several units read
+    /// counts once when they shared it).
+    pub fn blocks_decoded(&self) -> u64 {
+        self.decoded.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     fn error(unit: &str, message: String) -> StoreError {
@@ -246,6 +320,24 @@ impl SamplesStage {
         if let Some(runs) = slot.as_ref() {
             return Ok(runs.clone());
         }
+        // Leaf units' key ranges, in key order and disjoint: a node of the treetop's internal
+        // unit sorts before its subtree, so it never falls inside a leaf's range.
+        let leaves: Vec<(CubeKey, CubeKey)> = self
+            .treetop
+            .get()
+            .map(|t| {
+                t.units
+                    .iter()
+                    .filter(|u| !u.top)
+                    .map(|u| {
+                        (
+                            CubeKey::from_raw(u.record.first_key),
+                            CubeKey::from_raw(u.record.last_key),
+                        )
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
         let mut runs = Vec::new();
         for (name, record) in base.segments(INGEST) {
             let path = base.store().segment_path(name);
@@ -259,15 +351,23 @@ impl SamplesStage {
             }
             // The directory holds each block's key range; decoding the key columns of
             // RedKitchen's 1000 runs for it, under this lock, cost the stage 0.8 of its 11.8 s.
-            let first_keys = (0..reader.block_count())
-                .filter_map(|block| reader.block_key_range(block).map(|(first, _)| first))
+            let blocks: Vec<(CubeKey, CubeKey)> = (0..reader.block_count())
+                .filter_map(|block| reader.block_key_range(block))
+                .collect();
+            let readers_left = blocks
+                .iter()
+                .map(|&(first, last)| {
+                    let readers = leaves.partition_point(|(low, _)| *low <= last)
+                        - leaves.partition_point(|(_, high)| *high < first);
+                    std::sync::atomic::AtomicUsize::new(readers)
+                })
                 .collect();
             runs.push(RunIndex {
                 name: name.clone(),
                 path,
                 record: record.clone(),
-                first_keys,
-                last_key: reader.last_key(),
+                blocks,
+                readers_left,
             });
         }
         let runs = Arc::new(runs);
@@ -275,45 +375,98 @@ impl SamplesStage {
         Ok(runs)
     }
 
-    /// Adds every run's moments of the unit's `keys` (sorted) into `sums`.
-    fn add_runs(&self, base: &Snapshot<'_>, keys: &[CubeKey], sums: &mut [Moments]) -> Result<()> {
+    /// Block `block` of `run` (the `index`th) for a leaf unit: kept in [`SharedBlocks`] while
+    /// leaf units still to come read it. Every leaf reader counts down the block's readers,
+    /// whether it found the block there or not, and the last one drops it.
+    fn leaf_block(
+        &self,
+        index: usize,
+        run: &RunIndex,
+        block: usize,
+        decode: impl FnOnce() -> Result<RunBlock>,
+    ) -> Result<Arc<RunBlock>> {
+        use std::sync::atomic::Ordering;
+        let poisoned = || Self::error(&run.name, "a worker panicked while sharing a block".into());
+        let left = run
+            .readers_left
+            .get(block)
+            .and_then(|n| {
+                n.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| Some(n.saturating_sub(1)))
+                    .ok()
+            })
+            .map_or(0, |before| before.saturating_sub(1));
+        let entry = {
+            let mut entries = self.shared.entries.lock().map_err(|_| poisoned())?;
+            if left == 0 {
+                entries.remove(&(index, block))
+            } else if entries.len() < self.shared.capacity {
+                Some(entries.entry((index, block)).or_default().clone())
+            } else {
+                entries.get(&(index, block)).cloned()
+            }
+        };
+        let Some(entry) = entry else {
+            return decode().map(Arc::new);
+        };
+        let mut slot = entry.lock().map_err(|_| poisoned())?;
+        match slot.as_ref() {
+            Some(decoded) => Ok(decoded.clone()),
+            None => {
+                let decoded = Arc::new(decode()?);
+                *slot = Some(decoded.clone());
+                Ok(decoded)
+            }
+        }
+    }
+
+    /// Adds every run's moments of the unit's `keys` (sorted) into `sums`; `leaf` for a
+    /// treetop leaf's unit, whose keys fill one key range.
+    fn add_runs(&self, base: &Snapshot<'_>, keys: &[CubeKey], leaf: bool, sums: &mut [Moments]) -> Result<()> {
         let (Some(&low), Some(&high)) = (keys.first(), keys.last()) else {
             return Ok(());
         };
-        for run in self.runs(base)?.iter() {
-            let Some(&first) = run.first_keys.first() else { continue };
-            if first > high || run.last_key < low {
+        for (index, run) in self.runs(base)?.iter().enumerate() {
+            let (Some(&(first, _)), Some(&(_, last))) = (run.blocks.first(), run.blocks.last()) else {
+                continue;
+            };
+            if first > high || last < low {
                 continue;
             }
             let file = SegmentFile::open(run.path.clone(), &run.record)?;
             let reader = file.reader()?;
-            let c = |e| file.corruption(e);
-            let start = run.first_keys.partition_point(|k| *k <= low).saturating_sub(1);
-            for block in start..run.first_keys.len() {
-                let block_first = run.first_keys.get(block).copied().unwrap_or(high);
+            let start = run.blocks.partition_point(|(_, block_last)| *block_last < low);
+            for (block, &(block_first, block_last)) in run.blocks.iter().enumerate().skip(start) {
                 if block_first > high {
                     break;
                 }
                 // Skip blocks that hold none of the unit's keys (the top unit's keys are
                 // scattered between the leaves').
-                let next = run.first_keys.get(block + 1).copied();
                 let from = keys.partition_point(|k| *k < block_first);
-                if keys.get(from).is_none_or(|k| next.is_some_and(|n| *k >= n)) {
+                if keys.get(from).is_none_or(|k| *k > block_last) {
                     continue;
                 }
-                let (ColumnValues::Key(block_keys), ColumnValues::U64(w), ColumnValues::U64(o), ColumnValues::U64(n)) = (
-                    reader.read_block("key", block).map_err(c)?,
-                    reader.read_block(SAMPLE_WEIGHT, block).map_err(c)?,
-                    reader.read_block(SAMPLE_OFFSET, block).map_err(c)?,
-                    reader.read_block(SAMPLE_NORMAL, block).map_err(c)?,
-                ) else {
-                    return Err(Self::error(&run.name, "sample columns of the wrong type".into()));
+                let decode = || {
+                    self.decoded.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    RunBlock::decode(run, &reader, &file, block)
                 };
-                let moments = moments_of(&w, &o, &n, block_keys.len())
-                    .ok_or_else(|| Self::error(&run.name, "sample columns of unequal lengths".into()))?;
+                let decoded = if leaf {
+                    self.leaf_block(index, run, block, decode)?
+                } else {
+                    // The top unit's few nodes are rarely in a block its key range meets: its
+                    // keys tell, before the moments are decoded.
+                    let ColumnValues::Key(block_keys) =
+                        reader.read_block("key", block).map_err(|e| file.corruption(e))?
+                    else {
+                        return Err(Self::error(&run.name, "a key column of the wrong type".into()));
+                    };
+                    if !block_keys.iter().any(|k| keys.binary_search(k).is_ok()) {
+                        continue;
+                    }
+                    Arc::new(decode()?)
+                };
                 // Both lists are sorted: one walk matches them.
                 let mut at = from;
-                for (key, m) in block_keys.iter().zip(&moments) {
+                for (key, m) in decoded.keys.iter().zip(&decoded.moments) {
                     at = first_not_below(keys, at, *key);
                     if keys.get(at) == Some(key)
                         && let Some(sum) = sums.get_mut(at)
@@ -369,7 +522,7 @@ impl Stage for SamplesStage {
         let file = base.open_segment(&info.segment)?;
         let keys = file.reader()?.read_keys().map_err(|e| file.corruption(e))?;
         let mut sums = vec![Moments::default(); keys.len()];
-        self.add_runs(base, &keys, &mut sums)?;
+        self.add_runs(base, &keys, !info.top, &mut sums)?;
         let with_samples = sums.iter().filter(|m| m.weight > 0).count() as u64;
         let mut columns = vec![Column::keys(keys)];
         columns.extend(moment_columns(&sums));
