@@ -10,7 +10,7 @@ use octstore::quality::synthetic_scenes::{Noise, SceneSpec, Shape};
 use octstore::stages::histograms::HistogramsStage;
 use octstore::stages::ingest::{IngestOptions, IngestStage, registered_depth_maps};
 use octstore::stages::octree::OctreeStage;
-use octstore::stages::solve::{LEVEL_STAGES, LevelStage, SolveParams};
+use octstore::stages::solve::{COARSE_ROWS_LEVEL, CoarseRowsCache, LEVEL_STAGES, LevelStage, SolveParams};
 use octstore::stages::{OCTREE, octree_max_depth};
 
 fn options() -> RunOptions {
@@ -47,6 +47,18 @@ fn pipeline(
     leaf_cubes: u64,
     iterations: u32,
 ) -> (Store, Scene) {
+    pipeline_with(dir, spec, max_depth, leaf_cubes, iterations, None)
+}
+
+/// [`pipeline`], the levels sharing `coarse_rows`.
+fn pipeline_with(
+    dir: &std::path::Path,
+    spec: &SceneSpec,
+    max_depth: u8,
+    leaf_cubes: u64,
+    iterations: u32,
+    coarse_rows: Option<CoarseRowsCache>,
+) -> (Store, Scene) {
     let manifest = spec.write(&dir.join("input")).unwrap();
     let store = Store::create(dir.join("store")).unwrap();
     let sources = discover(&[manifest], &DiscoverOptions::default()).unwrap();
@@ -73,7 +85,10 @@ fn pipeline(
     };
     for level in 0..=octree_max_depth(&store).unwrap() {
         store
-            .run_stage(&LevelStage::new(level, scene, params), &options())
+            .run_stage(
+                &LevelStage::new(level, scene, params).with_coarse_rows(coarse_rows.clone()),
+                &options(),
+            )
             .unwrap();
     }
     (store, scene)
@@ -106,6 +121,36 @@ fn field_and_seen(store: &Store, scene: &Scene) -> Vec<(octstore::CubeKey, DVec3
     }
     out.sort_by_key(|e| e.0);
     out
+}
+
+/// The coarse levels read every unit's nodes, histograms and `sampled` flags through one cache
+/// per solve (`stages::solve::coarse`); reading the segments at every level gives the same
+/// bytes at every level, over many units.
+#[test]
+fn the_coarse_rows_cache_changes_no_byte_of_any_level() {
+    let spec = sphere_scene(
+        1.0,
+        DVec3::ZERO,
+        Some(Noise {
+            relative_sigma: 0.01,
+            outliers: 0.05,
+            seed: 3,
+        }),
+    );
+    let digests = |name: &str, cache: Option<CoarseRowsCache>| {
+        let dir = tempfile::tempdir().unwrap();
+        let (store, _) = pipeline_with(&dir.path().join(name), &spec, 9, 2000, 30, cache);
+        let snapshot = store.latest().unwrap();
+        let finest = octree_max_depth(&store).unwrap();
+        assert!(finest > COARSE_ROWS_LEVEL && snapshot.segments(OCTREE).len() > 20);
+        (0..=finest)
+            .map(|level| snapshot.digest(LEVEL_STAGES[usize::from(level)]))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(
+        digests("cached", Some(CoarseRowsCache::default())),
+        digests("read", None)
+    );
 }
 
 #[test]

@@ -190,11 +190,13 @@ pub fn solve_with_gpu(
     }
     if options.until >= SolveUntil::Solution {
         let coarse_samples = crate::stages::solve::CoarseSamplesCache::default();
+        let coarse_rows = crate::stages::solve::CoarseRowsCache::default();
         for level in 0..=octree_max_depth(store)? {
             let stage = LevelStage::new(level, scene, options.params)
                 .with_gpu(gpu.clone())
                 .with_method(options.method)
-                .with_coarse_samples(coarse_samples.clone());
+                .with_coarse_samples(coarse_samples.clone())
+                .with_coarse_rows(Some(coarse_rows.clone()));
             on_report(&store.run_stage(&stage, &options.run)?);
         }
     }

@@ -122,52 +122,66 @@ fn nodes_of(base: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeKey>, Vec<u32
     Ok((nodes, counts, spikes))
 }
 
-/// [`sampled_nodes`] for the cubes `keys` of a level cut, read from their units' octree
-/// segments. Samples other than spikes that spawned a node of the treetop's internal unit, an
-/// ancestor of a whole leaf unit, mark that unit's every node too.
+/// A unit's octree nodes and their [`sampled_nodes`] flags.
+pub type UnitSampled = (Vec<CubeKey>, Vec<bool>);
+
+/// A treetop unit's octree nodes and their [`sampled_nodes`] flags, read from its octree
+/// segment. Samples other than spikes that spawned a node of the treetop's internal unit, an
+/// ancestor of a whole leaf unit, mark that unit's every node too. `top` holds the internal
+/// unit's nodes and counts once a leaf unit has needed them.
+pub fn unit_sampled(
+    base: &Snapshot<'_>,
+    treetop: &Treetop,
+    unit: usize,
+    top: &mut Option<(Vec<CubeKey>, Vec<u32>, Vec<u32>)>,
+) -> Result<Option<UnitSampled>> {
+    let Some(info) = treetop.units.get(unit) else {
+        return Ok(None);
+    };
+    let (nodes, samples, spikes) = nodes_of(base, &info.segment)?;
+    let mut flags = sampled_nodes(
+        &nodes,
+        &SpawnCounts {
+            samples: &samples,
+            spikes: &spikes,
+        },
+    );
+    if !info.top {
+        if top.is_none()
+            && let Some(internal) = treetop.units.iter().find(|u| u.top)
+        {
+            *top = Some(nodes_of(base, &internal.segment)?);
+        }
+        let vouched_above = top.as_ref().is_some_and(|(top_nodes, top_samples, top_spikes)| {
+            let top_counts = SpawnCounts {
+                samples: top_samples,
+                spikes: top_spikes,
+            };
+            std::iter::successors(Some(info.key), |k| k.parent()).any(|ancestor| {
+                top_nodes
+                    .binary_search(&ancestor)
+                    .is_ok_and(|at| top_counts.vouched(at))
+            })
+        });
+        if vouched_above {
+            flags.iter_mut().for_each(|flag| *flag = true);
+        }
+    }
+    Ok(Some((nodes, flags)))
+}
+
+/// [`unit_sampled`] for the cubes `keys` of a level cut.
 pub fn sampled_of(base: &Snapshot<'_>, treetop: &Treetop, keys: &[CubeKey]) -> Result<Vec<bool>> {
-    let mut units: BTreeMap<usize, (Vec<CubeKey>, Vec<bool>)> = BTreeMap::new();
-    let mut top: Option<(Vec<CubeKey>, Vec<u32>, Vec<u32>)> = None;
+    let mut units: BTreeMap<usize, Option<UnitSampled>> = BTreeMap::new();
+    let mut top = None;
     let mut out = Vec::with_capacity(keys.len());
     for key in keys {
         let unit = treetop.unit_of(*key);
         if let std::collections::btree_map::Entry::Vacant(slot) = units.entry(unit) {
-            let Some(info) = treetop.units.get(unit) else {
-                out.push(false);
-                continue;
-            };
-            let (nodes, samples, spikes) = nodes_of(base, &info.segment)?;
-            let mut flags = sampled_nodes(
-                &nodes,
-                &SpawnCounts {
-                    samples: &samples,
-                    spikes: &spikes,
-                },
-            );
-            if !info.top {
-                if top.is_none()
-                    && let Some(internal) = treetop.units.iter().find(|u| u.top)
-                {
-                    top = Some(nodes_of(base, &internal.segment)?);
-                }
-                let vouched_above = top.as_ref().is_some_and(|(top_nodes, top_samples, top_spikes)| {
-                    let top_counts = SpawnCounts {
-                        samples: top_samples,
-                        spikes: top_spikes,
-                    };
-                    std::iter::successors(Some(info.key), |k| k.parent()).any(|ancestor| {
-                        top_nodes
-                            .binary_search(&ancestor)
-                            .is_ok_and(|at| top_counts.vouched(at))
-                    })
-                });
-                if vouched_above {
-                    flags.iter_mut().for_each(|flag| *flag = true);
-                }
-            }
-            slot.insert((nodes, flags));
+            slot.insert(unit_sampled(base, treetop, unit, &mut top)?);
         }
-        let flag = units.get(&unit).and_then(|(nodes, flags)| {
+        let flag = units.get(&unit).and_then(|entry| {
+            let (nodes, flags) = entry.as_ref()?;
             let at = nodes.binary_search(key).ok()?;
             flags.get(at).copied()
         });

@@ -24,9 +24,12 @@ use crate::kernels::votes::BINS;
 use crate::store::catalog::{self, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
+mod coarse;
 mod cut;
 mod params;
 mod ssd;
+
+pub use coarse::{COARSE_ROWS_LEVEL, CoarseRowsCache};
 
 pub use ssd::{CoarseSamplesCache, METHOD_COLUMN, method_of_segment};
 
@@ -235,6 +238,8 @@ struct Neighbourhood<'a, 's> {
     treetop: &'a Treetop,
     level: u8,
     previous_level: Option<LevelSegments>,
+    /// At the coarse levels, where the units' nodes come from.
+    coarse: Option<&'a CoarseRowsCache>,
     keys: BTreeMap<usize, Arc<LevelKeys>>,
     /// Previous-level values by group id.
     values: BTreeMap<u64, Arc<LevelValues>>,
@@ -261,6 +266,24 @@ impl Neighbourhood<'_, '_> {
             unit: format!("unit {unit}"),
             message: "no such treetop unit".into(),
         })?;
+        if let Some(cache) = self.coarse
+            && let Some(coarse) = cache.unit(self.base, self.treetop, unit)?
+        {
+            let (keys, rows): (Vec<CubeKey>, Vec<u32>) = coarse
+                .keys
+                .iter()
+                .zip(&coarse.rows)
+                .filter(|(key, _)| key.depth() <= self.level)
+                .map(|(key, row)| (*key, *row))
+                .unzip();
+            let loaded = Arc::new(LevelKeys {
+                keys: UnitKeys { keys, top: info.top },
+                rows,
+                total: coarse.total,
+            });
+            self.keys.insert(unit, loaded.clone());
+            return Ok(loaded);
+        }
         let file = self.base.open_segment(&info.segment)?;
         let all = file.reader()?.read_keys().map_err(|e| file.corruption(e))?;
         let total = all.len();
@@ -318,6 +341,9 @@ pub struct LevelStage {
     method: Method,
     /// SSD: the units' samples summed for the coarse levels, shared by the levels of a solve.
     coarse_samples: ssd::CoarseSamplesCache,
+    /// The units' nodes, histograms and `sampled` flags for the coarse levels, shared likewise;
+    /// `None` reads them from the segments at every level.
+    coarse_rows: Option<CoarseRowsCache>,
 }
 
 #[derive(Serialize, Deserialize, Default, Clone, Copy)]
@@ -340,6 +366,27 @@ impl LevelStage {
             gpu: None,
             method: Method::Tgv,
             coarse_samples: ssd::CoarseSamplesCache::default(),
+            coarse_rows: Some(CoarseRowsCache::default()),
+        }
+    }
+
+    /// Shares the cache of the units' coarse nodes with the other levels of a solve (`None`:
+    /// no cache, the same result).
+    pub fn with_coarse_rows(mut self, cache: Option<CoarseRowsCache>) -> LevelStage {
+        self.coarse_rows = cache;
+        self
+    }
+
+    /// The cache the level reads its units through, at the coarse levels.
+    fn coarse_rows(&self) -> Option<&CoarseRowsCache> {
+        self.coarse_rows.as_ref().filter(|_| self.level <= COARSE_ROWS_LEVEL)
+    }
+
+    /// Whether samples reached each cut cube of `keys` (`stages::observed::sampled_of`).
+    fn sampled(&self, base: &Snapshot<'_>, treetop: &Treetop, keys: &[CubeKey]) -> Result<Vec<bool>> {
+        match self.coarse_rows() {
+            Some(cache) => cache.sampled(base, treetop, keys),
+            None => sampled_of(base, treetop, keys),
         }
     }
 
@@ -479,6 +526,7 @@ impl LevelStage {
             treetop,
             level,
             previous_level: self.previous_stage().map(|stage| LevelSegments::of(base, stage)),
+            coarse: self.coarse_rows(),
             keys: BTreeMap::new(),
             values: BTreeMap::new(),
         };
@@ -509,20 +557,18 @@ impl LevelStage {
                     unit: format!("unit {member}"),
                     message: "no histograms for this unit: run the histograms stage first".into(),
                 })?;
-            let file = base.open_segment(name)?;
-            let reader = file.reader()?;
-            let (_, h) = reader.read_f32("hist").map_err(|e| file.corruption(e))?;
-            // Histograms written before the distance column existed measured no distances.
-            let distance = if reader.column("distance").is_ok() {
-                reader.read_f32("distance").map_err(|e| file.corruption(e))?.1
-            } else {
-                vec![0.0; 2 * own.total]
-            };
-            if h.len() != own.total * BINS || distance.len() != 2 * own.total {
-                return Err(file.corruption(crate::format::DecodeError::MissingColumn(
-                    "hist and distance rows matching the octree unit".into(),
-                )));
+            if let Some(cache) = self.coarse_rows()
+                && let Some(coarse) = cache.unit(base, treetop, member)?
+            {
+                let histograms = cache.histograms(base, name, &coarse)?;
+                cut.extend(rows.iter().map(|&i| {
+                    let row = own.rows.get(i).copied().unwrap_or(u32::MAX);
+                    let (hist, distance) = histograms.at(&coarse, row);
+                    (own.keys.keys[i], hist, distance)
+                }));
+                continue;
             }
+            let (h, distance) = read_histograms(base, name, own.total)?;
             cut.extend(rows.iter().map(|&i| {
                 let row = own.rows.get(i).map_or(usize::MAX, |r| *r as usize);
                 (
@@ -613,6 +659,26 @@ impl LevelStage {
     }
 }
 
+/// A histogram segment's `hist` and `distance` values, checked against its octree unit's
+/// `rows`.
+fn read_histograms(base: &Snapshot<'_>, segment: &str, rows: usize) -> Result<(Vec<f32>, Vec<f32>)> {
+    let file = base.open_segment(segment)?;
+    let reader = file.reader()?;
+    let (_, h) = reader.read_f32("hist").map_err(|e| file.corruption(e))?;
+    // Histograms written before the distance column existed measured no distances.
+    let distance = if reader.column("distance").is_ok() {
+        reader.read_f32("distance").map_err(|e| file.corruption(e))?.1
+    } else {
+        vec![0.0; 2 * rows]
+    };
+    if h.len() != rows * BINS || distance.len() != 2 * rows {
+        return Err(file.corruption(crate::format::DecodeError::MissingColumn(
+            "hist and distance rows matching the octree unit".into(),
+        )));
+    }
+    Ok((h, distance))
+}
+
 impl Stage for LevelStage {
     fn name(&self) -> &'static str {
         LEVEL_STAGES[usize::from(self.level)]
@@ -695,7 +761,7 @@ impl Stage for LevelStage {
             .treetop
             .get()
             .ok_or_else(|| self.stage_error(unit, "units run before planning".into()))?;
-        let sampled = sampled_of(base, treetop, &keys)?.into_iter().map(u32::from).collect();
+        let sampled = self.sampled(base, treetop, &keys)?.into_iter().map(u32::from).collect();
         let values = LevelValues {
             keys,
             u: state.u,

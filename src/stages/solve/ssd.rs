@@ -10,7 +10,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use super::{Inherited, LevelStage, LevelUnitExtra, LevelValues, ObservedColumns, UnitCut, columns_of};
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
 use crate::kernels::ssd::{CubeSamples, Solved, SsdProblem, UNSAMPLED_ANCHOR, solve};
-use crate::stages::observed::{measured_weight, sampled_of, seen_weight};
+use crate::stages::observed::{measured_weight, seen_weight};
 use crate::stages::samples::{Moments, SAMPLES, cube_centre, normal_disagreement, read_samples};
 use crate::stages::treetop::Treetop;
 use crate::store::catalog;
@@ -424,7 +424,8 @@ impl LevelStage {
         let n = cut.keys.len();
         let observed = ObservedColumns {
             seen: cut.hist.iter().map(seen_weight).collect(),
-            sampled: sampled_of(base, treetop, &cut.keys)?
+            sampled: self
+                .sampled(base, treetop, &cut.keys)?
                 .into_iter()
                 .map(u32::from)
                 .collect(),
