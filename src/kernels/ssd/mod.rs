@@ -375,6 +375,7 @@ impl SsdProblem {
         let n = self.n;
         let supports: Vec<Support> = (0..n).into_par_iter().map(|c| self.support(c)).collect();
         let mut diagonal = vec![0.0; n];
+        let mut difference: Support = Vec::new();
         for c in 0..n {
             let (s, h) = (self.samples[c], self.side[c]);
             let h2 = h * h;
@@ -388,7 +389,9 @@ impl SsdProblem {
                 for (t, w) in self.row(3 * c + axis) {
                     let sigma = self.pair_weight(c, *w);
                     let t = *t as usize;
-                    let mut difference: Support = supports[c].clone();
+                    // One buffer for every term: a clone per term was most of this loop.
+                    difference.clear();
+                    difference.extend_from_slice(&supports[c]);
                     if let Some(other) = supports.get(t) {
                         for (j, coefficient) in other {
                             match difference.iter_mut().find(|(i, _)| i == j) {
@@ -397,8 +400,8 @@ impl SsdProblem {
                             }
                         }
                     }
-                    for (j, d) in difference {
-                        diagonal[j] += sigma * dot(d, d);
+                    for (j, d) in &difference {
+                        diagonal[*j] += sigma * dot(*d, *d);
                     }
                 }
             }

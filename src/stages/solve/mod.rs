@@ -604,7 +604,9 @@ impl LevelStage {
             for axis in 0..3 {
                 let mut neighbours: Vec<CubeKey> = Vec::new();
                 if let Some(n0) = plus_neighbour(key, axis) {
-                    match hood.node(n0)? {
+                    // A neighbour in the unit's own cut is a cut cube: no need to ask the octree.
+                    let in_cut = index_of(n0).is_some();
+                    match if in_cut { Some(true) } else { hood.node(n0)? } {
                         Some(leaf) if leaf || n0.depth() == level => neighbours.push(n0),
                         Some(_) => neighbours.extend(children_on_min_face(n0, axis)),
                         None => {
@@ -642,9 +644,21 @@ impl LevelStage {
                 start.push(terms.len() as u32);
             }
         }
+        // Sibling cubes at the level share their source, and come one after another.
+        let mut last: Option<(CubeKey, Option<Inherited>)> = None;
         let previous = keys
             .iter()
-            .map(|key| hood.previous(self.source_key(*key)))
+            .map(|key| {
+                let source = self.source_key(*key);
+                if let Some((known, values)) = last
+                    && known == source
+                {
+                    return Ok(values);
+                }
+                let values = hood.previous(source)?;
+                last = Some((source, values));
+                Ok(values)
+            })
             .collect::<Result<_>>()?;
         Ok(Some(UnitCut {
             keys,
