@@ -234,6 +234,32 @@ fn samples_units_share_the_run_blocks_they_all_read_and_sum_the_same() {
     }
 }
 
+/// A run whose sample sums are damaged on disk stops the samples stage with an error naming
+/// the file, and nothing of the stage is committed.
+#[test]
+fn a_damaged_sample_chunk_is_refused_by_file_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = ingested_sphere(dir.path(), 6);
+    let octree = SolveOptions {
+        until: octstore::SolveUntil::Octree,
+        ..ssd_options()
+    };
+    solve(&store, &octree, |_| {}).unwrap();
+    let snapshot = store.latest().unwrap();
+    let (name, _) = snapshot.segments(octstore::stages::INGEST).into_iter().next().unwrap();
+    let path = dir.path().join("store").join("segments").join(name);
+    let mut bytes = std::fs::read(&path).unwrap();
+    let directory = octstore::format::segment::SegmentReader::parse(&bytes).unwrap().directory();
+    let (offset, len) = directory.chunk_range("sample_weight", 0).unwrap();
+    bytes[offset as usize + len / 2] ^= 0x10;
+    std::fs::write(&path, &bytes).unwrap();
+    let before = store.current_version().unwrap();
+    let error = solve(&store, &ssd_options(), |_| {}).unwrap_err().to_string();
+    assert!(error.contains(name.as_str()) && error.contains("checksum"), "{error}");
+    assert_eq!(store.current_version().unwrap(), before);
+    assert!(store.latest().unwrap().segments(SAMPLES).is_empty());
+}
+
 /// A store whose depth maps were ingested before runs carried sample moments (the golden
 /// version-2 store) cannot be solved with SSD: the error names the run and what to do, and the
 /// store keeps its last commit.

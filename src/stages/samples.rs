@@ -14,9 +14,12 @@ use glam::DVec3;
 
 use super::treetop::Treetop;
 use super::{INGEST, OCTREE};
+use crate::format::segment::SegmentDirectory;
 use crate::format::{Column, ColumnValues, CubeKey, Scene, round_half_away_from_zero};
 use crate::store::catalog::{self, UnitRecord};
-use crate::store::{Plan, Replace, Result, SegmentFile, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
+use crate::store::{
+    Plan, Replace, Result, SegmentChunks, SegmentFile, Snapshot, Stage, StoreError, UnitOutput, UnitSpec,
+};
 
 /// The stage's name.
 pub const SAMPLES: &str = "samples";
@@ -220,7 +223,8 @@ fn first_not_below(keys: &[CubeKey], from: usize, key: CubeKey) -> usize {
 struct RunIndex {
     name: String,
     path: std::path::PathBuf,
-    record: catalog::SegmentRecord,
+    /// The run's directory, parsed once: units read its chunks without mapping the file.
+    directory: SegmentDirectory,
     /// (first key, last key) of each block.
     blocks: Vec<(CubeKey, CubeKey)>,
     /// Per block, the leaf units whose key range meets it and that have not yet read it.
@@ -233,19 +237,37 @@ struct RunBlock {
     moments: Vec<Moments>,
 }
 
+/// A unit's open file of one run and the buffer its chunks are read into.
+struct RunChunks<'a> {
+    run: &'a RunIndex,
+    file: SegmentChunks,
+    buffer: Vec<u8>,
+}
+
+impl RunChunks<'_> {
+    /// Block `block` of column `name`.
+    fn read_block(&mut self, name: &str, block: usize) -> Result<ColumnValues> {
+        let range = self
+            .run
+            .directory
+            .chunk_range(name, block)
+            .map_err(|e| self.file.corruption(e))?;
+        self.file.read(range, &mut self.buffer)?;
+        self.run
+            .directory
+            .decode_block(name, block, &self.buffer)
+            .map_err(|e| self.file.corruption(e))
+    }
+}
+
 impl RunBlock {
-    fn decode(
-        run: &RunIndex,
-        reader: &crate::format::segment::SegmentReader<'_>,
-        file: &SegmentFile,
-        block: usize,
-    ) -> Result<RunBlock> {
-        let c = |e| file.corruption(e);
+    fn decode(chunks: &mut RunChunks<'_>, block: usize) -> Result<RunBlock> {
+        let run = chunks.run;
         let (ColumnValues::Key(keys), Some(w), Some(o), Some(n)) = (
-            reader.read_block("key", block).map_err(c)?,
-            signed_values(reader.read_block(SAMPLE_WEIGHT, block).map_err(c)?),
-            signed_values(reader.read_block(SAMPLE_OFFSET, block).map_err(c)?),
-            signed_values(reader.read_block(SAMPLE_NORMAL, block).map_err(c)?),
+            chunks.read_block("key", block)?,
+            signed_values(chunks.read_block(SAMPLE_WEIGHT, block)?),
+            signed_values(chunks.read_block(SAMPLE_OFFSET, block)?),
+            signed_values(chunks.read_block(SAMPLE_NORMAL, block)?),
         ) else {
             return Err(SamplesStage::error(
                 &run.name,
@@ -379,7 +401,7 @@ impl SamplesStage {
             runs.push(RunIndex {
                 name: name.clone(),
                 path,
-                record: record.clone(),
+                directory: reader.directory(),
                 blocks,
                 readers_left,
             });
@@ -446,8 +468,11 @@ impl SamplesStage {
             if first > high || last < low {
                 continue;
             }
-            let file = SegmentFile::open(run.path.clone(), &run.record)?;
-            let reader = file.reader()?;
+            let mut chunks = RunChunks {
+                run,
+                file: SegmentChunks::open(run.path.clone())?,
+                buffer: Vec::new(),
+            };
             let start = run.blocks.partition_point(|(_, block_last)| *block_last < low);
             for (block, &(block_first, block_last)) in run.blocks.iter().enumerate().skip(start) {
                 if block_first > high {
@@ -459,24 +484,22 @@ impl SamplesStage {
                 if keys.get(from).is_none_or(|k| *k > block_last) {
                     continue;
                 }
-                let decode = || {
-                    self.decoded.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    RunBlock::decode(run, &reader, &file, block)
-                };
                 let decoded = if leaf {
-                    self.leaf_block(index, run, block, decode)?
+                    self.leaf_block(index, run, block, || {
+                        self.decoded.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        RunBlock::decode(&mut chunks, block)
+                    })?
                 } else {
                     // The top unit's few nodes are rarely in a block its key range meets: its
                     // keys tell, before the moments are decoded.
-                    let ColumnValues::Key(block_keys) =
-                        reader.read_block("key", block).map_err(|e| file.corruption(e))?
-                    else {
+                    let ColumnValues::Key(block_keys) = chunks.read_block("key", block)? else {
                         return Err(Self::error(&run.name, "a key column of the wrong type".into()));
                     };
                     if !block_keys.iter().any(|k| keys.binary_search(k).is_ok()) {
                         continue;
                     }
-                    Arc::new(decode()?)
+                    self.decoded.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    Arc::new(RunBlock::decode(&mut chunks, block)?)
                 };
                 // Both lists are sorted: one walk matches them.
                 let mut at = from;

@@ -36,7 +36,7 @@ use catalog::{
 pub use failpoint::IoFaults;
 pub use pins::ReaderPin;
 pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSpec};
-pub use snapshot::{SegmentFile, Snapshot};
+pub use snapshot::{SegmentChunks, SegmentFile, Snapshot};
 pub use spill::{SegmentContent, SegmentSpill};
 
 /// The catalog's file name inside a store folder.

@@ -243,6 +243,130 @@ pub struct SegmentReader<'a> {
     columns: Vec<ColumnInfo>,
 }
 
+/// A segment's parsed directory without its bytes: its block table and column chunks, so a
+/// caller that reads many short pieces of many segments can fetch only the chunks it decodes
+/// (the samples stage, which mapped and parsed every ingest run once per unit).
+#[derive(Clone, Debug)]
+pub struct SegmentDirectory {
+    blocks: Vec<BlockInfo>,
+    columns: Vec<ColumnInfo>,
+}
+
+impl SegmentDirectory {
+    /// Number of blocks.
+    pub fn block_count(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// The first and last key of block `block`.
+    pub fn block_key_range(&self, block: usize) -> Option<(CubeKey, CubeKey)> {
+        self.blocks.get(block).map(|b| (b.first_key, b.last_key))
+    }
+
+    fn column(&self, name: &str) -> Result<&ColumnInfo, DecodeError> {
+        self.columns
+            .iter()
+            .find(|c| c.name == name)
+            .ok_or_else(|| DecodeError::MissingColumn(name.to_string()))
+    }
+
+    /// Where block `block` of column `name` lies in the segment: its offset and length.
+    pub fn chunk_range(&self, name: &str, block: usize) -> Result<(u64, usize), DecodeError> {
+        let column = self.column(name)?;
+        column
+            .chunks
+            .get(block)
+            .map(|c| (c.offset, c.len as usize))
+            .ok_or_else(|| corrupt(block_region(&self.blocks, column, block), "no such block"))
+    }
+
+    /// Decodes block `block` of column `name` from its compressed bytes (the segment's bytes
+    /// at [`chunk_range`](Self::chunk_range)), checking them against the directory's checksum.
+    pub fn decode_block(&self, name: &str, block: usize, compressed: &[u8]) -> Result<ColumnValues, DecodeError> {
+        decode_block_values(&self.blocks, self.column(name)?, block, compressed)
+    }
+}
+
+/// The part of the file block `block` of `column` is, for errors.
+fn block_region(blocks: &[BlockInfo], column: &ColumnInfo, block: usize) -> SegmentPart {
+    let info = blocks.get(block);
+    SegmentPart::Block {
+        column: column.name.clone(),
+        block: block as u32,
+        first_key: info.map(|b| b.first_key).unwrap_or_default(),
+        last_key: info.map(|b| b.last_key).unwrap_or_default(),
+    }
+}
+
+/// Checks a chunk's compressed bytes against its checksum and decompresses them into `out`,
+/// which must be exactly the block's raw size.
+fn decode_chunk_into(
+    blocks: &[BlockInfo],
+    column: &ColumnInfo,
+    block: usize,
+    chunk: ChunkInfo,
+    compressed: &[u8],
+    out: &mut [u8],
+) -> Result<(), DecodeError> {
+    let region = || block_region(blocks, column, block);
+    let got = xxh3_64(compressed);
+    if got != chunk.checksum {
+        return Err(DecodeError::ChecksumMismatch {
+            part: region(),
+            got,
+            expected: chunk.checksum,
+        });
+    }
+    let n = decompress_to_buffer(compressed, out).map_err(|e| corrupt(region(), format!("zstd: {e}")))?;
+    if n != out.len() {
+        return Err(corrupt(region(), format!("decoded {n} bytes, expected {}", out.len())));
+    }
+    Ok(())
+}
+
+/// Block `block` of `column` decoded from its compressed bytes.
+fn decode_block_values(
+    blocks: &[BlockInfo],
+    column: &ColumnInfo,
+    block: usize,
+    compressed: &[u8],
+) -> Result<ColumnValues, DecodeError> {
+    let (chunk, info) = match (column.chunks.get(block), blocks.get(block)) {
+        (Some(c), Some(b)) => (*c, *b),
+        _ => return Err(corrupt(block_region(blocks, column, block), "no such block")),
+    };
+    if compressed.len() != chunk.len as usize {
+        return Err(corrupt(
+            block_region(blocks, column, block),
+            "block of the wrong length",
+        ));
+    }
+    let len = info.rows as usize * usize::from(column.width);
+    let decode = |out: &mut [u8]| decode_chunk_into(blocks, column, block, chunk, compressed, out);
+    Ok(match column.element_type {
+        ElementType::Key => {
+            let mut v = vec![CubeKey::default(); len];
+            decode(bytemuck::cast_slice_mut(&mut v))?;
+            ColumnValues::Key(v)
+        }
+        ElementType::F32 => {
+            let mut v = vec![0f32; len];
+            decode(bytemuck::cast_slice_mut(&mut v))?;
+            ColumnValues::F32(v)
+        }
+        ElementType::U32 => {
+            let mut v = vec![0u32; len];
+            decode(bytemuck::cast_slice_mut(&mut v))?;
+            ColumnValues::U32(v)
+        }
+        ElementType::U64 => {
+            let mut v = vec![0u64; len];
+            decode(bytemuck::cast_slice_mut(&mut v))?;
+            ColumnValues::U64(v)
+        }
+    })
+}
+
 fn corrupt(part: SegmentPart, reason: impl Into<String>) -> DecodeError {
     DecodeError::Corrupt {
         part,
@@ -461,13 +585,7 @@ impl<'a> SegmentReader<'a> {
     }
 
     fn block_region(&self, column: &ColumnInfo, block: usize) -> SegmentPart {
-        let info = self.blocks.get(block);
-        SegmentPart::Block {
-            column: column.name.clone(),
-            block: block as u32,
-            first_key: info.map(|b| b.first_key).unwrap_or_default(),
-            last_key: info.map(|b| b.last_key).unwrap_or_default(),
-        }
+        block_region(&self.blocks, column, block)
     }
 
     /// Decompresses one column into `out` (whose length must be rows x width elements) as raw
@@ -530,33 +648,12 @@ impl<'a> SegmentReader<'a> {
     /// Decodes one block of one column: bounded memory for streaming merges.
     pub fn read_block(&self, name: &str, block: usize) -> Result<ColumnValues, DecodeError> {
         let column = self.column(name)?;
-        let (chunk, info) = match (column.chunks.get(block), self.blocks.get(block)) {
-            (Some(c), Some(b)) => (*c, *b),
-            _ => return Err(corrupt(self.block_region(column, block), "no such block")),
-        };
-        let len = info.rows as usize * usize::from(column.width);
-        Ok(match column.element_type {
-            ElementType::Key => {
-                let mut v = vec![CubeKey::default(); len];
-                self.decode_chunk(column, block, chunk, bytemuck::cast_slice_mut(&mut v))?;
-                ColumnValues::Key(v)
-            }
-            ElementType::F32 => {
-                let mut v = vec![0f32; len];
-                self.decode_chunk(column, block, chunk, bytemuck::cast_slice_mut(&mut v))?;
-                ColumnValues::F32(v)
-            }
-            ElementType::U32 => {
-                let mut v = vec![0u32; len];
-                self.decode_chunk(column, block, chunk, bytemuck::cast_slice_mut(&mut v))?;
-                ColumnValues::U32(v)
-            }
-            ElementType::U64 => {
-                let mut v = vec![0u64; len];
-                self.decode_chunk(column, block, chunk, bytemuck::cast_slice_mut(&mut v))?;
-                ColumnValues::U64(v)
-            }
-        })
+        let chunk = column.chunks.get(block).copied();
+        let region = || block_region(&self.blocks, column, block);
+        let compressed = chunk
+            .and_then(|c| self.bytes.get(c.offset as usize..c.offset as usize + c.len as usize))
+            .ok_or_else(|| corrupt(region(), "block out of bounds"))?;
+        decode_block_values(&self.blocks, column, block, compressed)
     }
 
     fn decode_chunk(
@@ -566,25 +663,21 @@ impl<'a> SegmentReader<'a> {
         chunk: ChunkInfo,
         out: &mut [u8],
     ) -> Result<(), DecodeError> {
-        let region = || self.block_region(column, block);
         let start = chunk.offset as usize;
         let compressed = self
             .bytes
             .get(start..start + chunk.len as usize)
-            .ok_or_else(|| corrupt(region(), "block out of bounds"))?;
-        let got = xxh3_64(compressed);
-        if got != chunk.checksum {
-            return Err(DecodeError::ChecksumMismatch {
-                part: region(),
-                got,
-                expected: chunk.checksum,
-            });
+            .ok_or_else(|| corrupt(block_region(&self.blocks, column, block), "block out of bounds"))?;
+        decode_chunk_into(&self.blocks, column, block, chunk, compressed, out)
+    }
+
+    /// The directory, detached from the bytes: to read blocks of the segment later from
+    /// bytes fetched elsewhere ([`SegmentDirectory::decode_block`]).
+    pub fn directory(&self) -> SegmentDirectory {
+        SegmentDirectory {
+            blocks: self.blocks.clone(),
+            columns: self.columns.clone(),
         }
-        let n = decompress_to_buffer(compressed, out).map_err(|e| corrupt(region(), format!("zstd: {e}")))?;
-        if n != out.len() {
-            return Err(corrupt(region(), format!("decoded {n} bytes, expected {}", out.len())));
-        }
-        Ok(())
     }
 
     /// Decodes the key column.
@@ -746,6 +839,34 @@ mod tests {
             let result = SegmentReader::parse(&bytes[..len]).and_then(|r| r.verify());
             assert!(result.is_err(), "truncation to {len} went unnoticed");
         }
+    }
+
+    /// A detached directory decodes every block from the chunk bytes it names as the reader
+    /// does, and refuses bytes of the wrong length or with a flipped bit.
+    #[test]
+    fn a_detached_directory_decodes_blocks_from_their_chunks() {
+        let columns = sample(1000);
+        let (bytes, _) = encode(&columns, 64);
+        let reader = SegmentReader::parse(&bytes).unwrap();
+        let directory = reader.directory();
+        assert_eq!(directory.block_count(), reader.block_count());
+        for column in &columns {
+            for block in 0..directory.block_count() {
+                assert_eq!(directory.block_key_range(block), reader.block_key_range(block));
+                let (offset, len) = directory.chunk_range(&column.name, block).unwrap();
+                let chunk = &bytes[offset as usize..offset as usize + len];
+                assert_eq!(
+                    directory.decode_block(&column.name, block, chunk).unwrap(),
+                    reader.read_block(&column.name, block).unwrap()
+                );
+                assert!(directory.decode_block(&column.name, block, &chunk[1..]).is_err());
+                let mut flipped = chunk.to_vec();
+                flipped[len / 2] ^= 1;
+                assert!(directory.decode_block(&column.name, block, &flipped).is_err());
+            }
+        }
+        assert!(directory.chunk_range("no such column", 0).is_err());
+        assert!(directory.chunk_range("key", directory.block_count()).is_err());
     }
 
     #[test]
