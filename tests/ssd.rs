@@ -246,10 +246,12 @@ fn a_damaged_sample_chunk_is_refused_by_file_name() {
     };
     solve(&store, &octree, |_| {}).unwrap();
     let snapshot = store.latest().unwrap();
-    let (name, _) = snapshot.segments(octstore::stages::INGEST).into_iter().next().unwrap();
+    let (name, _) = snapshot.segments(octstore::stages::INGEST).iter().next().unwrap();
     let path = dir.path().join("store").join("segments").join(name);
     let mut bytes = std::fs::read(&path).unwrap();
-    let directory = octstore::format::segment::SegmentReader::parse(&bytes).unwrap().directory();
+    let directory = octstore::format::segment::SegmentReader::parse(&bytes)
+        .unwrap()
+        .directory();
     let (offset, len) = directory.chunk_range("sample_weight", 0).unwrap();
     bytes[offset as usize + len / 2] ^= 0x10;
     std::fs::write(&path, &bytes).unwrap();

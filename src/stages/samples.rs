@@ -217,9 +217,9 @@ fn first_not_below(keys: &[CubeKey], from: usize, key: CubeKey) -> usize {
         .map_or(0, |range| range.partition_point(|k| *k < key))
 }
 
-/// An ingest run, where it lies, each of its blocks' key range, and how many leaf units read
-/// each block. Every unit opens the runs it overlaps by path and record, without searching the
-/// version's segment list.
+/// An ingest run, where it lies, its directory, each of its blocks' key range (kept beside the
+/// directory's for searching), and how many leaf units read each block. Every unit opens the
+/// runs it overlaps by path, without searching the version's segment list or parsing them.
 struct RunIndex {
     name: String,
     path: std::path::PathBuf,
