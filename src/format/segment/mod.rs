@@ -264,10 +264,7 @@ impl SegmentDirectory {
     }
 
     fn column(&self, name: &str) -> Result<&ColumnInfo, DecodeError> {
-        self.columns
-            .iter()
-            .find(|c| c.name == name)
-            .ok_or_else(|| DecodeError::MissingColumn(name.to_string()))
+        find_column(&self.columns, name)
     }
 
     /// Where block `block` of column `name` lies in the segment: its offset and length.
@@ -285,6 +282,14 @@ impl SegmentDirectory {
     pub fn decode_block(&self, name: &str, block: usize, compressed: &[u8]) -> Result<ColumnValues, DecodeError> {
         decode_block_values(&self.blocks, self.column(name)?, block, compressed)
     }
+}
+
+/// The column named `name`.
+fn find_column<'c>(columns: &'c [ColumnInfo], name: &str) -> Result<&'c ColumnInfo, DecodeError> {
+    columns
+        .iter()
+        .find(|c| c.name == name)
+        .ok_or_else(|| DecodeError::MissingColumn(name.to_string()))
 }
 
 /// The part of the file block `block` of `column` is, for errors.
@@ -578,10 +583,7 @@ impl<'a> SegmentReader<'a> {
 
     /// The column called `name`.
     pub fn column(&self, name: &str) -> Result<&ColumnInfo, DecodeError> {
-        self.columns
-            .iter()
-            .find(|c| c.name == name)
-            .ok_or_else(|| DecodeError::MissingColumn(name.to_string()))
+        find_column(&self.columns, name)
     }
 
     fn block_region(&self, column: &ColumnInfo, block: usize) -> SegmentPart {

@@ -56,6 +56,8 @@ pub struct CoarseRowsCache(Arc<Mutex<CoarseRows>>);
 #[derive(Default)]
 struct CoarseRows {
     units: BTreeMap<String, Arc<CoarseUnit>>,
+    /// The treetop's internal unit's nodes, sample and spike counts, once a leaf has read them.
+    top: Option<(Vec<CubeKey>, Vec<u32>, Vec<u32>)>,
     histograms: BTreeMap<String, Arc<CoarseHistograms>>,
 }
 
@@ -74,8 +76,10 @@ impl CoarseRowsCache {
         if let Some(found) = self.rows().units.get(&name) {
             return Ok(Some(found.clone()));
         }
-        // Two workers may both decode a unit here; either result is the same.
-        let Some((nodes, flags)) = unit_sampled(base, treetop, unit, &mut None)? else {
+        // Two workers may both decode a unit here; either result is the same. The treetop's
+        // internal unit, which every leaf's flags consult, is decoded once per solve.
+        let mut top = self.rows().top.clone();
+        let Some((nodes, flags)) = unit_sampled(base, treetop, unit, &mut top)? else {
             return Ok(None);
         };
         let total = nodes.len();
@@ -93,7 +97,11 @@ impl CoarseRowsCache {
             total,
             sampled,
         });
-        self.rows().units.insert(name, coarse.clone());
+        let mut rows = self.rows();
+        rows.units.insert(name, coarse.clone());
+        if rows.top.is_none() {
+            rows.top = top;
+        }
         Ok(Some(coarse))
     }
 
