@@ -150,30 +150,55 @@ pub fn moment_columns(moments: &[Moments]) -> [Column; 3] {
     ]
 }
 
-/// A moment column's signed values, whichever width [`moment_columns`] chose; `None` for
-/// another type.
-fn signed_values(values: ColumnValues) -> Option<Vec<i64>> {
-    match values {
-        ColumnValues::U32(values) => Some(values.into_iter().map(|v| i64::from(v as i32)).collect()),
-        ColumnValues::U64(values) => Some(values.into_iter().map(|v| v as i64).collect()),
-        _ => None,
+/// A moment column's values, whichever width [`moment_columns`] chose.
+enum MomentColumn {
+    Narrow(Vec<u32>),
+    Wide(Vec<u64>),
+}
+
+impl MomentColumn {
+    /// `None` for a column of another type.
+    fn of(values: ColumnValues) -> Option<MomentColumn> {
+        match values {
+            ColumnValues::U32(values) => Some(MomentColumn::Narrow(values)),
+            ColumnValues::U64(values) => Some(MomentColumn::Wide(values)),
+            _ => None,
+        }
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            MomentColumn::Narrow(values) => values.len(),
+            MomentColumn::Wide(values) => values.len(),
+        }
+    }
+
+    /// Value `i`, as the signed integer it holds.
+    fn get(&self, i: usize) -> i64 {
+        match self {
+            MomentColumn::Narrow(values) => values.get(i).map_or(0, |v| i64::from(*v as i32)),
+            MomentColumn::Wide(values) => values.get(i).map_or(0, |v| *v as i64),
+        }
     }
 }
 
-/// Moments from the three columns' values (`rows` of them); `None` when their lengths do not
-/// match.
-fn moments_of(weight: &[i64], offset: &[i64], normal: &[i64], rows: usize) -> Option<Vec<Moments>> {
+/// Moments from the three columns' values (`rows` of them), in one pass; `None` when their
+/// lengths do not match.
+fn moments_of(
+    weight: &MomentColumn,
+    offset: &MomentColumn,
+    normal: &MomentColumn,
+    rows: usize,
+) -> Option<Vec<Moments>> {
     if weight.len() != rows || offset.len() != 3 * rows || normal.len() != 3 * rows {
         return None;
     }
     Some(
-        weight
-            .iter()
-            .zip(offset.chunks_exact(3).zip(normal.chunks_exact(3)))
-            .map(|(w, (o, n))| Moments {
-                weight: *w,
-                offset: std::array::from_fn(|k| o.get(k).copied().unwrap_or(0)),
-                normal: std::array::from_fn(|k| n.get(k).copied().unwrap_or(0)),
+        (0..rows)
+            .map(|i| Moments {
+                weight: weight.get(i),
+                offset: std::array::from_fn(|k| offset.get(3 * i + k)),
+                normal: std::array::from_fn(|k| normal.get(3 * i + k)),
             })
             .collect(),
     )
@@ -185,8 +210,9 @@ pub fn read_samples(snapshot: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeK
     let reader = file.reader()?;
     let c = |e| file.corruption(e);
     let keys = reader.read_keys().map_err(c)?;
-    let moment =
-        |name: &str| -> Result<Option<Vec<i64>>> { Ok(signed_values(reader.read_column(name).map_err(c)?.values)) };
+    let moment = |name: &str| -> Result<Option<MomentColumn>> {
+        Ok(MomentColumn::of(reader.read_column(name).map_err(c)?.values))
+    };
     let (weight, offset, normal) = (moment(SAMPLE_WEIGHT)?, moment(SAMPLE_OFFSET)?, moment(SAMPLE_NORMAL)?);
     let moments = weight
         .zip(offset)
@@ -247,16 +273,8 @@ struct RunChunks<'a> {
 impl RunChunks<'_> {
     /// Block `block` of column `name`.
     fn read_block(&mut self, name: &str, block: usize) -> Result<ColumnValues> {
-        let range = self
-            .run
-            .directory
-            .chunk_range(name, block)
-            .map_err(|e| self.file.corruption(e))?;
-        self.file.read(range, &mut self.buffer)?;
-        self.run
-            .directory
-            .decode_block(name, block, &self.buffer)
-            .map_err(|e| self.file.corruption(e))
+        self.file
+            .decode_block(&self.run.directory, name, block, &mut self.buffer)
     }
 }
 
@@ -265,9 +283,9 @@ impl RunBlock {
         let run = chunks.run;
         let (ColumnValues::Key(keys), Some(w), Some(o), Some(n)) = (
             chunks.read_block("key", block)?,
-            signed_values(chunks.read_block(SAMPLE_WEIGHT, block)?),
-            signed_values(chunks.read_block(SAMPLE_OFFSET, block)?),
-            signed_values(chunks.read_block(SAMPLE_NORMAL, block)?),
+            MomentColumn::of(chunks.read_block(SAMPLE_WEIGHT, block)?),
+            MomentColumn::of(chunks.read_block(SAMPLE_OFFSET, block)?),
+            MomentColumn::of(chunks.read_block(SAMPLE_NORMAL, block)?),
         ) else {
             return Err(SamplesStage::error(
                 &run.name,
@@ -618,7 +636,7 @@ mod tests {
             ..small
         };
         let decode = |columns: [Column; 3]| {
-            let [w, o, n] = columns.map(|c| signed_values(c.values).expect("a moment column"));
+            let [w, o, n] = columns.map(|c| MomentColumn::of(c.values).expect("a moment column"));
             moments_of(&w, &o, &n, w.len()).expect("matching lengths")
         };
         let narrow = moment_columns(&[small, small]);
@@ -629,7 +647,7 @@ mod tests {
         assert!(matches!(mixed[0].values, ColumnValues::U64(_)));
         assert!(matches!(mixed[1].values, ColumnValues::U32(_)));
         assert_eq!(decode(mixed), vec![small, wide]);
-        assert_eq!(signed_values(ColumnValues::F32(vec![1.0])), None);
+        assert!(MomentColumn::of(ColumnValues::F32(vec![1.0])).is_none());
     }
 
     #[test]

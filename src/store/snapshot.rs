@@ -200,6 +200,22 @@ impl SegmentChunks {
         self.file.read_exact(buffer).map_err(io)
     }
 
+    /// Block `block` of column `name`, as `directory` (this file's) places it: its chunk is
+    /// read into `buffer` and decoded, its checksum checked.
+    pub fn decode_block(
+        &mut self,
+        directory: &crate::format::segment::SegmentDirectory,
+        name: &str,
+        block: usize,
+        buffer: &mut Vec<u8>,
+    ) -> Result<crate::format::ColumnValues> {
+        let range = directory.chunk_range(name, block).map_err(|e| self.corruption(e))?;
+        self.read(range, buffer)?;
+        directory
+            .decode_block(name, block, buffer)
+            .map_err(|e| self.corruption(e))
+    }
+
     /// A corruption error naming this file.
     pub fn corruption(&self, detail: crate::format::DecodeError) -> StoreError {
         StoreError::Corruption {

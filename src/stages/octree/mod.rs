@@ -13,17 +13,18 @@
 //! requested them (eq. 5); nodes added by balance or completion have none.
 
 pub mod external_sort;
+mod merge;
 
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet, BinaryHeap};
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use rayon::prelude::*;
 use redb::{ReadableTable, WriteTransaction};
 use serde::{Deserialize, Serialize};
 
 use self::external_sort::{CubeRecord, KeySorter, RecordReader, RecordWriter};
+pub use self::merge::MERGE_FAN_IN;
 use super::ingest::SPIKE_COUNT;
 use super::{INGEST, OCTREE};
 use crate::format::segment::content_digest;
@@ -144,194 +145,6 @@ pub fn verify_octree(snapshot: &Snapshot<'_>) -> Result<Vec<String>> {
     Ok(problems)
 }
 
-/// Streams one ingest run block by block, mapping the file only while a block is decoded, so
-/// that merging a thousand runs keeps neither their pages nor their blocks resident.
-struct RunCursor {
-    path: PathBuf,
-    record: catalog::SegmentRecord,
-    block: usize,
-    blocks: usize,
-    buffer: Vec<CubeRecord>,
-    position: usize,
-}
-
-impl RunCursor {
-    fn open(path: PathBuf, record: catalog::SegmentRecord) -> Result<RunCursor> {
-        let mut cursor = RunCursor {
-            path,
-            record,
-            block: 0,
-            blocks: usize::MAX,
-            buffer: Vec::new(),
-            position: 0,
-        };
-        cursor.load_block()?;
-        Ok(cursor)
-    }
-
-    fn load_block(&mut self) -> Result<()> {
-        self.buffer.clear();
-        self.position = 0;
-        if self.block >= self.blocks {
-            return Ok(());
-        }
-        let file = crate::store::SegmentFile::open(self.path.clone(), &self.record)?;
-        let reader = file.reader()?;
-        self.blocks = reader.block_count();
-        if self.block >= self.blocks {
-            return Ok(());
-        }
-        let corrupt = |e| file.corruption(e);
-        let keys = reader.read_block("key", self.block).map_err(corrupt)?;
-        let sums = reader.read_block("radius_sum", self.block).map_err(corrupt)?;
-        let counts = reader.read_block("radius_count", self.block).map_err(corrupt)?;
-        // Runs ingested before spikes were counted lack the column: no sample counts as one.
-        let spikes = if reader.column(SPIKE_COUNT).is_ok() {
-            reader.read_block(SPIKE_COUNT, self.block).map_err(corrupt)?
-        } else {
-            ColumnValues::U32(vec![0; counts.len()])
-        };
-        match (keys, sums, counts, spikes) {
-            (ColumnValues::Key(k), ColumnValues::U64(s), ColumnValues::U32(c), ColumnValues::U32(sp))
-                if k.len() == s.len() && k.len() == c.len() && k.len() == sp.len() =>
-            {
-                self.buffer = k
-                    .into_iter()
-                    .zip(s)
-                    .zip(c)
-                    .zip(sp)
-                    .map(|(((k, s), c), sp)| CubeRecord::new(k, s, c, sp))
-                    .collect();
-            }
-            _ => {
-                return Err(file.corruption(crate::format::DecodeError::MissingColumn(
-                    "radius_sum (u64) / radius_count (u32) / spike_count (u32) of an ingest run".into(),
-                )));
-            }
-        }
-        Ok(())
-    }
-
-    fn peek(&self) -> Option<CubeRecord> {
-        self.buffer.get(self.position).copied()
-    }
-
-    fn advance(&mut self) -> Result<()> {
-        self.position += 1;
-        if self.position >= self.buffer.len() {
-            self.block += 1;
-            self.load_block()?;
-        }
-        Ok(())
-    }
-}
-
-/// Runs merged at once. Each open ingest run holds one decoded block (1024 records, 32 KiB)
-/// and each scratch run a 64 KiB read buffer, so a merge holds a few MiB however many depth
-/// maps there are.
-pub const MERGE_FAN_IN: usize = 32;
-const SCRATCH_READ_BUFFER: usize = 64 << 10;
-
-/// A sorted run of cube records: an ingest segment or a scratch file of an earlier merge round.
-enum SortedRun {
-    Segment(PathBuf, catalog::SegmentRecord),
-    Scratch(PathBuf),
-}
-
-enum RunReader {
-    Segment(RunCursor),
-    Scratch {
-        path: PathBuf,
-        reader: RecordReader<CubeRecord>,
-        head: Option<CubeRecord>,
-    },
-}
-
-impl RunReader {
-    fn open(run: &SortedRun) -> Result<RunReader> {
-        Ok(match run {
-            SortedRun::Segment(path, record) => RunReader::Segment(RunCursor::open(path.clone(), record.clone())?),
-            SortedRun::Scratch(path) => {
-                let mut reader = RecordReader::open_buffered(path, 0, u64::MAX, SCRATCH_READ_BUFFER)?;
-                let head = reader.next_record()?;
-                RunReader::Scratch {
-                    path: path.clone(),
-                    reader,
-                    head,
-                }
-            }
-        })
-    }
-
-    fn peek(&self) -> Option<CubeRecord> {
-        match self {
-            RunReader::Segment(cursor) => cursor.peek(),
-            RunReader::Scratch { head, .. } => *head,
-        }
-    }
-
-    fn advance(&mut self) -> Result<()> {
-        match self {
-            RunReader::Segment(cursor) => cursor.advance(),
-            RunReader::Scratch { reader, head, .. } => {
-                *head = reader.next_record()?;
-                Ok(())
-            }
-        }
-    }
-
-    fn path(&self) -> &Path {
-        match self {
-            RunReader::Segment(cursor) => &cursor.path,
-            RunReader::Scratch { path, .. } => path,
-        }
-    }
-}
-
-/// k-way merge of sorted runs: every distinct key once, in order, with the radius statistics of
-/// all its occurrences summed.
-fn merge_sorted(runs: &[SortedRun], mut emit: impl FnMut(CubeRecord) -> Result<()>) -> Result<()> {
-    let mut readers: Vec<RunReader> = runs.iter().map(RunReader::open).collect::<Result<_>>()?;
-    let mut heap = BinaryHeap::new();
-    for (index, reader) in readers.iter().enumerate() {
-        if let Some(r) = reader.peek() {
-            heap.push(Reverse((r.key, index)));
-        }
-    }
-    let mut current: Option<CubeRecord> = None;
-    while let Some(Reverse((key, index))) = heap.pop() {
-        let Some(reader) = readers.get_mut(index) else { break };
-        let Some(record) = reader.peek() else { continue };
-        match current.as_mut() {
-            Some(c) if c.key == key => {
-                c.radius_sum += record.radius_sum;
-                c.radius_count += record.radius_count;
-                c.spike_count += record.spike_count;
-            }
-            _ => {
-                if let Some(done) = current.replace(record) {
-                    emit(done)?;
-                }
-            }
-        }
-        reader.advance()?;
-        if let Some(next) = reader.peek() {
-            if next.key <= key {
-                return Err(StoreError::Stage {
-                    stage: OCTREE.into(),
-                    unit: reader.path().display().to_string(),
-                    message: "run keys are not increasing".into(),
-                });
-            }
-            heap.push(Reverse((next.key, index)));
-        }
-    }
-    if let Some(done) = current.take() {
-        emit(done)?;
-    }
-    Ok(())
-}
-
 /// A treetop unit: one leaf (a contiguous index range) or the treetop's internal nodes.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Eq)]
 pub struct LeafUnit {
@@ -392,70 +205,10 @@ impl OctreeStage {
         })
     }
 
-    /// Merges the ingest runs into per-depth request files; returns the requested cube count.
-    /// At most [`MERGE_FAN_IN`] runs are open at once: more are first merged group by group
-    /// into scratch runs, so memory does not grow with the number of depth maps. Radius sums
-    /// are integers, so the grouping does not change a single bit of the result.
-    fn merge_runs(
-        &self,
-        base: &Snapshot<'_>,
-        request_files: &mut BTreeMap<u8, (PathBuf, RecordWriter<CubeRecord>)>,
-    ) -> Result<u64> {
-        let mut runs: Vec<SortedRun> = base
-            .segments(INGEST)
-            .iter()
-            .map(|(name, record)| SortedRun::Segment(base.store().segment_path(name), record.clone()))
-            .collect();
-        let mut round = 0;
-        while runs.len() > MERGE_FAN_IN {
-            // Groups are independent: merge them in parallel (each holds a few MiB), collecting
-            // the outputs in group order, so the next round is the same whatever the threads.
-            let groups: Vec<&[SortedRun]> = runs.chunks(MERGE_FAN_IN).collect();
-            let merged: Vec<SortedRun> = groups
-                .par_iter()
-                .enumerate()
-                .map(|(index, group)| {
-                    let path = self.scratch.join(format!("merge-{round}-{index:05}.bin"));
-                    let mut writer = RecordWriter::create(&path)?;
-                    merge_sorted(group, |record| writer.push(&record))?;
-                    writer.finish()?;
-                    Ok(SortedRun::Scratch(path))
-                })
-                .collect::<Result<_>>()?;
-            for run in &runs {
-                if let SortedRun::Scratch(path) = run {
-                    std::fs::remove_file(path).map_err(crate::store::io_error("remove", path))?;
-                }
-            }
-            runs = merged;
-            round += 1;
-        }
-        let mut requested = 0u64;
-        merge_sorted(&runs, |record| {
-            requested += 1;
-            let depth = record.key.depth();
-            if let std::collections::btree_map::Entry::Vacant(e) = request_files.entry(depth) {
-                let path = self.scratch.join(format!("requests-{depth:02}.bin"));
-                let writer = RecordWriter::create(&path)?;
-                e.insert((path, writer));
-            }
-            if let Some((_, writer)) = request_files.get_mut(&depth) {
-                writer.push(&record)?;
-            }
-            Ok(())
-        })?;
-        for run in &runs {
-            if let SortedRun::Scratch(path) = run {
-                std::fs::remove_file(path).map_err(crate::store::io_error("remove", path))?;
-            }
-        }
-        Ok(requested)
-    }
-
     fn build(&self, base: &Snapshot<'_>) -> Result<Prepared> {
         let started = std::time::Instant::now();
         let mut request_writers = BTreeMap::new();
-        let requested = self.merge_runs(base, &mut request_writers)?;
+        let requested = merge::merge_runs(base, &self.scratch, &mut request_writers)?;
         let merged = started.elapsed().as_secs_f64();
         let mut requests: BTreeMap<u8, PathBuf> = BTreeMap::new();
         for (depth, (path, writer)) in request_writers {
