@@ -642,3 +642,44 @@ fn a_depth_map_replaced_after_ingest_is_refused_by_the_solve() {
     let out = octstore(&["solve", s, "--iterations", "20", "--quiet"], &[]);
     assert!(out.status.success(), "{}", stderr(&out));
 }
+
+/// The treetop leaf size the memory budget allows does not follow the thread count (the
+/// leaves are the units, whose frozen borders shape every level): at the smallest budget,
+/// with the default `--leaf-cubes`, one thread and three cut the same leaves.
+#[test]
+fn the_budget_caps_leaves_alike_for_any_thread_count() {
+    // Enough samples for more than the 16,384 cubes a leaf may hold at 32 MiB.
+    let spec = SceneSpec {
+        width: 192,
+        height: 144,
+        ..sphere()
+    };
+    let input = tempfile::tempdir().unwrap();
+    let manifest = spec.write(input.path()).unwrap();
+    let dirs = [tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap()];
+    let infos: Vec<serde_json::Value> = dirs
+        .iter()
+        .zip(["1", "3"])
+        .map(|(dir, threads)| {
+            let store = dir.path().join("store");
+            let s = store.to_str().unwrap();
+            let common = ["--threads", threads, "--quiet", "--memory-budget", "32MiB"];
+            for args in [
+                &["ingest", s, manifest.to_str().unwrap(), "--max-depth", "9"][..],
+                &["solve", s, "--until", "octree"][..],
+            ] {
+                let out = octstore(&[args, &common[..]].concat(), &[]);
+                assert!(out.status.success(), "{}", stderr(&out));
+            }
+            serde_json::from_str(&stdout(&octstore(&["info", s, "--json"], &[]))).unwrap()
+        })
+        .collect();
+    let leaves = infos[0]["treetop_leaves"].as_u64().unwrap();
+    assert!(leaves > 1, "the budget's cap must bind: {}", infos[0]);
+    assert_eq!(
+        infos[0]["treetop_leaves"], infos[1]["treetop_leaves"],
+        "{} cubes",
+        infos[0]["cubes"]
+    );
+    assert_eq!(infos[0]["digest"], infos[1]["digest"], "1 and 3 threads");
+}

@@ -50,7 +50,7 @@ use crate::inputs::{DiscoverOptions, discover};
 use crate::stages::extract::{ExtractOptions, MeshSummary, extract_to_file};
 use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps, scene_at};
-use crate::stages::octree::{OctreeStage, effective_leaf_cubes};
+use crate::stages::octree::{OctreeStage, effective_leaf_cubes, leaves_in_flight};
 use crate::stages::samples::SamplesStage;
 use crate::stages::solve::{LevelStage, Method, SolveParams};
 use crate::stages::{INGEST, OCTREE, octree_max_depth};
@@ -159,11 +159,17 @@ pub fn solve_with_gpu(
     mut on_report: impl FnMut(&RunReport),
 ) -> Result<()> {
     let scene = required_scene(store, OCTREE)?;
+    let leaf_cubes = effective_leaf_cubes(options.leaf_cubes, options.memory_budget);
+    // Leaves in flight within the budget; the rayon pool keeps every thread for the work
+    // inside them.
+    let run = RunOptions {
+        threads: leaves_in_flight(leaf_cubes, options.memory_budget, options.run.threads),
+        ..options.run.clone()
+    };
     if options.until >= SolveUntil::Octree {
         let scratch = store.scratch_dir(OCTREE)?;
-        let leaf_cubes = effective_leaf_cubes(options.leaf_cubes, options.memory_budget, options.run.threads);
         let stage = OctreeStage::new(scene, leaf_cubes, options.memory_budget / 4, scratch.clone());
-        let report = store.run_stage(&stage, &options.run);
+        let report = store.run_stage(&stage, &run);
         // Scratch files are rebuilt by any later run, so they go whether the run finished or
         // failed (a full disk most of all); a failure to remove them costs only disk.
         let _ = std::fs::remove_dir_all(&scratch);
@@ -178,7 +184,7 @@ pub fn solve_with_gpu(
         // eighth of the budget for run blocks that several units read, as the histograms give
         // their decoded depth maps.
         let stage = SamplesStage::new().with_cache_bytes(options.memory_budget / 8);
-        on_report(&store.run_stage(&stage, &options.run)?);
+        on_report(&store.run_stage(&stage, &run)?);
     }
     if options.until >= SolveUntil::Histograms {
         // Stages run one at a time: an eighth of the budget for decoded depth maps, beside the
@@ -186,7 +192,7 @@ pub fn solve_with_gpu(
         let stage = HistogramsStage::new(scene, registered_depth_maps(store)?)
             .with_cache_bytes(options.memory_budget / 8)
             .with_gpu(gpu.clone());
-        on_report(&store.run_stage(&stage, &options.run)?);
+        on_report(&store.run_stage(&stage, &run)?);
     }
     if options.until >= SolveUntil::Solution {
         let coarse_samples = crate::stages::solve::CoarseSamplesCache::default();
@@ -197,7 +203,7 @@ pub fn solve_with_gpu(
                 .with_method(options.method)
                 .with_coarse_samples(coarse_samples.clone())
                 .with_coarse_rows(Some(coarse_rows.clone()));
-            on_report(&store.run_stage(&stage, &options.run)?);
+            on_report(&store.run_stage(&stage, &run)?);
         }
     }
     Ok(())

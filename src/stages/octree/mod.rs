@@ -39,11 +39,25 @@ pub const DEFAULT_LEAF_CUBES: u64 = 1 << 24;
 /// histogram, neighbour lists and their copies), used to cap leaf size by the memory budget.
 pub const BYTES_PER_LEAF_CUBE: u64 = 512;
 
-/// The treetop leaf size actually used: the requested one, capped so that `threads` leaves in
-/// flight fit in half the memory budget.
-pub fn effective_leaf_cubes(requested: u64, memory_budget: u64, threads: usize) -> u64 {
-    let cap = memory_budget / 2 / BYTES_PER_LEAF_CUBE / threads.max(1) as u64;
+/// Treetop leaves of the largest size the memory budget allows that fit in half of it at once.
+/// The cap does not follow the thread count: the leaves are the units, and the units shape
+/// every level's values (each freezes its borders), so a cap by thread count gave a store
+/// solved on one core other bytes than on two. More threads run at most this many such
+/// leaves at once ([`leaves_in_flight`]) and work inside them.
+pub const LEAVES_IN_FLIGHT: u64 = 2;
+
+/// The treetop leaf size actually used: the requested one, capped so that
+/// [`LEAVES_IN_FLIGHT`] leaves fit in half the memory budget.
+pub fn effective_leaf_cubes(requested: u64, memory_budget: u64) -> u64 {
+    let cap = memory_budget / 2 / BYTES_PER_LEAF_CUBE / LEAVES_IN_FLIGHT;
     requested.min(cap).max(64)
+}
+
+/// How many treetop leaves of `leaf_cubes` cubes the stages after ingest run at once: as many
+/// as fit in half the memory budget, at most `threads` and at least one.
+pub fn leaves_in_flight(leaf_cubes: u64, memory_budget: u64, threads: usize) -> usize {
+    let fit = memory_budget / 2 / BYTES_PER_LEAF_CUBE / leaf_cubes.max(1);
+    usize::try_from(fit).unwrap_or(usize::MAX).clamp(1, threads.max(1))
 }
 
 /// Face neighbours of a cube at its own depth (up to 6, inside the root).
