@@ -263,6 +263,11 @@ impl SegmentDirectory {
         self.blocks.get(block).map(|b| (b.first_key, b.last_key))
     }
 
+    /// The first block whose last key is not below `key` (the block count if none is).
+    pub fn first_block_reaching(&self, key: CubeKey) -> usize {
+        self.blocks.partition_point(|b| b.last_key < key)
+    }
+
     fn column(&self, name: &str) -> Result<&ColumnInfo, DecodeError> {
         find_column(&self.columns, name)
     }

@@ -243,9 +243,6 @@ const SOURCE_BITS: u32 = 23;
 const EXHAUSTED: u128 = u128::MAX;
 
 impl LoserTree {
-    /// The most sources a tree takes.
-    pub const MAX_SOURCES: usize = 1 << SOURCE_BITS;
-
     /// Whether the tree orders `key`: every well-formed key ([`CubeKey::is_well_formed`] keeps
     /// the bits above 104 clear) is.
     pub fn takes(key: CubeKey) -> bool {
@@ -257,8 +254,8 @@ impl LoserTree {
             .map_or(EXHAUSTED, |k| (k.raw() << SOURCE_BITS) | source as u128)
     }
 
-    /// The tree over sources whose heads are `heads` (`None`: exhausted); at most
-    /// [`MAX_SOURCES`](Self::MAX_SOURCES) of them, heads that it [`takes`](Self::takes).
+    /// The tree over sources whose heads are `heads` (`None`: exhausted): fewer than 2^23 of
+    /// them (merges open 64), heads that it [`takes`](Self::takes).
     pub fn new(heads: &[Option<CubeKey>]) -> LoserTree {
         let k = heads.len();
         // Winners of every subtree, leaves included, bottom up.

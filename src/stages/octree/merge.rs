@@ -38,24 +38,6 @@ impl IndexedRun {
             path,
         })
     }
-
-    /// The first block whose last key is not below `key`.
-    fn first_block_reaching(&self, key: CubeKey) -> usize {
-        let (mut low, mut high) = (0, self.directory.block_count());
-        while low < high {
-            let middle = low + (high - low) / 2;
-            if self
-                .directory
-                .block_key_range(middle)
-                .is_some_and(|(_, last)| last < key)
-            {
-                low = middle + 1;
-            } else {
-                high = middle;
-            }
-        }
-        low
-    }
 }
 
 /// Streams one ingest run block by block, holding one decoded block.
@@ -75,7 +57,7 @@ impl<'a> RunCursor<'a> {
             run,
             file: SegmentChunks::open(run.path.clone())?,
             chunk: Vec::new(),
-            block: from.map_or(0, |key| run.first_block_reaching(key)),
+            block: from.map_or(0, |key| run.directory.first_block_reaching(key)),
             buffer: Vec::new(),
             position: 0,
         };
@@ -352,17 +334,16 @@ pub(super) fn merge_runs(
     request_files: &mut BTreeMap<u8, (PathBuf, RecordWriter<CubeRecord>)>,
 ) -> Result<u64> {
     let threads = rayon::current_num_threads().max(1);
-    let fan_in = MERGE_FAN_IN;
     let mut runs: Vec<PendingRun> = base
         .segments(INGEST)
         .iter()
         .map(|(name, record)| PendingRun::Ingest(base.store().segment_path(name), record.clone()))
         .collect();
     let mut round = 0;
-    while runs.len() > fan_in {
+    while runs.len() > MERGE_FAN_IN {
         // Groups are independent: merge them in parallel, collecting the outputs in group
         // order, so the next round is the same whatever the threads.
-        let groups: Vec<&[PendingRun]> = runs.chunks(fan_in).collect();
+        let groups: Vec<&[PendingRun]> = runs.chunks(MERGE_FAN_IN).collect();
         let merged: Vec<PendingRun> = groups
             .par_iter()
             .enumerate()
