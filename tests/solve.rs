@@ -282,7 +282,7 @@ fn noisy_sphere_with_outliers_is_inside_negative_outside_positive() {
     let mut crossings = Vec::new();
     for (key, center, side, u) in cubes.iter().filter(|c| c.0.depth() == finest) {
         for axis in 0..3 {
-            let Some(n) = octstore::stages::treetop::plus_neighbour(*key, axis) else {
+            let Some(n) = key.plus_neighbour(axis) else {
                 continue;
             };
             if let Some((_, c2, _, u2)) = lookup.get(&n)

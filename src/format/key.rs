@@ -55,6 +55,12 @@ const SPREAD_MASKS: [(u32, u128); 5] = [
     (1, spread_mask(1)),
 ];
 
+/// The 96 bits of a Morton code.
+const MORTON_MASK: u128 = (1u128 << 96) - 1;
+
+/// The Morton code's bits of the x axis (bits 3i); y's and z's are these shifted by 1 and 2.
+const AXIS_BITS: u128 = spread_mask(1);
+
 /// Moves bit i of `v` to bit 3i.
 fn spread3(v: u32) -> u128 {
     let mut x = u128::from(v);
@@ -162,8 +168,50 @@ impl CubeKey {
         if depth == 0 {
             return None;
         }
-        let [x, y, z] = self.coords();
-        Some(CubeKey::new(depth - 1, x >> 1, y >> 1, z >> 1))
+        if depth > MAX_DEPTH {
+            let [x, y, z] = self.coords();
+            return Some(CubeKey::new(depth - 1, x >> 1, y >> 1, z >> 1));
+        }
+        // The parent's corner is the cube's with the Morton bits below the parent's size
+        // cleared: the same key as through coordinates, without decoding them.
+        Some(CubeKey((self.morton_at_depth(depth - 1) << 8) | u128::from(depth - 1)))
+    }
+
+    /// The Morton code's bits that address cubes of `depth` (at most [`MAX_DEPTH`]); finer
+    /// bits, and bits past the code's 96, cleared.
+    fn morton_at_depth(self, depth: u8) -> u128 {
+        let finer = 3 * u32::from(MAX_DEPTH - depth);
+        let code = self.morton() & MORTON_MASK;
+        if finer >= 96 { 0 } else { code & !((1u128 << finer) - 1) }
+    }
+
+    /// The cube of the same size across the `+` face of `axis` (0, 1, 2 for x, y, z), if it
+    /// lies inside the root.
+    pub fn plus_neighbour(self, axis: usize) -> Option<CubeKey> {
+        let depth = self.depth();
+        if depth > MAX_DEPTH || axis > 2 {
+            let mut c = self.coords();
+            let max = if depth >= MAX_DEPTH {
+                u32::MAX
+            } else {
+                (1u32 << depth) - 1
+            };
+            let slot = c.get_mut(axis)?;
+            *slot = slot.checked_add(1).filter(|next| *next <= max)?;
+            return Some(CubeKey::new(depth, c[0], c[1], c[2]));
+        }
+        // Adding one cube to the axis's coordinate, in place in the interleaved code: the
+        // other axes' bits are set to 1 so the carry passes over them (dilated addition).
+        let code = self.morton_at_depth(depth);
+        let step = 1u128 << (3 * u32::from(MAX_DEPTH - depth) + axis as u32);
+        let axis_bits = (AXIS_BITS << axis) & !(step - 1);
+        let coordinate = code & axis_bits;
+        if coordinate == axis_bits {
+            // The last cube along the axis (and the root, which has no axis bits).
+            return None;
+        }
+        let next = ((coordinate | !axis_bits).wrapping_add(step)) & axis_bits;
+        Some(CubeKey(((code & !axis_bits | next) << 8) | u128::from(depth)))
     }
 
     /// The key range `[self, end]` covering this cube and all its descendants.
@@ -306,6 +354,30 @@ mod tests {
             let offset = |o: u32| o << a.depth();
             let [x, y, z] = ga.coords();
             prop_assert_eq!([x - offset(octant[0]), y - offset(octant[1]), z - offset(octant[2])], a.coords());
+        }
+
+        #[test]
+        fn parents_and_plus_neighbours_match_their_coordinates(depth in 0u8..=32, x: u32, y: u32, z: u32, low: u8) {
+            let mask = if depth == 0 { 0 } else { u32::MAX >> (32 - u32::from(depth)) };
+            // Whole coordinates, the last cube of an axis and its neighbour, and unaligned
+            // raw bits below the cube's size, which both ways must ignore.
+            for [x, y, z] in [[x, y, z], [mask, y, z], [x, mask, z], [x, y, mask], [mask.saturating_sub(1), y, z]] {
+                let (x, y, z) = (x & mask, y & mask, z & mask);
+                let key = CubeKey::new(depth, x, y, z);
+                let finer = 3 * u32::from(32 - depth);
+                let noise = u128::from(low) & ((1u128 << finer.min(8)) - 1);
+                let unaligned = CubeKey::from_raw(key.raw() | (noise << 8));
+                for key in [key, unaligned] {
+                    let through_coordinates = (depth > 0).then(|| CubeKey::new(depth - 1, x >> 1, y >> 1, z >> 1));
+                    prop_assert_eq!(key.parent(), through_coordinates);
+                    for (axis, c) in [x, y, z].into_iter().enumerate() {
+                        let mut coords = [x, y, z];
+                        coords[axis] = c + 1;
+                        let expected = (c < mask).then(|| CubeKey::new(depth, coords[0], coords[1], coords[2]));
+                        prop_assert_eq!(key.plus_neighbour(axis), expected);
+                    }
+                }
+            }
         }
 
         #[test]

@@ -104,16 +104,3 @@ pub fn children_on_min_face(key: CubeKey, axis: usize) -> [CubeKey; 4] {
     }
     out
 }
-
-/// The same-size neighbour on the `+` side of `axis`, if inside the root.
-pub fn plus_neighbour(key: CubeKey, axis: usize) -> Option<CubeKey> {
-    let depth = key.depth();
-    let mut c = key.coords();
-    let max = if depth >= 32 { u32::MAX } else { (1u32 << depth) - 1 };
-    let slot = c.get_mut(axis)?;
-    if *slot >= max {
-        return None;
-    }
-    *slot += 1;
-    Some(CubeKey::new(depth, c[0], c[1], c[2]))
-}

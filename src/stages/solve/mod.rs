@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use super::HISTOGRAMS;
 use super::observed::{measured_weight, sampled_of, seen_weight, surface_offset};
-use super::treetop::{Treetop, UnitKeys, children_on_min_face, plus_neighbour};
+use super::treetop::{Treetop, UnitKeys, children_on_min_face};
 use crate::format::Scene;
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
 use crate::kernels::tgv::{Problem, State};
@@ -591,41 +591,49 @@ impl LevelStage {
             hist.push(row);
         }
         let n = keys.len();
-        let index_of = |k: CubeKey| keys.binary_search(&k).ok();
+        // Two lookups per cube and axis: a binary search over the unit's keys was most of
+        // this loop.
+        let positions: KeyPositions = keys.iter().zip(0u32..).map(|(k, i)| (*k, i)).collect();
+        let index_of = |k: CubeKey| positions.get(&k).copied();
 
         // Lengths in units of the root side: the discrete problem, and so every iterate, is then
         // the same for a scaled or translated scene.
         let side = |k: CubeKey| (0.5f64).powi(i32::from(k.depth())) as f32;
         let mut frozen: BTreeMap<CubeKey, u32> = BTreeMap::new();
         let mut frozen_cubes: Vec<(CubeKey, Option<Inherited>)> = Vec::new();
-        let mut start = vec![0u32];
-        let mut terms: Vec<(u32, f32)> = Vec::new();
+        let mut start = Vec::with_capacity(3 * n + 1);
+        start.push(0u32);
+        let mut terms: Vec<(u32, f32)> = Vec::with_capacity(3 * n);
         for &key in &keys {
             for axis in 0..3 {
-                let mut neighbours: Vec<CubeKey> = Vec::new();
-                if let Some(n0) = plus_neighbour(key, axis) {
+                let neighbours = match key.plus_neighbour(axis) {
+                    None => PlusNeighbours::default(),
                     // A neighbour in the unit's own cut is a cut cube: no need to ask the octree.
-                    let in_cut = index_of(n0).is_some();
-                    match if in_cut { Some(true) } else { hood.node(n0)? } {
-                        Some(leaf) if leaf || n0.depth() == level => neighbours.push(n0),
-                        Some(_) => neighbours.extend(children_on_min_face(n0, axis)),
-                        None => {
-                            let mut up = n0.parent();
-                            while let Some(a) = up {
-                                if hood.node(a)?.is_some() {
-                                    neighbours.push(a);
-                                    break;
+                    Some(n0) => match index_of(n0) {
+                        Some(i) => PlusNeighbours::one(n0, Some(i)),
+                        None => match hood.node(n0)? {
+                            Some(leaf) if leaf || n0.depth() == level => PlusNeighbours::one(n0, None),
+                            Some(_) => PlusNeighbours::four(children_on_min_face(n0, axis)),
+                            None => {
+                                let mut found = PlusNeighbours::default();
+                                let mut up = n0.parent();
+                                while let Some(a) = up {
+                                    if hood.node(a)?.is_some() {
+                                        found = PlusNeighbours::one(a, None);
+                                        break;
+                                    }
+                                    up = a.parent();
                                 }
-                                up = a.parent();
+                                found
                             }
-                        }
-                    }
-                }
+                        },
+                    },
+                };
                 let count = neighbours.len() as f32;
-                for neighbour in neighbours {
+                for (neighbour, known) in neighbours.iter() {
                     let w = 1.0 / (count * 0.5 * (side(key) + side(neighbour)));
-                    let target = match index_of(neighbour) {
-                        Some(i) => i as u32,
+                    let target = match known.or_else(|| index_of(neighbour)) {
+                        Some(i) => i,
                         None => {
                             let slot = match frozen.get(&neighbour) {
                                 Some(s) => *s,
@@ -670,6 +678,41 @@ impl LevelStage {
             frozen: frozen_cubes,
             previous,
         }))
+    }
+}
+
+/// Each cut key's position in the unit's sorted keys.
+type KeyPositions = std::collections::HashMap<CubeKey, u32, foldhash::fast::FixedState>;
+
+/// The cubes across one `+` face of a cut cube (none, one, or the four children on its side),
+/// each with its position in the cut when already known; no allocation per face.
+#[derive(Default)]
+struct PlusNeighbours {
+    cubes: [(CubeKey, Option<u32>); 4],
+    len: usize,
+}
+
+impl PlusNeighbours {
+    fn one(cube: CubeKey, position: Option<u32>) -> PlusNeighbours {
+        let mut out = PlusNeighbours::default();
+        out.cubes[0] = (cube, position);
+        out.len = 1;
+        out
+    }
+
+    fn four(cubes: [CubeKey; 4]) -> PlusNeighbours {
+        PlusNeighbours {
+            cubes: cubes.map(|cube| (cube, None)),
+            len: 4,
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.len
+    }
+
+    fn iter(&self) -> impl Iterator<Item = (CubeKey, Option<u32>)> + '_ {
+        self.cubes.iter().take(self.len).copied()
     }
 }
 
