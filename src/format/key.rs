@@ -61,6 +61,29 @@ const MORTON_MASK: u128 = (1u128 << 96) - 1;
 /// The Morton code's bits of the x axis (bits 3i); y's and z's are these shifted by 1 and 2.
 const AXIS_BITS: u128 = spread_mask(1);
 
+/// One axis's share of a Morton code: bit i of the full-resolution coordinate `v` at bit 3i.
+/// A key's code is `axis_bits(x) | axis_bits(y) << 1 | axis_bits(z) << 2`
+/// ([`CubeKey::from_morton`]).
+pub fn axis_bits(v: u32) -> u128 {
+    spread3(v)
+}
+
+/// The [`axis_bits`] of a key's minimum corner along `axis` (0, 1, 2 for x, y, z), read off
+/// its Morton code without decoding it.
+pub fn corner_axis_bits(key: CubeKey, axis: usize) -> u128 {
+    (key.morton() >> axis) & AXIS_BITS
+}
+
+/// [`axis_bits`] of `a + b` from those of `a` and `b` (dilated addition), wrapping past 2^32.
+pub fn add_axis_bits(a: u128, b: u128) -> u128 {
+    ((a | !AXIS_BITS).wrapping_add(b)) & AXIS_BITS
+}
+
+/// [`axis_bits`] of `a - b` from those of `a` and `b` (dilated subtraction), wrapping below 0.
+pub fn sub_axis_bits(a: u128, b: u128) -> u128 {
+    (a & AXIS_BITS).wrapping_sub(b) & AXIS_BITS
+}
+
 /// Moves bit i of `v` to bit 3i.
 fn spread3(v: u32) -> u128 {
     let mut x = u128::from(v);
@@ -98,6 +121,12 @@ impl CubeKey {
     pub fn from_full_resolution(depth: u8, fx: u32, fy: u32, fz: u32) -> CubeKey {
         let morton = spread3(fx) | (spread3(fy) << 1) | (spread3(fz) << 2);
         CubeKey((morton << 8) | u128::from(depth))
+    }
+
+    /// The key of the cube at `depth` whose minimum corner has the 96-bit Morton code `code`
+    /// (see [`axis_bits`]); bits below the cube's size must be zero.
+    pub fn from_morton(code: u128, depth: u8) -> CubeKey {
+        CubeKey(((code & MORTON_MASK) << 8) | u128::from(depth))
     }
 
     /// The key with these 128 bits (not checked; see [`CubeKey::is_well_formed`]).
@@ -377,6 +406,18 @@ mod tests {
                         prop_assert_eq!(key.plus_neighbour(axis), expected);
                     }
                 }
+            }
+        }
+
+        #[test]
+        fn dilated_sums_and_differences_match_the_coordinates(a: u32, b: u32, x: u32, y: u32, z: u32, depth in 0u8..=32) {
+            prop_assert_eq!(add_axis_bits(axis_bits(a), axis_bits(b)), axis_bits(a.wrapping_add(b)));
+            prop_assert_eq!(sub_axis_bits(axis_bits(a), axis_bits(b)), axis_bits(a.wrapping_sub(b)));
+            let shift = 32 - u32::from(depth);
+            let corner = [x, y, z].map(|c| c.checked_shr(shift).and_then(|c| c.checked_shl(shift)).unwrap_or(0));
+            let key = CubeKey::from_full_resolution(depth, corner[0], corner[1], corner[2]);
+            for (axis, c) in corner.into_iter().enumerate() {
+                prop_assert_eq!(corner_axis_bits(key, axis), axis_bits(c));
             }
         }
 

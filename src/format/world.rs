@@ -144,9 +144,16 @@ impl Scene {
 
     /// World-space centre of a cube.
     pub fn cube_center(&self, key: CubeKey) -> DVec3 {
-        let [x, y, z] = key.corner_full_resolution();
+        self.cube_center_at(key.corner_full_resolution(), key.depth())
+    }
+
+    /// World-space centre of the cube at `depth` whose minimum corner is `corner` in
+    /// full-resolution cells: [`cube_center`](Self::cube_center) for a caller that knows the
+    /// corner, bit for bit.
+    pub fn cube_center_at(&self, corner: [u32; 3], depth: u8) -> DVec3 {
+        let [x, y, z] = corner;
         let corner = DVec3::new(f64::from(x), f64::from(y), f64::from(z)) / 4294967296.0 * self.root_side + self.min();
-        corner + DVec3::splat(self.cube_side(key.depth()) * 0.5)
+        corner + DVec3::splat(self.cube_side(depth) * 0.5)
     }
 
     /// Fixed-point encoding of a radius (see [`RADIUS_FRACTION_BITS`]).

@@ -5,6 +5,7 @@
 use glam::DVec3;
 
 use super::weld::NameIndex;
+use crate::format::key::{add_axis_bits, axis_bits, corner_axis_bits, sub_axis_bits};
 use crate::format::{CubeKey, MAX_DEPTH, Scene};
 use crate::mesh::{CornerId, UnitMesh, VertexId, VertexMove};
 use crate::stages::solve::{CutValue, LevelCut, cut_cube_ending_at};
@@ -104,7 +105,7 @@ pub(super) fn full_side(depth: u8) -> u64 {
     1u64 << (u32::from(MAX_DEPTH) - u32::from(depth))
 }
 
-/// The cut cube containing the finest cell `cell`, and its values. The unit's own sorted cut
+/// The cut cube containing the finest cell `probe` (a key of depth [`MAX_DEPTH`]), and its values. The unit's own sorted cut
 /// (`keys`, `values`) is searched first, outwards from `near` (the cube whose corners are being
 /// probed, so the answer is usually a few keys away): the cut tiles the root, so a cube of the
 /// unit that contains the cell is the answer. Cells outside the unit go to the level's lookup.
@@ -113,9 +114,8 @@ fn cut_cube_near(
     keys: &[CubeKey],
     values: &[CutValue],
     near: usize,
-    cell: [u32; 3],
+    probe: CubeKey,
 ) -> Result<Option<(CubeKey, CutValue)>> {
-    let probe = CubeKey::new(MAX_DEPTH, cell[0], cell[1], cell[2]);
     match cut_cube_ending_at(keys, values, partition_point_near(keys, near, probe), probe) {
         Some(found) => Ok(Some(found)),
         None => level.cube_containing(probe),
@@ -160,6 +160,74 @@ fn partition_point_near(keys: &[CubeKey], near: usize, probe: CubeKey) -> usize 
     low + keys
         .get(low..high)
         .map_or(0, |range| range.partition_point(|k| *k <= probe))
+}
+
+/// A cell a dual-cell corner probes, along one axis. Outside the root the octree continues as
+/// its mirror image across the root's faces, with u = +1: neighbouring dual cells then agree
+/// on every virtual cell.
+#[derive(Clone, Copy)]
+struct ProbeCell {
+    /// The coordinate in full-resolution cells, outside `[0, 2^32)` past the root's faces.
+    cell: i64,
+    /// The coordinate probed: `cell`, or its mirror image inside the root.
+    probe: u32,
+    mirrored: bool,
+    /// `probe`'s share of the probe key's Morton code ([`axis_bits`]).
+    axis_bits: u128,
+}
+
+impl ProbeCell {
+    /// The four cells along `axis` that the corners of `cube` (corner coordinate `corner` and
+    /// side `side` in full-resolution cells) probe: `corner - 1`, `corner`, `corner + side - 1`
+    /// and `corner + side`, their Morton bits by dilated arithmetic from the cube's own
+    /// (only cells past the root's faces are encoded anew).
+    fn around(cube: CubeKey, axis: usize, corner: u64, side: u64) -> [ProbeCell; 4] {
+        let own = corner_axis_bits(cube, axis);
+        let one = axis_bits(1);
+        // The side is a power of two: one bit of the dilated form (past its 96 bits for the
+        // root, whose cells past its faces are encoded anew below).
+        let side_bits = 1u128 << (3 * side.trailing_zeros());
+        let inside = |cell: u64, axis_bits: u128| ProbeCell {
+            cell: cell as i64,
+            probe: cell as u32,
+            mirrored: false,
+            axis_bits,
+        };
+        let last = corner + side - 1;
+        [
+            if corner == 0 {
+                ProbeCell::at(-1)
+            } else {
+                inside(corner - 1, sub_axis_bits(own, one))
+            },
+            inside(corner, own),
+            // The cube's corner is a multiple of its side: its last cell only sets low bits.
+            inside(last, own | sub_axis_bits(side_bits, one)),
+            if last + 1 >= 1 << 32 {
+                ProbeCell::at((last + 1) as i64)
+            } else {
+                inside(last + 1, add_axis_bits(own, side_bits))
+            },
+        ]
+    }
+
+    fn at(cell: i64) -> ProbeCell {
+        let limit = 1i64 << 32;
+        let (mirrored, inside) = if cell < 0 {
+            (true, -1 - cell)
+        } else if cell >= limit {
+            (true, 2 * limit - 1 - cell)
+        } else {
+            (false, cell)
+        };
+        let probe = inside.clamp(0, limit - 1) as u32;
+        ProbeCell {
+            cell,
+            probe,
+            mirrored,
+            axis_bits: axis_bits(probe),
+        }
+    }
 }
 
 /// What the dual cells say about each vertex of a unit's piece, besides its position.
@@ -278,17 +346,17 @@ pub(super) fn dual_cells_of_unit(
     closed: bool,
 ) -> Result<(UnitMesh, VertexGuides)> {
     let mut piece = Piece::default();
-    let limit = 1u64 << 32;
     for (index, (key, own)) in keys.iter().zip(values).enumerate() {
         let d = key.depth();
         let side = full_side(d);
         let [x, y, z] = key.corner_full_resolution().map(u64::from);
+        let own_center = scene.cube_center(*key);
+        // The cells the corners' octants probe lie at one of four coordinates per axis (a
+        // face's coordinate less one, or itself, at the cube's low or high face): their Morton
+        // bits once per cube, not three encodings per probe.
+        let probe_cells: [[ProbeCell; 4]; 3] =
+            std::array::from_fn(|axis| ProbeCell::around(*key, axis, [x, y, z][axis], side));
         for corner in 0..8u64 {
-            let v = [
-                x + (corner & 1) * side,
-                y + ((corner >> 1) & 1) * side,
-                z + ((corner >> 2) & 1) * side,
-            ];
             // The 8 octants around V, with the leaf (or virtual exterior cell) in each. This cube
             // fills the octant opposite the corner; it generates V's cell only if no real leaf
             // is deeper and none as deep comes first in octant order, so the probes stop at the
@@ -300,7 +368,7 @@ pub(super) fn dual_cells_of_unit(
                 if octant == own_octant {
                     *slot = Some(Corner {
                         id: key.raw(),
-                        center: scene.cube_center(*key),
+                        center: own_center,
                         u: own.u,
                         offset: f64::from(own.offset),
                         votes: own.votes,
@@ -311,29 +379,18 @@ pub(super) fn dual_cells_of_unit(
                     continue;
                 }
                 let o = octant as u64;
-                let cell = [
-                    v[0] as i64 - 1 + (o & 1) as i64,
-                    v[1] as i64 - 1 + ((o >> 1) & 1) as i64,
-                    v[2] as i64 - 1 + ((o >> 2) & 1) as i64,
-                ];
-                // Outside the root, the octree continues as its mirror image across the root's
-                // faces, with u = +1: neighbouring dual cells then agree on every virtual cell.
-                let mut mirrored = 0u128;
-                let inside = cell.map(|c| c);
-                let mut probe = [0u32; 3];
-                for axis in 0..3 {
-                    let c = inside[axis];
-                    let m = if c < 0 {
-                        mirrored |= 1 << axis;
-                        -1 - c
-                    } else if c >= limit as i64 {
-                        mirrored |= 1 << axis;
-                        2 * limit as i64 - 1 - c
-                    } else {
-                        c
-                    };
-                    probe[axis] = m.clamp(0, limit as i64 - 1) as u32;
-                }
+                // Along each axis: the corner's side of the cube, then the octant's side of
+                // the corner.
+                let cells: [ProbeCell; 3] = std::array::from_fn(|axis| {
+                    let at = 2 * ((corner >> axis) & 1) + ((o >> axis) & 1);
+                    probe_cells[axis][at as usize]
+                });
+                let mirrored = (0..3).fold(0u128, |m, axis| m | (u128::from(cells[axis].mirrored) << axis));
+                let inside = cells.map(|c| c.cell);
+                let probe = CubeKey::from_morton(
+                    cells[0].axis_bits | cells[1].axis_bits << 1 | cells[2].axis_bits << 2,
+                    MAX_DEPTH,
+                );
                 let Some((leaf, value)) = cut_cube_near(level, keys, values, index, probe)? else {
                     generator_ok = false;
                     break;
@@ -342,7 +399,11 @@ pub(super) fn dual_cells_of_unit(
                     generator_ok = false;
                     break;
                 }
-                let mut center = scene.cube_center(leaf);
+                // The leaf holds the probed cell, so its corner is the cell's, rounded down to
+                // the leaf's size.
+                let leaf_cells = full_side(leaf.depth()) - 1;
+                let leaf_corner = cells.map(|c| (u64::from(c.probe) & !leaf_cells) as u32);
+                let mut center = scene.cube_center_at(leaf_corner, leaf.depth());
                 if mirrored != 0 {
                     let (lo, hi) = (scene.min(), scene.min() + DVec3::splat(scene.root_side));
                     for axis in 0..3 {
