@@ -27,7 +27,10 @@ use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutpu
 mod coarse;
 mod cut;
 mod params;
+mod plus_faces;
 mod ssd;
+
+use plus_faces::{KeyPositions, PlusNeighbours};
 
 pub use coarse::{COARSE_ROWS_LEVEL, CoarseRowsCache};
 
@@ -678,41 +681,6 @@ impl LevelStage {
             frozen: frozen_cubes,
             previous,
         }))
-    }
-}
-
-/// Each cut key's position in the unit's sorted keys.
-type KeyPositions = std::collections::HashMap<CubeKey, u32, foldhash::fast::FixedState>;
-
-/// The cubes across one `+` face of a cut cube (none, one, or the four children on its side),
-/// each with its position in the cut when already known; no allocation per face.
-#[derive(Default)]
-struct PlusNeighbours {
-    cubes: [(CubeKey, Option<u32>); 4],
-    len: usize,
-}
-
-impl PlusNeighbours {
-    fn one(cube: CubeKey, position: Option<u32>) -> PlusNeighbours {
-        let mut out = PlusNeighbours::default();
-        out.cubes[0] = (cube, position);
-        out.len = 1;
-        out
-    }
-
-    fn four(cubes: [CubeKey; 4]) -> PlusNeighbours {
-        PlusNeighbours {
-            cubes: cubes.map(|cube| (cube, None)),
-            len: 4,
-        }
-    }
-
-    fn len(&self) -> usize {
-        self.len
-    }
-
-    fn iter(&self) -> impl Iterator<Item = (CubeKey, Option<u32>)> + '_ {
-        self.cubes.iter().take(self.len).copied()
     }
 }
 
