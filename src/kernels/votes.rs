@@ -114,15 +114,33 @@ pub struct Pyramid {
 /// missing ones NaN) reduced to one by `reduce`.
 pub fn halve(last: &DepthImage, reduce: impl Fn([f32; 4]) -> f32) -> DepthImage {
     let (w, h) = (last.width.div_ceil(2), last.height.div_ceil(2));
+    let width = last.width as usize;
     let mut depth = Vec::with_capacity((w * h) as usize);
+    let row = |j: u32| (j < last.height).then(|| last.depth.get(j as usize * width..(j as usize + 1) * width));
     for j in 0..h {
-        for i in 0..w {
-            depth.push(reduce([
-                last.get(2 * i, 2 * j),
-                last.get(2 * i + 1, 2 * j),
-                last.get(2 * i, 2 * j + 1),
-                last.get(2 * i + 1, 2 * j + 1),
-            ]));
+        match (row(2 * j), row(2 * j + 1)) {
+            // Whole rows (all but an odd image's last): pairs of pixels side by side, without
+            // a bounds test per pixel (the pyramid and the occlusion maxima halve every map).
+            (Some(Some(top)), Some(Some(bottom))) => {
+                let ((top_pairs, top_odd), (bottom_pairs, bottom_odd)) =
+                    (top.as_chunks::<2>(), bottom.as_chunks::<2>());
+                for (t, b) in top_pairs.iter().zip(bottom_pairs) {
+                    depth.push(reduce([t[0], t[1], b[0], b[1]]));
+                }
+                if let (Some(t), Some(b)) = (top_odd.first(), bottom_odd.first()) {
+                    depth.push(reduce([*t, f32::NAN, *b, f32::NAN]));
+                }
+            }
+            _ => {
+                for i in 0..w {
+                    depth.push(reduce([
+                        last.get(2 * i, 2 * j),
+                        last.get(2 * i + 1, 2 * j),
+                        last.get(2 * i, 2 * j + 1),
+                        last.get(2 * i + 1, 2 * j + 1),
+                    ]));
+                }
+            }
         }
     }
     DepthImage {
@@ -743,6 +761,37 @@ mod tests {
         camera_to_world: glam::DMat4,
     ) -> crate::inputs::DepthMapSource {
         crate::inputs::DepthMapSource::test_pinhole(path, size, k, camera_to_world)
+    }
+
+    #[test]
+    fn halving_by_rows_reads_the_pixels_a_lookup_per_pixel_reads() {
+        // Odd and even sizes, a one-pixel image, and NaN (invalid) pixels.
+        for (width, height) in [(6, 4), (7, 5), (1, 1), (2, 3), (5, 1)] {
+            let depth = (0..width * height)
+                .map(|k| if k % 5 == 3 { f32::NAN } else { k as f32 * 0.25 })
+                .collect();
+            let image = DepthImage { width, height, depth };
+            let by_rows = halve(&image, |v| v[0] + 10.0 * v[1] + 100.0 * v[2] + 1000.0 * v[3]);
+            let (w, h) = (width.div_ceil(2), height.div_ceil(2));
+            assert_eq!((by_rows.width, by_rows.height), (w, h));
+            for j in 0..h {
+                for i in 0..w {
+                    let v = [
+                        (2 * i, 2 * j),
+                        (2 * i + 1, 2 * j),
+                        (2 * i, 2 * j + 1),
+                        (2 * i + 1, 2 * j + 1),
+                    ]
+                    .map(|(x, y)| image.get(x, y));
+                    let expected = v[0] + 10.0 * v[1] + 100.0 * v[2] + 1000.0 * v[3];
+                    assert_eq!(
+                        by_rows.get(i, j).to_bits(),
+                        expected.to_bits(),
+                        "{width}x{height} at ({i}, {j})"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
