@@ -105,10 +105,11 @@ pub(super) fn full_side(depth: u8) -> u64 {
     1u64 << (u32::from(MAX_DEPTH) - u32::from(depth))
 }
 
-/// The cut cube containing the finest cell `probe` (a key of depth [`MAX_DEPTH`]), and its values. The unit's own sorted cut
-/// (`keys`, `values`) is searched first, outwards from `near` (the cube whose corners are being
-/// probed, so the answer is usually a few keys away): the cut tiles the root, so a cube of the
-/// unit that contains the cell is the answer. Cells outside the unit go to the level's lookup.
+/// The cut cube containing the finest cell `probe` (a key of depth [`MAX_DEPTH`]), and its
+/// values. The unit's own sorted cut (`keys`, `values`) is searched first, outwards from `near`
+/// (the cube whose corners are being probed, so the answer is usually a few keys away): the cut
+/// tiles the root, so a cube of the unit that contains the cell is the answer. Cells outside
+/// the unit go to the level's lookup.
 fn cut_cube_near(
     level: &mut LevelCut<'_, '_>,
     keys: &[CubeKey],
