@@ -401,7 +401,7 @@ mod tests {
                     prop_assert_eq!(key.parent(), through_coordinates);
                     for (axis, c) in [x, y, z].into_iter().enumerate() {
                         let mut coords = [x, y, z];
-                        coords[axis] = c + 1;
+                        coords[axis] = c.wrapping_add(1);
                         let expected = (c < mask).then(|| CubeKey::new(depth, coords[0], coords[1], coords[2]));
                         prop_assert_eq!(key.plus_neighbour(axis), expected);
                     }
