@@ -11,7 +11,8 @@
 //! takes a few reads; a chunk is culled only when its nearest point is farther than the
 //! largest depth under its whole footprint plus its largest cube's eta.
 
-use super::votes::{Chunk, halve};
+use super::halving::halve;
+use super::votes::Chunk;
 use crate::inputs::{DepthImage, DepthMapSource, Projection};
 
 /// The finest level [`FarthestDepths`] keeps: blocks of 2^3 = 8 pixels a side (1/64 of the
