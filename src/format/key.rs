@@ -229,18 +229,17 @@ impl CubeKey {
             *slot = slot.checked_add(1).filter(|next| *next <= max)?;
             return Some(CubeKey::new(depth, c[0], c[1], c[2]));
         }
-        // Adding one cube to the axis's coordinate, in place in the interleaved code: the
-        // other axes' bits are set to 1 so the carry passes over them (dilated addition).
+        // One cube added to the axis's coordinate in place in the interleaved code
+        // (add_axis_bits), unless every bit of it at the cube's size is set: the last cube
+        // along the axis (and the root, which has no such bits).
         let code = self.morton_at_depth(depth);
-        let step = 1u128 << (3 * u32::from(MAX_DEPTH - depth) + axis as u32);
-        let axis_bits = (AXIS_BITS << axis) & !(step - 1);
-        let coordinate = code & axis_bits;
-        if coordinate == axis_bits {
-            // The last cube along the axis (and the root, which has no axis bits).
+        let step = 1u128 << (3 * u32::from(MAX_DEPTH - depth));
+        let coordinate = (code >> axis) & AXIS_BITS;
+        if coordinate == AXIS_BITS & !(step - 1) {
             return None;
         }
-        let next = ((coordinate | !axis_bits).wrapping_add(step)) & axis_bits;
-        Some(CubeKey(((code & !axis_bits | next) << 8) | u128::from(depth)))
+        let next = add_axis_bits(coordinate, step) << axis;
+        Some(CubeKey(((code & !(AXIS_BITS << axis) | next) << 8) | u128::from(depth)))
     }
 
     /// The key range `[self, end]` covering this cube and all its descendants.
