@@ -38,7 +38,7 @@ pub use ssd::{CoarseSamplesCache, METHOD_COLUMN, method_of_segment};
 
 pub use cut::{CutValue, LeafValues, LevelCut, cut_cube_ending_at};
 
-pub use params::{DEFAULT_TOLERANCE, Method, SolveParams, SsdParams};
+pub use params::{DEFAULT_SSD_TOLERANCE, DEFAULT_TOLERANCE, Method, SolveParams, SsdParams};
 
 /// Stage names of the levels.
 pub const LEVEL_STAGES: [&str; MAX_DEPTH as usize + 1] = [
