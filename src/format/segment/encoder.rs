@@ -20,7 +20,7 @@ use crate::format::{CubeKey, EncodeError};
 /// % at about 1 GB/s a core of decoding, decode at about memory speed: the sample moments of
 /// RedKitchen's 1000 depth maps took 1.5 s of a core to decode, now a few hundredths (README,
 /// "Performance"). Either frame is plain zstd: readers do not tell them apart.
-pub const RAW_LITERALS_ZSTD_LEVEL: i32 = -1;
+const RAW_LITERALS_ZSTD_LEVEL: i32 = -1;
 /// See [`RAW_LITERALS_ZSTD_LEVEL`].
 const HUFFMAN_WORTH_NUM: usize = 3;
 /// See [`RAW_LITERALS_ZSTD_LEVEL`].
