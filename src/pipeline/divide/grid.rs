@@ -211,7 +211,7 @@ impl NodeLocator {
     }
 
     /// The index of the node that holds `p`.
-    #[inline]
+    #[inline(always)]
     pub fn index(&self, p: [f64; 3]) -> [u32; 3] {
         let mut index = [0u32; 3];
         let mut clear = true;
@@ -322,11 +322,11 @@ impl Counts {
     /// Adds one point to each cell of `cells` (cells of [`Counts::cell_of_index`]): to this thread's
     /// private copy when there is one (locked once for the whole block), else atomically, one
     /// add per run of equal cells.
-    pub fn add_cells(&self, cells: impl Iterator<Item = usize>) {
+    pub fn add_cells(&self, cells: &[usize]) {
         let copy = rayon::current_thread_index().and_then(|t| self.per_thread.get(t));
         match copy.map(|m| m.lock()) {
             Some(Ok(mut counts)) => {
-                for cell in cells {
+                for &cell in cells {
                     if let Some(c) = counts.get_mut(cell) {
                         *c += 1;
                     }
@@ -334,7 +334,7 @@ impl Counts {
             }
             _ => {
                 let mut run: Option<(usize, u64)> = None;
-                for cell in cells {
+                for &cell in cells {
                     match &mut run {
                         Some((c, n)) if *c == cell => *n += 1,
                         _ => {
@@ -456,19 +456,26 @@ pub fn choose_leaves(counts: &Counts, max_points: u64) -> (Vec<NodeCount>, Vec<N
 }
 
 /// For each cell of a uniform grid over a node, the targets (by number) whose grown cube
-/// meets the cell: a point's candidates are its cell's, and an exact test of each grown cube
-/// decides. Points outside the node are looked up in the nearest cell, which lists every
-/// target whose grown cube reaches them (a target lies inside the node and its grown cube is a
-/// box, so it also holds the point's projection onto the node).
+/// meets the cell: a point's candidates are its cell's. A target whose grown cube holds the
+/// whole cell holds every point inside the cell, with no test; the others get an exact test.
+/// Points outside the node are looked up in the nearest cell, which lists every target whose
+/// grown cube reaches them (a target lies inside the node and its grown cube is a box, so it
+/// also holds the point's projection onto the node), and are tested against all of them.
 pub struct Lookup {
     locator: NodeLocator,
     top: Node,
     depth: u32,
+    /// The node's cube: a point outside it is outside its cell too.
+    node: Bounds,
     offsets: Vec<u32>,
+    /// Each cell's targets, those that hold the whole cell first, marked with [`Lookup::HOLDS_CELL`].
     targets: Vec<u32>,
 }
 
 impl Lookup {
+    /// The bit of a target in [`Lookup::targets`] whose grown cube holds the whole cell.
+    const HOLDS_CELL: u32 = 1 << 31;
+
     /// The lookup of `grown` boxes over `top`, `depth` levels fine.
     pub fn new(root: &Root, top: Node, depth: u32, grown: &[Bounds]) -> Lookup {
         let n = 1usize << depth;
@@ -480,20 +487,20 @@ impl Lookup {
             (lo.min(n), hi)
         };
         let mut offsets = vec![0u32; n * n * n + 1];
-        let each_cell = |b: &Bounds, f: &mut dyn FnMut(usize)| {
+        let each_cell = |b: &Bounds, f: &mut dyn FnMut(usize, [usize; 3])| {
             let (x0, x1) = range(b, 0);
             let (y0, y1) = range(b, 1);
             let (z0, z1) = range(b, 2);
             for z in z0..z1 {
                 for y in y0..y1 {
                     for x in x0..x1 {
-                        f(x + n * (y + n * z));
+                        f(x + n * (y + n * z), [x, y, z]);
                     }
                 }
             }
         };
         for b in grown {
-            each_cell(b, &mut |cell| {
+            each_cell(b, &mut |cell, _| {
                 if let Some(o) = offsets.get_mut(cell + 1) {
                     *o += 1;
                 }
@@ -507,38 +514,62 @@ impl Lookup {
         }
         let mut targets = vec![0u32; offsets.last().copied().unwrap_or(0) as usize];
         let mut fill = offsets.clone();
+        // The cells' corners are exact: the origin and the side are multiples of the root's
+        // grid unit (a power of two), and so are their sums.
+        let cell = |xyz: [usize; 3]| {
+            let min = [0, 1, 2].map(|a| origin[a] + xyz[a] as f64 * cell_side);
+            Bounds {
+                min,
+                max: min.map(|m| m + cell_side),
+            }
+        };
         for (t, b) in grown.iter().enumerate() {
-            each_cell(b, &mut |cell| {
-                if let Some(at) = fill.get_mut(cell) {
+            each_cell(b, &mut |index, xyz| {
+                let c = cell(xyz);
+                let holds = (0..3).all(|a| b.min[a] <= c.min[a] && c.max[a] <= b.max[a]);
+                if let Some(at) = fill.get_mut(index) {
                     if let Some(slot) = targets.get_mut(*at as usize) {
-                        *slot = t as u32;
+                        *slot = if holds { t as u32 | Self::HOLDS_CELL } else { t as u32 };
                     }
                     *at += 1;
                 }
             });
         }
+        // Those that hold the cell first, each part in target order.
+        for w in offsets.windows(2) {
+            if let [from, to] = *w
+                && let Some(cell_targets) = targets.get_mut(from as usize..to as usize)
+            {
+                cell_targets.sort_unstable_by_key(|&t| (t & Self::HOLDS_CELL == 0, t));
+            }
+        }
         Lookup {
             locator: root.locator(top.level + depth),
             top,
             depth,
+            node: root.core(top),
             offsets,
             targets,
         }
     }
 
-    /// The candidate targets of a point with grid coordinates `g`.
+    /// Calls `hit` with every target, in increasing order of the cell's list (those that hold
+    /// the cell, then the others), whose grown cube (`grown`, as given to [`Lookup::new`])
+    /// holds the point `p` of grid coordinates `g`.
     #[inline]
-    pub fn candidates(&self, g: [u32; 3]) -> &[u32] {
-        self.candidates_of_index(Node::holding(g, self.top.level + self.depth).index)
+    pub fn place_grid(&self, g: [u32; 3], p: [f64; 3], grown: &[Bounds], hit: impl FnMut(u32)) {
+        let index = Node::holding(g, self.top.level + self.depth).index;
+        self.place_index(index, p, grown, hit);
     }
 
-    /// The candidate targets of the point `p`.
+    /// [`Lookup::place_grid`] for a point whose grid coordinates are not known.
     #[inline]
-    pub fn candidates_of_point(&self, p: [f64; 3]) -> &[u32] {
-        self.candidates_of_index(self.locator.index(p))
+    pub fn place(&self, p: [f64; 3], grown: &[Bounds], hit: impl FnMut(u32)) {
+        self.place_index(self.locator.index(p), p, grown, hit);
     }
 
-    fn candidates_of_index(&self, index: [u32; 3]) -> &[u32] {
+    #[inline]
+    fn place_index(&self, index: [u32; 3], p: [f64; 3], grown: &[Bounds], mut hit: impl FnMut(u32)) {
         let n = 1u32 << self.depth;
         let base = self.top.index.map(|c| c << self.depth);
         // Clamped to the node: below it wraps to a huge value, so compare signed.
@@ -548,7 +579,17 @@ impl Lookup {
         let cell = relative[0] + n * (relative[1] + n * relative[2]);
         let from = self.offsets.get(cell).copied().unwrap_or(0) as usize;
         let to = self.offsets.get(cell + 1).copied().unwrap_or(0) as usize;
-        self.targets.get(from..to).unwrap_or_default()
+        let candidates = self.targets.get(from..to).unwrap_or_default();
+        // Points outside the node were looked up in the nearest cell, which does not hold them.
+        let in_cell = self.node.contains(p);
+        for &candidate in candidates {
+            let target = candidate & !Self::HOLDS_CELL;
+            if (in_cell && candidate & Self::HOLDS_CELL != 0)
+                || grown.get(target as usize).is_some_and(|b| b.contains(p))
+            {
+                hit(target);
+            }
+        }
     }
 }
 
@@ -645,5 +686,51 @@ mod tests {
                 .count();
             assert_eq!(holders, 1);
         }
+    }
+
+    /// The lookup's answer, with its cells that skip the test, is the brute-force one: for
+    /// points inside the node, on cell faces, and outside it (a scratch file's overlap).
+    #[test]
+    fn lookup_places_each_point_in_exactly_the_grown_cubes_that_hold_it() {
+        let root = Root::around([0.0; 3], [1.0; 3]).expect("a box");
+        let top = Node {
+            level: 1,
+            index: [1, 0, 1],
+        };
+        // Subspaces of two levels under `top`, as a division leaves them.
+        let mut nodes = Vec::new();
+        for (i, child) in top.children().into_iter().enumerate() {
+            if i % 3 == 0 {
+                nodes.extend(child.children());
+            } else {
+                nodes.push(child);
+            }
+        }
+        let grown: Vec<Bounds> = nodes.iter().map(|n| root.grown(*n, 0.1)).collect();
+        let core = root.core(top);
+        let side = core.max[0] - core.min[0];
+        let mut checked_sure = 0;
+        for depth in [2, 3, 4] {
+            let lookup = Lookup::new(&root, top, depth, &grown);
+            let sure = lookup.targets.iter().filter(|t| **t & Lookup::HOLDS_CELL != 0).count();
+            assert!(sure > 0 && sure < lookup.targets.len(), "depth {depth}: {sure} sure");
+            checked_sure += sure;
+            // A lattice finer than the cells, shifted so that some points lie on cell faces,
+            // reaching a fifth of the node beyond it on every side.
+            let steps = 37;
+            for i in 0..steps * steps * steps {
+                let u = [i % steps, (i / steps) % steps, i / (steps * steps)]
+                    .map(|k| -0.2 + 1.4 * f64::from(k) / f64::from(steps - 1));
+                let p = [0, 1, 2].map(|a| core.min[a] + u[a] * side);
+                let mut hits = Vec::new();
+                lookup.place(p, &grown, |t| hits.push(t));
+                hits.sort_unstable();
+                let expected: Vec<u32> = (0..grown.len() as u32)
+                    .filter(|&t| grown.get(t as usize).is_some_and(|b| b.contains(p)))
+                    .collect();
+                assert_eq!(hits, expected, "depth {depth}, point {p:?}");
+            }
+        }
+        assert!(checked_sure > 0);
     }
 }

@@ -255,11 +255,9 @@ fn owners_of_new_points(
                 let p = layout.position(record);
                 let g = root.grid(p);
                 owners.push(owner_of(g));
-                for &t in lookup.candidates(g) {
-                    if grown.get(t as usize).is_some_and(|b| b.contains(p)) {
-                        hits.insert(t);
-                    }
-                }
+                lookup.place_grid(g, p, &grown, |t| {
+                    hits.insert(t);
+                });
             }
             (owners, hits)
         },

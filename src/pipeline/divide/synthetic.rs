@@ -101,4 +101,17 @@ impl PointSource for SyntheticCloud {
         }
         Ok(self.points)
     }
+
+    fn random_access_blocks(&self, block_points: usize) -> Option<u64> {
+        Some(self.points.div_ceil(block_points.max(1) as u64))
+    }
+
+    fn read_block(&self, block_points: usize, index: u64, block: &mut Vec<u8>) -> Result<()> {
+        let block_points = block_points.max(1) as u64;
+        let from = index.saturating_mul(block_points).min(self.points);
+        let to = from.saturating_add(block_points).min(self.points);
+        block.resize(((to - from) * 12) as usize, 0);
+        self.generate_block(from, block);
+        Ok(())
+    }
 }
