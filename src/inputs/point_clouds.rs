@@ -353,6 +353,15 @@ impl PointCloudFile {
         };
         let mut block = Vec::with_capacity(block_points * len);
         let mut done = 0u64;
+        if let Some(blocks) = self.random_access_blocks(block_points) {
+            // The same blocks, read the same way, as the workers of a parallel pass read.
+            for index in 0..blocks {
+                self.read_block(block_points, index, &mut block)?;
+                done += (block.len() / len) as u64;
+                each(&block)?;
+            }
+            return Ok(done);
+        }
         let mut flush = |block: &mut Vec<u8>, done: &mut u64| -> Result<(), E> {
             self.check_finite(block, *done)?;
             *done += (block.len() / len) as u64;
@@ -361,26 +370,8 @@ impl PointCloudFile {
             Ok(())
         };
         match &self.body {
-            Body::Binary {
-                offset,
-                count,
-                big_endian,
-            } => {
-                let mut file = File::open(&self.path).map_err(io)?;
-                file.seek(SeekFrom::Start(*offset)).map_err(io)?;
-                let mut reader = BufReader::with_capacity(1 << 20, file);
-                let mut left = *count;
-                while left > 0 {
-                    let n = left.min(block_points as u64) as usize;
-                    block.resize(n * len, 0);
-                    reader.read_exact(&mut block).map_err(io)?;
-                    if *big_endian {
-                        self.swap_to_little_endian(&mut block);
-                    }
-                    flush(&mut block, &mut done)?;
-                    left -= n as u64;
-                }
-            }
+            // Read by block above: `random_access_blocks` is `Some` for every binary body.
+            Body::Binary { .. } => {}
             Body::AsciiPly { skip_lines, count } => {
                 let mut lines = BufReader::new(File::open(&self.path).map_err(io)?).lines();
                 let header_lines = self.ascii_header_lines()?;
@@ -676,6 +667,12 @@ mod tests {
                 message.contains(name) && message.contains("point 9") && message.contains("not finite"),
                 "{message}"
             );
+            let message = file
+                .for_each_block::<InputError>(4, |_| Ok(()))
+                .map(|_| ())
+                .unwrap_err()
+                .to_string();
+            assert!(message.contains(name) && message.contains("point 9"), "{message}");
         }
         let xyz = dir.path().join("c.xyz");
         std::fs::write(&xyz, b"1 2 3\n").map_err(io)?;

@@ -568,8 +568,29 @@ impl Lookup {
         self.place_index(self.locator.index(p), p, grown, hit);
     }
 
+    /// [`Lookup::place`] for a run of points: `hit` gets each point's index in `positions`
+    /// and a target. The same targets in the same order as [`Lookup::place`] gives.
     #[inline]
-    fn place_index(&self, index: [u32; 3], p: [f64; 3], grown: &[Bounds], mut hit: impl FnMut(u32)) {
+    pub fn place_run(&self, positions: &[[f64; 3]], grown: &[Bounds], mut hit: impl FnMut(usize, u32)) {
+        // Points in random order miss the cache on every cell: the candidate ranges of a whole
+        // chunk are loaded first, with no load waiting on another, so the misses overlap.
+        const CHUNK: usize = 64;
+        let mut ranges = [(0u32, 0u32); CHUNK];
+        for (chunk_index, chunk) in positions.chunks(CHUNK).enumerate() {
+            for (range, &p) in ranges.iter_mut().zip(chunk) {
+                *range = self.candidate_range(self.locator.index(p));
+            }
+            for (i, (&p, &(from, to))) in chunk.iter().zip(&ranges).enumerate() {
+                let at = chunk_index * CHUNK + i;
+                self.place_candidates(from as usize..to as usize, p, grown, |target| hit(at, target));
+            }
+        }
+    }
+
+    /// The range in [`Lookup::targets`] of the candidates of the cell that holds the node
+    /// `index` at the lookup's level (or is nearest to it).
+    #[inline]
+    fn candidate_range(&self, index: [u32; 3]) -> (u32, u32) {
         let n = 1u32 << self.depth;
         let base = self.top.index.map(|c| c << self.depth);
         // Clamped to the node: below it wraps to a huge value, so compare signed.
@@ -577,9 +598,20 @@ impl Lookup {
             [0, 1, 2].map(|a| (i64::from(index[a]) - i64::from(base[a])).clamp(0, i64::from(n) - 1) as usize);
         let n = n as usize;
         let cell = relative[0] + n * (relative[1] + n * relative[2]);
-        let from = self.offsets.get(cell).copied().unwrap_or(0) as usize;
-        let to = self.offsets.get(cell + 1).copied().unwrap_or(0) as usize;
-        let candidates = self.targets.get(from..to).unwrap_or_default();
+        let from = self.offsets.get(cell).copied().unwrap_or(0);
+        let to = self.offsets.get(cell + 1).copied().unwrap_or(0);
+        (from, to)
+    }
+
+    #[inline]
+    fn place_index(&self, index: [u32; 3], p: [f64; 3], grown: &[Bounds], hit: impl FnMut(u32)) {
+        let (from, to) = self.candidate_range(index);
+        self.place_candidates(from as usize..to as usize, p, grown, hit);
+    }
+
+    #[inline]
+    fn place_candidates(&self, range: std::ops::Range<usize>, p: [f64; 3], grown: &[Bounds], mut hit: impl FnMut(u32)) {
+        let candidates = self.targets.get(range).unwrap_or_default();
         // Points outside the node were looked up in the nearest cell, which does not hold them.
         let in_cell = self.node.contains(p);
         for &candidate in candidates {

@@ -414,13 +414,19 @@ fn stream<T: Send>(
     let mut points = 0;
     // The results of the last batch, not consumed yet, and their feed.
     let mut waiting: Option<(usize, Vec<T>)> = None;
-    let mut consume_all = |batch: Option<(usize, Vec<T>)>| -> Result<()> {
-        match batch {
+    // Works on the next batch while the last one is consumed.
+    let mut overlap = |index: usize, batch: &mut (dyn FnMut() -> Result<Vec<T>> + Send)| -> Result<()> {
+        let before = waiting.take();
+        let (results, consumed) = rayon::join(batch, || match before {
             Some((index, results)) => results.into_iter().try_for_each(|result| consume(index, result)),
             None => Ok(()),
-        }
+        });
+        consumed?;
+        waiting = Some((index, results?));
+        Ok(())
     };
     for (index, feed) in feeds.iter().enumerate() {
+        let keep = feed.keep.as_ref();
         if let Some(blocks) = feed.source.random_access_blocks(block_points) {
             // Each worker reads its block and works on it while it is in its cache; nothing
             // is copied on one thread.
@@ -428,30 +434,25 @@ fn stream<T: Send>(
             let mut first = 0;
             while first < blocks {
                 let last = (first + batch as u64).min(blocks);
-                let before = waiting.take();
-                let (results, consumed) = rayon::join(
-                    || {
-                        buffers
-                            .par_iter_mut()
-                            .take((last - first) as usize)
-                            .enumerate()
-                            .map(|(offset, block)| {
-                                feed.source.read_block(block_points, first + offset as u64, block)?;
-                                Ok((block.len() / record_len, work(block, feed.keep.as_ref())))
-                            })
-                            .collect::<Vec<Result<(usize, T)>>>()
-                    },
-                    || consume_all(before),
-                );
-                consumed?;
-                let mut worked = Vec::with_capacity(results.len());
-                for result in results {
-                    let (records, result) = result?;
-                    points += records as u64;
-                    bar.inc(records as u64);
-                    worked.push(result);
-                }
-                waiting = Some((index, worked));
+                overlap(index, &mut || {
+                    let worked = buffers
+                        .par_iter_mut()
+                        .take((last - first) as usize)
+                        .enumerate()
+                        .map(|(offset, block)| {
+                            feed.source.read_block(block_points, first + offset as u64, block)?;
+                            Ok((block.len() / record_len, work(block, keep)))
+                        })
+                        .collect::<Result<Vec<(usize, T)>>>()?;
+                    Ok(worked
+                        .into_iter()
+                        .map(|(records, result)| {
+                            points += records as u64;
+                            bar.inc(records as u64);
+                            result
+                        })
+                        .collect())
+                })?;
                 first = last;
             }
             continue;
@@ -459,18 +460,9 @@ fn stream<T: Send>(
         let mut pending: Vec<Vec<u8>> = Vec::with_capacity(batch);
         let mut spare: Vec<Vec<u8>> = Vec::new();
         let mut run = |pending: &mut Vec<Vec<u8>>, spare: &mut Vec<Vec<u8>>| -> Result<()> {
-            let before = waiting.take();
-            let (results, consumed) = rayon::join(
-                || {
-                    pending
-                        .par_iter()
-                        .map(|block| work(block, feed.keep.as_ref()))
-                        .collect::<Vec<T>>()
-                },
-                || consume_all(before),
-            );
-            consumed?;
-            waiting = Some((index, results));
+            overlap(index, &mut || {
+                Ok(pending.par_iter().map(|block| work(block, keep)).collect())
+            })?;
             spare.append(pending);
             Ok(())
         };
@@ -487,7 +479,8 @@ fn stream<T: Send>(
         })?;
         run(&mut pending, &mut spare)?;
     }
-    consume_all(waiting.take())?;
+    // Consumes the last batch.
+    overlap(usize::MAX, &mut || Ok(Vec::new()))?;
     tracing::debug!(
         "{}: {points} points in {:.2} s",
         bar.prefix(),
@@ -508,12 +501,16 @@ fn place_block(
 ) -> Grouped {
     let len = layout.record_len();
     let mut memberships: Vec<(u32, u32)> = Vec::with_capacity(block.len() / len.max(1) * 2 + 16);
-    layout.for_each_positions(block, |first, positions| {
-        for (i, &p) in (first..).zip(positions) {
-            if keep.is_some_and(|k| !k.contains(p)) {
-                continue;
+    layout.for_each_positions(block, |first, positions| match keep {
+        None => lookup.place_run(positions, grown, |i, target| {
+            memberships.push((target, (first + i) as u32))
+        }),
+        Some(keep) => {
+            for (i, &p) in (first..).zip(positions) {
+                if keep.contains(p) {
+                    lookup.place(p, grown, |target| memberships.push((target, i as u32)));
+                }
             }
-            lookup.place(p, grown, |target| memberships.push((target, i as u32)));
         }
     });
     // Common record lengths get copies of a known size (a call to memmove per record costs
@@ -741,7 +738,8 @@ impl Context<'_> {
         let lookup = Lookup::new(&root, top, lookup_depth(depth, self.options.memory_budget), grown);
         // Buffers take at most twice their limit: a quarter of the budget.
         let buffer_limit = usize::try_from(self.options.memory_budget / 8).unwrap_or(usize::MAX);
-        let mut appenders = Appenders::new(layout.clone(), files, buffer_limit);
+        let mut appenders =
+            Appenders::new(layout.clone(), files, buffer_limit).map_err(io("write", &self.dir.join(STAGING)))?;
         let bar = progress(self.options, "writes", feeds);
         stream(
             feeds,

@@ -88,12 +88,10 @@ impl PointSource for SyntheticCloud {
         while first < blocks {
             let last = (first + batch).min(blocks);
             buffers.resize_with((last - first) as usize, Vec::new);
-            buffers.par_iter_mut().enumerate().for_each(|(offset, bytes)| {
-                let from = (first + offset as u64) * block_points;
-                let to = (from + block_points).min(self.points);
-                bytes.resize(((to - from) * 12) as usize, 0);
-                self.generate_block(from, bytes);
-            });
+            buffers
+                .par_iter_mut()
+                .enumerate()
+                .try_for_each(|(offset, bytes)| self.read_block(block_points as usize, first + offset as u64, bytes))?;
             for bytes in &buffers {
                 each(bytes)?;
             }
