@@ -467,14 +467,21 @@ pub struct Lookup {
     depth: u32,
     /// The node's cube: a point outside it is outside its cell too.
     node: Bounds,
-    offsets: Vec<u32>,
-    /// Each cell's targets, those that hold the whole cell first, marked with [`Lookup::HOLDS_CELL`].
-    targets: Vec<u32>,
+    /// Per cell: [`Lookup::SOLE`] and the target when one target's grown cube holds the whole
+    /// cell and no other meets it (most cells: their points need no second load), else where
+    /// the cell's list starts in `lists`.
+    cells: Vec<u32>,
+    /// Each listed cell's number of targets, then its targets, those that hold the whole cell
+    /// first, marked with [`Lookup::HOLDS_CELL`].
+    lists: Vec<u32>,
 }
 
 impl Lookup {
     /// The bit of a target in [`Lookup::targets`] whose grown cube holds the whole cell.
     const HOLDS_CELL: u32 = 1 << 31;
+
+    /// The bit of an entry of [`Lookup::cells`] that is the cell's sole target.
+    const SOLE: u32 = 1 << 31;
 
     /// The lookup of `grown` boxes over `top`, `depth` levels fine.
     pub fn new(root: &Root, top: Node, depth: u32, grown: &[Bounds]) -> Lookup {
@@ -543,13 +550,29 @@ impl Lookup {
                 cell_targets.sort_unstable_by_key(|&t| (t & Self::HOLDS_CELL == 0, t));
             }
         }
+        let mut cells = Vec::with_capacity(n * n * n);
+        let mut lists = Vec::new();
+        for w in offsets.windows(2) {
+            let cell_targets = match *w {
+                [from, to] => targets.get(from as usize..to as usize).unwrap_or_default(),
+                _ => &[],
+            };
+            match *cell_targets {
+                [sole] if sole & Self::HOLDS_CELL != 0 => cells.push(Self::SOLE | (sole & !Self::HOLDS_CELL)),
+                _ => {
+                    cells.push(lists.len() as u32);
+                    lists.push(cell_targets.len() as u32);
+                    lists.extend_from_slice(cell_targets);
+                }
+            }
+        }
         Lookup {
             locator: root.locator(top.level + depth),
             top,
             depth,
             node: root.core(top),
-            offsets,
-            targets,
+            cells,
+            lists,
         }
     }
 
@@ -572,25 +595,25 @@ impl Lookup {
     /// and a target. The same targets in the same order as [`Lookup::place`] gives.
     #[inline]
     pub fn place_run(&self, positions: &[[f64; 3]], grown: &[Bounds], mut hit: impl FnMut(usize, u32)) {
-        // Points in random order miss the cache on every cell: the candidate ranges of a whole
-        // chunk are loaded first, with no load waiting on another, so the misses overlap.
+        // Points in random order miss the cache on every cell: the entries of a whole chunk's
+        // cells are loaded first, with no load waiting on another, so the misses overlap.
         const CHUNK: usize = 64;
-        let mut ranges = [(0u32, 0u32); CHUNK];
+        let mut entries = [0u32; CHUNK];
         for (chunk_index, chunk) in positions.chunks(CHUNK).enumerate() {
-            for (range, &p) in ranges.iter_mut().zip(chunk) {
-                *range = self.candidate_range(self.locator.index(p));
+            for (entry, &p) in entries.iter_mut().zip(chunk) {
+                *entry = self.cell_entry(self.locator.index(p));
             }
-            for (i, (&p, &(from, to))) in chunk.iter().zip(&ranges).enumerate() {
+            for (i, (&p, &entry)) in chunk.iter().zip(&entries).enumerate() {
                 let at = chunk_index * CHUNK + i;
-                self.place_candidates(from as usize..to as usize, p, grown, |target| hit(at, target));
+                self.place_entry(entry, p, grown, |target| hit(at, target));
             }
         }
     }
 
-    /// The range in [`Lookup::targets`] of the candidates of the cell that holds the node
-    /// `index` at the lookup's level (or is nearest to it).
+    /// The [`Lookup::cells`] entry of the cell that holds the node `index` at the lookup's
+    /// level (or is nearest to it).
     #[inline]
-    fn candidate_range(&self, index: [u32; 3]) -> (u32, u32) {
+    fn cell_entry(&self, index: [u32; 3]) -> u32 {
         let n = 1u32 << self.depth;
         let base = self.top.index.map(|c| c << self.depth);
         // Clamped to the node: below it wraps to a huge value, so compare signed.
@@ -598,22 +621,29 @@ impl Lookup {
             [0, 1, 2].map(|a| (i64::from(index[a]) - i64::from(base[a])).clamp(0, i64::from(n) - 1) as usize);
         let n = n as usize;
         let cell = relative[0] + n * (relative[1] + n * relative[2]);
-        let from = self.offsets.get(cell).copied().unwrap_or(0);
-        let to = self.offsets.get(cell + 1).copied().unwrap_or(0);
-        (from, to)
+        // An empty list for a cell that is not there (never, for a clamped index).
+        self.cells.get(cell).copied().unwrap_or(!Self::SOLE)
     }
 
     #[inline]
     fn place_index(&self, index: [u32; 3], p: [f64; 3], grown: &[Bounds], hit: impl FnMut(u32)) {
-        let (from, to) = self.candidate_range(index);
-        self.place_candidates(from as usize..to as usize, p, grown, hit);
+        self.place_entry(self.cell_entry(index), p, grown, hit);
     }
 
     #[inline]
-    fn place_candidates(&self, range: std::ops::Range<usize>, p: [f64; 3], grown: &[Bounds], mut hit: impl FnMut(u32)) {
-        let candidates = self.targets.get(range).unwrap_or_default();
+    fn place_entry(&self, entry: u32, p: [f64; 3], grown: &[Bounds], mut hit: impl FnMut(u32)) {
         // Points outside the node were looked up in the nearest cell, which does not hold them.
         let in_cell = self.node.contains(p);
+        if entry & Self::SOLE != 0 {
+            let target = entry & !Self::SOLE;
+            if in_cell || grown.get(target as usize).is_some_and(|b| b.contains(p)) {
+                hit(target);
+            }
+            return;
+        }
+        let start = entry as usize;
+        let count = self.lists.get(start).copied().unwrap_or(0) as usize;
+        let candidates = self.lists.get(start + 1..start + 1 + count).unwrap_or_default();
         for &candidate in candidates {
             let target = candidate & !Self::HOLDS_CELL;
             if (in_cell && candidate & Self::HOLDS_CELL != 0)
@@ -744,18 +774,38 @@ mod tests {
         let mut checked_sure = 0;
         for depth in [2, 3, 4] {
             let lookup = Lookup::new(&root, top, depth, &grown);
-            let sure = lookup.targets.iter().filter(|t| **t & Lookup::HOLDS_CELL != 0).count();
-            assert!(sure > 0 && sure < lookup.targets.len(), "depth {depth}: {sure} sure");
-            checked_sure += sure;
+            // Cells with a sole target skip the test; listed cells skip it for the targets
+            // that hold them and test the others.
+            let sole = lookup.cells.iter().filter(|e| **e & Lookup::SOLE != 0).count();
+            let sure = lookup.lists.iter().filter(|t| **t & Lookup::HOLDS_CELL != 0).count();
+            assert!(
+                sole > 0 && sole < lookup.cells.len() && sure > 0,
+                "depth {depth}: {sole} sole, {sure} sure"
+            );
+            checked_sure += sole + sure;
             // A lattice finer than the cells, shifted so that some points lie on cell faces,
             // reaching a fifth of the node beyond it on every side.
             let steps = 37;
-            for i in 0..steps * steps * steps {
-                let u = [i % steps, (i / steps) % steps, i / (steps * steps)]
-                    .map(|k| -0.2 + 1.4 * f64::from(k) / f64::from(steps - 1));
-                let p = [0, 1, 2].map(|a| core.min[a] + u[a] * side);
+            let points: Vec<[f64; 3]> = (0..steps * steps * steps)
+                .map(|i| {
+                    let u = [i % steps, (i / steps) % steps, i / (steps * steps)]
+                        .map(|k| -0.2 + 1.4 * f64::from(k) / f64::from(steps - 1));
+                    [0, 1, 2].map(|a| core.min[a] + u[a] * side)
+                })
+                .collect();
+            let mut run_hits = vec![Vec::new(); points.len()];
+            lookup.place_run(&points, &grown, |i, t| {
+                if let Some(h) = run_hits.get_mut(i) {
+                    h.push(t);
+                }
+            });
+            for (&p, from_run) in points.iter().zip(&run_hits) {
                 let mut hits = Vec::new();
                 lookup.place(p, &grown, |t| hits.push(t));
+                assert_eq!(
+                    &hits, from_run,
+                    "depth {depth}, point {p:?}: one point and a run disagree"
+                );
                 hits.sort_unstable();
                 let expected: Vec<u32> = (0..grown.len() as u32)
                     .filter(|&t| grown.get(t as usize).is_some_and(|b| b.contains(p)))

@@ -601,7 +601,7 @@ const MAX_LOOKUP_DEPTH: u32 = 7;
 /// one more level took the write pass from 4.0 to 3.7 s on 10^8 points; two more gained
 /// nothing, the lookup no longer fitting the cache).
 fn lookup_depth(counted: u32, budget: u64) -> u32 {
-    // Offsets and about two targets a cell, 4 bytes each.
+    // An entry and about two listed targets a cell, 4 bytes each.
     let bytes = |depth: u32| 12 * 8u64.pow(depth);
     let finer = (counted + 1).min(MAX_LOOKUP_DEPTH);
     if bytes(finer) <= budget / 2 {
