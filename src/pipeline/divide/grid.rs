@@ -477,7 +477,7 @@ pub struct Lookup {
 }
 
 impl Lookup {
-    /// The bit of a target in [`Lookup::targets`] whose grown cube holds the whole cell.
+    /// The bit of a target in [`Lookup::lists`] whose grown cube holds the whole cell.
     const HOLDS_CELL: u32 = 1 << 31;
 
     /// The bit of an entry of [`Lookup::cells`] that is the cell's sole target.
