@@ -52,7 +52,7 @@ use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps, scene_at};
 use crate::stages::octree::{OctreeStage, effective_leaf_cubes, leaves_in_flight};
 use crate::stages::samples::SamplesStage;
-use crate::stages::solve::{LevelStage, Method, SolveParams};
+use crate::stages::solve::{CoarseSamplesCache, LevelStage, Method, PendingCoarseSamples, SolveParams};
 use crate::stages::{INGEST, OCTREE, octree_max_depth};
 use crate::store::{RunOptions, RunReport, Store};
 
@@ -179,12 +179,23 @@ pub fn solve_with_gpu(
         }
         on_report(&report?);
     }
+    let coarse_samples = CoarseSamplesCache::default();
     if options.until >= SolveUntil::Solution && options.method.ssd().is_some() {
         // Before the histograms: a store ingested without sample moments fails in seconds. An
         // eighth of the budget for run blocks that several units read, as the histograms give
         // their decoded depth maps.
-        let stage = SamplesStage::new().with_cache_bytes(options.memory_budget / 8);
+        // The coarse levels take every unit's samples by their coarse sums: summed here from
+        // the sums at hand, level 0 need not decode every unit's segment on one worker.
+        let pending = Arc::new(PendingCoarseSamples::default());
+        let shown = pending.clone();
+        let stage = SamplesStage::new()
+            .with_cache_bytes(options.memory_budget / 8)
+            .with_unit_sums(move |unit, keys, sums| shown.add(unit, keys, sums));
         on_report(&store.run_stage(&stage, &run)?);
+        drop(stage);
+        if let Ok(pending) = Arc::try_unwrap(pending) {
+            pending.file_into(&coarse_samples, &store.latest()?);
+        }
     }
     if options.until >= SolveUntil::Histograms {
         // Stages run one at a time: an eighth of the budget for decoded depth maps, beside the
@@ -195,7 +206,6 @@ pub fn solve_with_gpu(
         on_report(&store.run_stage(&stage, &run)?);
     }
     if options.until >= SolveUntil::Solution {
-        let coarse_samples = crate::stages::solve::CoarseSamplesCache::default();
         let coarse_rows = crate::stages::solve::CoarseRowsCache::default();
         for level in 0..=octree_max_depth(store)? {
             let stage = LevelStage::new(level, scene, options.params)

@@ -34,7 +34,7 @@ use plus_faces::{KeyPositions, PlusNeighbours};
 
 pub use coarse::{COARSE_ROWS_LEVEL, CoarseRowsCache};
 
-pub use ssd::{CoarseSamplesCache, METHOD_COLUMN, method_of_segment};
+pub use ssd::{CoarseSamplesCache, METHOD_COLUMN, PendingCoarseSamples, method_of_segment};
 
 pub use cut::{CutValue, LeafValues, LevelCut, cut_cube_ending_at};
 

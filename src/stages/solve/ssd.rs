@@ -147,6 +147,33 @@ impl CoarseSamples {
 /// and decoding all of them at every level cost SSD about half a second a level.
 pub type CoarseSamplesCache = std::sync::Arc<std::sync::Mutex<BTreeMap<String, std::sync::Arc<CoarseSamples>>>>;
 
+/// The coarse sums of units whose keys and moments are at hand, by unit id, filed into a
+/// [`CoarseSamplesCache`] under their segments' names once those exist.
+#[derive(Default)]
+pub struct PendingCoarseSamples(std::sync::Mutex<BTreeMap<u64, std::sync::Arc<CoarseSamples>>>);
+
+impl PendingCoarseSamples {
+    /// Sums unit `unit`'s `keys` and `moments` (as its samples segment will hold them).
+    pub fn add(&self, unit: u64, keys: &[CubeKey], moments: &[Moments]) {
+        let coarse = std::sync::Arc::new(CoarseSamples::of(keys, moments));
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .insert(unit, coarse);
+    }
+
+    /// Files the pending sums under the names of `snapshot`'s samples segments, unit for unit.
+    pub fn file_into(self, cache: &CoarseSamplesCache, snapshot: &Snapshot<'_>) {
+        let mut pending = self.0.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut cache = cache.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        for (name, record) in snapshot.segments(SAMPLES) {
+            if let Some(coarse) = pending.remove(&record.unit) {
+                cache.insert(name.clone(), coarse);
+            }
+        }
+    }
+}
+
 fn coarse_samples_of(
     base: &Snapshot<'_>,
     segment: &str,
