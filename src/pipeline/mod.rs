@@ -183,13 +183,16 @@ pub fn solve_with_gpu(
     if options.until >= SolveUntil::Solution && options.method.ssd().is_some() {
         // Before the histograms: a store ingested without sample moments fails in seconds. An
         // eighth of the budget for run blocks that several units read, as the histograms give
-        // their decoded depth maps.
+        // their decoded depth maps, and another eighth for the blocks the units in flight hold
+        // to add.
+        //
         // The coarse levels take every unit's samples by their coarse sums: summed here from
         // the sums at hand, level 0 need not decode every unit's segment on one worker.
         let pending = Arc::new(PendingCoarseSamples::default());
         let shown = pending.clone();
         let stage = SamplesStage::new()
             .with_cache_bytes(options.memory_budget / 8)
+            .with_group_bytes(options.memory_budget / 8 / run.threads.max(1) as u64)
             .with_unit_sums(move |unit, keys, sums| shown.add(unit, keys, sums));
         on_report(&store.run_stage(&stage, &run)?);
         drop(stage);

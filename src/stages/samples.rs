@@ -433,7 +433,7 @@ impl SamplesStage {
     pub fn new() -> SamplesStage {
         SamplesStage {
             on_unit: None,
-            group_bytes: 0,
+            group_bytes: 16 << 20,
             runs: Mutex::new(None),
             shared: SharedBlocks {
                 entries: Mutex::new(std::collections::HashMap::new()),
@@ -445,12 +445,18 @@ impl SamplesStage {
         .with_cache_bytes(64 << 20)
     }
 
-    /// Holds up to `bytes` of decoded run blocks that several units read, and up to half as
-    /// many in each unit's group of blocks to add. A unit that finds the cache full decodes
-    /// the block itself, so the bound costs time, never a result.
+    /// Holds up to `bytes` of decoded run blocks that several units read. A unit that finds
+    /// the cache full decodes the block itself, so the bound costs time, never a result.
     pub fn with_cache_bytes(mut self, bytes: u64) -> SamplesStage {
         self.shared.capacity = usize::try_from(bytes / RUN_BLOCK_BYTES).unwrap_or(usize::MAX);
-        self.group_bytes = (bytes / 2).max(RUN_BLOCK_BYTES);
+        self
+    }
+
+    /// Each unit holds up to `bytes` of the blocks it reads (at least one), to add them tile
+    /// by tile ([`add_by_tiles`]); 16 MiB unless set. Beyond a few dozen blocks a group
+    /// gains little: each tile's keys and sums are loaded once per group.
+    pub fn with_group_bytes(mut self, bytes: u64) -> SamplesStage {
+        self.group_bytes = bytes.max(RUN_BLOCK_BYTES);
         self
     }
 
