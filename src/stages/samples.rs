@@ -182,28 +182,6 @@ impl MomentColumn {
     }
 }
 
-/// Moments from the three columns' values (`rows` of them), in one pass; `None` when their
-/// lengths do not match.
-fn moments_of(
-    weight: &MomentColumn,
-    offset: &MomentColumn,
-    normal: &MomentColumn,
-    rows: usize,
-) -> Option<Vec<Moments>> {
-    if weight.len() != rows || offset.len() != 3 * rows || normal.len() != 3 * rows {
-        return None;
-    }
-    Some(
-        (0..rows)
-            .map(|i| Moments {
-                weight: weight.get(i),
-                offset: std::array::from_fn(|k| offset.get(3 * i + k)),
-                normal: std::array::from_fn(|k| normal.get(3 * i + k)),
-            })
-            .collect(),
-    )
-}
-
 /// A unit's keys and moments from its samples segment.
 pub fn read_samples(snapshot: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeKey>, Vec<Moments>)> {
     let file = snapshot.open_segment(segment)?;
@@ -214,16 +192,17 @@ pub fn read_samples(snapshot: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeK
         Ok(MomentColumn::of(reader.read_column(name).map_err(c)?.values))
     };
     let (weight, offset, normal) = (moment(SAMPLE_WEIGHT)?, moment(SAMPLE_OFFSET)?, moment(SAMPLE_NORMAL)?);
-    let moments = weight
+    let rows = weight
         .zip(offset)
         .zip(normal)
-        .and_then(|((weight, offset), normal)| moments_of(&weight, &offset, &normal, keys.len()))
+        .and_then(|((weight, offset), normal)| RunBlock::new(keys, weight, offset, normal))
         .ok_or_else(|| {
             file.corruption(crate::format::DecodeError::MissingColumn(
                 "sample_weight, sample_offset, sample_normal of the keys' length".into(),
             ))
         })?;
-    Ok((keys, moments))
+    let moments = rows.all_moments();
+    Ok((rows.keys, moments))
 }
 
 /// How many of a unit's keys [`add_by_tiles`] adds into at a time: with their sums, 72 bytes a
@@ -324,8 +303,8 @@ struct RunIndex {
     readers_left: Vec<std::sync::atomic::AtomicUsize>,
 }
 
-/// One decoded block of an ingest run: its keys and its moment columns as they decoded, of
-/// matching lengths. A row's [`Moments`] are built as the row is added: building them all
+/// One decoded block of an ingest run (or a whole samples segment): its keys and its moment
+/// columns as they decoded, of matching lengths. A row's [`Moments`] are built as the row is added: building them all
 /// first wrote and read 56 bytes a row again (7 % of the stage's CPU in `perf`).
 struct RunBlock {
     keys: Vec<CubeKey>,
@@ -376,6 +355,11 @@ impl RunBlock {
             offset,
             normal,
         })
+    }
+
+    /// Every row's moments, in order.
+    fn all_moments(&self) -> Vec<Moments> {
+        (0..self.keys.len()).map(|row| self.moments(row)).collect()
     }
 
     /// Row `row`'s moments.
@@ -813,7 +797,8 @@ mod tests {
         };
         let decode = |columns: [Column; 3]| {
             let [w, o, n] = columns.map(|c| MomentColumn::of(c.values).expect("a moment column"));
-            moments_of(&w, &o, &n, w.len()).expect("matching lengths")
+            let keys = (0..w.len() as u32).map(|x| CubeKey::new(4, x, 0, 0)).collect();
+            RunBlock::new(keys, w, o, n).expect("matching lengths").all_moments()
         };
         let narrow = moment_columns(&[small, small]);
         assert!(narrow.iter().all(|c| matches!(c.values, ColumnValues::U32(_))));
