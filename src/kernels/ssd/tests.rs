@@ -191,6 +191,47 @@ fn the_operator_right_side_and_diagonal_match_a_dense_reference() {
 }
 
 #[test]
+fn a_row_too_long_to_pack_takes_the_reference_product_and_gives_the_same_operator() {
+    // Row 0's terms split into 300 terms of a 300th of the weight each: the same energy, but
+    // more terms than the packed operator's lengths hold.
+    let packed = random_problem(5);
+    let mut long = packed.clone();
+    long.reverse = Default::default();
+    let (first, rest) = (packed.row(0).to_vec(), packed.start[1] as usize);
+    let mut terms: Vec<(Target, f32)> = Vec::new();
+    for (t, w) in &first {
+        terms.extend(std::iter::repeat_n((*t, *w / 300.0), 300));
+    }
+    let added = terms.len() - first.len();
+    terms.extend_from_slice(&packed.terms[rest..]);
+    long.terms = terms;
+    long.start = std::iter::once(0)
+        .chain(packed.start[1..].iter().map(|s| s + added as u32))
+        .collect();
+    assert!(long.row(0).len() > 255);
+    let (a, _) = dense_reference(&long);
+    let scale = scale_of(&a);
+    for j in 0..long.n {
+        let e = unit_vector(long.n, j);
+        let (by_reference, by_packing) = (long.apply(&e), packed.apply(&e));
+        for i in 0..long.n {
+            assert!((by_reference[i] - a[i][j]).abs() <= 1e-9 * scale, "A[{i}][{j}]");
+            assert!(
+                (by_reference[i] - by_packing[i]).abs() <= 1e-6 * scale,
+                "A[{i}][{j}], packed"
+            );
+        }
+    }
+    let (mut f_long, mut f_packed) = (vec![0.0; long.n], vec![0.0; long.n]);
+    let solved = solve(&long, &mut f_long, 1e-10, 1000);
+    solve(&packed, &mut f_packed, 1e-10, 1000);
+    assert!(solved.relative_residual <= 1e-10, "{solved:?}");
+    for (x, y) in f_long.iter().zip(&f_packed) {
+        assert!((x - y).abs() <= 1e-6 * packed.side[0], "{x} vs {y}");
+    }
+}
+
+#[test]
 fn conjugate_gradients_reach_the_residual_target_and_the_dense_solution() {
     let p = random_problem(7);
     let (a, b) = dense_reference(&p);
