@@ -173,6 +173,14 @@ impl MomentColumn {
         }
     }
 
+    /// The bytes its values take.
+    fn bytes(&self) -> u64 {
+        match self {
+            MomentColumn::Narrow(values) => 4 * values.len() as u64,
+            MomentColumn::Wide(values) => 8 * values.len() as u64,
+        }
+    }
+
     /// Value `i`, as the signed integer it holds.
     fn get(&self, i: usize) -> i64 {
         match self {
@@ -357,6 +365,12 @@ impl RunBlock {
         })
     }
 
+    /// The bytes its keys and columns take: narrow blocks (every RedKitchen run's) about 44
+    /// a row, wide ones 72.
+    fn bytes(&self) -> u64 {
+        16 * self.keys.len() as u64 + self.weight.bytes() + self.offset.bytes() + self.normal.bytes()
+    }
+
     /// Every row's moments, in order.
     fn all_moments(&self) -> Vec<Moments> {
         (0..self.keys.len()).map(|row| self.moments(row)).collect()
@@ -373,21 +387,48 @@ impl RunBlock {
 }
 
 /// The decoded run blocks that leaf units still to come will read, by (run, block), and how
-/// many may be held at once. A run's 1024-row blocks are few beside the treetop's leaves
+/// many bytes of them may be held at once. A run's 1024-row blocks are few beside the treetop's leaves
 /// (RedKitchen's 1000 runs hold 66 blocks each, spread over up to 71 leaves), so without
 /// sharing every block was decoded 2.05 times on average, and zstd was half the stage's CPU.
 struct SharedBlocks {
     /// The entry's lock is held while its block decodes: a second reader waits for the first
     /// instead of decoding it again.
     entries: Mutex<std::collections::HashMap<(usize, usize), SharedSlot>>,
-    capacity: usize,
+    /// The bytes of decoded blocks ([`RunBlock::bytes`]) that may be held. A new entry is
+    /// made only below it, so the blocks being decoded into new entries, one per worker, are
+    /// all it can pass by. Counted as one 72-byte-a-row block each, the cache held 61 % of
+    /// its bound in RedKitchen's narrow blocks.
+    capacity: u64,
+    /// The bytes of the decoded blocks held.
+    held: Arc<std::sync::atomic::AtomicU64>,
 }
 
 /// A shared block: empty until its first reader has decoded it.
-type SharedSlot = Arc<Mutex<Option<Arc<RunBlock>>>>;
+type SharedSlot = Arc<Mutex<Option<HeldBlock>>>;
+
+/// A decoded block in a shared entry, counted in [`SharedBlocks::held`] until the entry is
+/// gone: whichever reader drops the entry last, the count comes down once.
+struct HeldBlock {
+    block: Arc<RunBlock>,
+    held: Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl HeldBlock {
+    fn new(block: Arc<RunBlock>, held: Arc<std::sync::atomic::AtomicU64>) -> HeldBlock {
+        held.fetch_add(block.bytes(), std::sync::atomic::Ordering::SeqCst);
+        HeldBlock { block, held }
+    }
+}
+
+impl Drop for HeldBlock {
+    fn drop(&mut self) {
+        self.held
+            .fetch_sub(self.block.bytes(), std::sync::atomic::Ordering::SeqCst);
+    }
+}
 
 /// A decoded block's size at most: its keys and moments, at 8 bytes a moment (1024 rows per
-/// ingest run block).
+/// ingest run block). A unit's group counts its blocks at this size.
 const RUN_BLOCK_BYTES: u64 = 1024 * (16 + 56);
 
 /// What a unit's keys and summed moments are shown to as the unit is summed.
@@ -422,6 +463,7 @@ impl SamplesStage {
             shared: SharedBlocks {
                 entries: Mutex::new(std::collections::HashMap::new()),
                 capacity: 0,
+                held: Arc::new(std::sync::atomic::AtomicU64::new(0)),
             },
             decoded: std::sync::atomic::AtomicU64::new(0),
             treetop: std::sync::OnceLock::new(),
@@ -432,7 +474,7 @@ impl SamplesStage {
     /// Holds up to `bytes` of decoded run blocks that several units read. A unit that finds
     /// the cache full decodes the block itself, so the bound costs time, never a result.
     pub fn with_cache_bytes(mut self, bytes: u64) -> SamplesStage {
-        self.shared.capacity = usize::try_from(bytes / RUN_BLOCK_BYTES).unwrap_or(usize::MAX);
+        self.shared.capacity = bytes;
         self
     }
 
@@ -552,7 +594,7 @@ impl SamplesStage {
             let mut entries = self.shared.entries.lock().map_err(|_| poisoned())?;
             if left == 0 {
                 entries.remove(&(index, block))
-            } else if entries.len() < self.shared.capacity {
+            } else if self.shared.held.load(Ordering::SeqCst) < self.shared.capacity {
                 Some(entries.entry((index, block)).or_default().clone())
             } else {
                 entries.get(&(index, block)).cloned()
@@ -563,10 +605,10 @@ impl SamplesStage {
         };
         let mut slot = entry.lock().map_err(|_| poisoned())?;
         match slot.as_ref() {
-            Some(decoded) => Ok(decoded.clone()),
+            Some(held) => Ok(held.block.clone()),
             None => {
                 let decoded = Arc::new(decode()?);
-                *slot = Some(decoded.clone());
+                *slot = Some(HeldBlock::new(decoded.clone(), self.shared.held.clone()));
                 Ok(decoded)
             }
         }
