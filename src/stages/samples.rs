@@ -387,9 +387,10 @@ impl RunBlock {
 }
 
 /// The decoded run blocks that leaf units still to come will read, by (run, block), and how
-/// many bytes of them may be held at once. A run's 1024-row blocks are few beside the treetop's leaves
-/// (RedKitchen's 1000 runs hold 66 blocks each, spread over up to 71 leaves), so without
-/// sharing every block was decoded 2.05 times on average, and zstd was half the stage's CPU.
+/// many bytes of them may be held at once. A run's 1024-row blocks are few beside the
+/// treetop's leaves (RedKitchen's 1000 runs hold 66 blocks each, spread over up to 71
+/// leaves), so without sharing every block was decoded 2.05 times on average, and zstd was
+/// half the stage's CPU.
 struct SharedBlocks {
     /// The entry's lock is held while its block decodes: a second reader waits for the first
     /// instead of decoding it again.
