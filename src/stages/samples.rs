@@ -428,10 +428,6 @@ impl Drop for HeldBlock {
     }
 }
 
-/// A decoded block's size at most: its keys and moments, at 8 bytes a moment (1024 rows per
-/// ingest run block). A unit's group counts its blocks at this size.
-const RUN_BLOCK_BYTES: u64 = 1024 * (16 + 56);
-
 /// What a unit's keys and summed moments are shown to as the unit is summed.
 type UnitSums = Box<dyn Fn(u64, &[CubeKey], &[Moments]) + Send + Sync>;
 
@@ -483,7 +479,7 @@ impl SamplesStage {
     /// by tile ([`add_by_tiles`]); 16 MiB unless set. Beyond a few dozen blocks a group
     /// gains little: each tile's keys and sums are loaded once per group.
     pub fn with_group_bytes(mut self, bytes: u64) -> SamplesStage {
-        self.group_bytes = bytes.max(RUN_BLOCK_BYTES);
+        self.group_bytes = bytes;
         self
     }
 
@@ -671,7 +667,7 @@ impl SamplesStage {
                     self.decoded.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     Arc::new(RunBlock::decode(&mut chunks, block)?)
                 };
-                held += RUN_BLOCK_BYTES;
+                held += decoded.bytes();
                 group.push(decoded);
                 if held >= self.group_bytes {
                     add_by_tiles(keys, &group, sums);
