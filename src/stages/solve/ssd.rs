@@ -117,10 +117,15 @@ impl CoarseSamples {
             let Some((w, centroid, normal)) = m.in_root_units(*key) else {
                 continue;
             };
-            let coords = key.coords();
-            for (level, sums) in (0..key.depth().min(COARSE_LEVELS)).zip(by_level.iter_mut()) {
-                let [x, y, z] = coords.map(|c| c >> (key.depth() - level));
-                let ancestor = CubeKey::new(level, x, y, z);
+            // The ancestors from the deepest up, each its child's parent on the Morton code:
+            // decoding the key's coordinates and encoding one ancestor per level took about
+            // half of this.
+            let mut ancestor = *key;
+            while let Some(parent) = ancestor.parent() {
+                ancestor = parent;
+                let Some(sums) = by_level.get_mut(usize::from(ancestor.depth())) else {
+                    continue;
+                };
                 // Keys come in depth-first order: a cube's descendants are consecutive.
                 if sums.last().is_none_or(|(last, _)| *last != ancestor) {
                     sums.push((ancestor, SampleTotals::default()));
