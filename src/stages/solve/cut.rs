@@ -17,8 +17,9 @@ fn full_resolution_side(cube: CubeKey) -> u64 {
 
 /// Whether a cube meets a box of full-resolution cells, `[low, high)` per axis, tested on the
 /// cube's Morton code: spreading a coordinate's bits keeps its order, so the corner's bits
-/// compare with the bounds' as the corner does with the bounds. Decoding every key of every
-/// neighbour group a unit's extraction reads took about 4 % of its CPU.
+/// compare with the bounds' as the corner does with the bounds. Decoding the corner of every
+/// key of every neighbour group a unit's extraction reads took about a tenth of extraction's
+/// CPU (`perf` on RedKitchen: 17 K samples before, 15 K after).
 struct WindowTest {
     /// Per axis, the bits of `high` (`None` past the largest corner: every corner is below).
     below: [Option<u128>; 3],
