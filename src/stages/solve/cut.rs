@@ -46,10 +46,9 @@ impl WindowTest {
             .least
             .get(usize::from(key.depth().min(MAX_DEPTH)))
             .unwrap_or(&[0; 3]);
-        (0..3).all(|axis| {
+        least.iter().zip(&self.below).enumerate().all(|(axis, (least, below))| {
             let corner = corner_axis_bits(key, axis);
-            least.get(axis).is_some_and(|l| corner >= *l)
-                && self.below.get(axis).is_some_and(|h| h.is_none_or(|h| corner < h))
+            corner >= *least && below.is_none_or(|below| corner < below)
         })
     }
 }
