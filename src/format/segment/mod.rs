@@ -209,6 +209,8 @@ pub fn content_digest(columns: &[Column]) -> u64 {
 
 #[derive(Clone, Copy, Debug)]
 struct BlockInfo {
+    /// Its place in the segment's block table (a view of some blocks keeps it for errors).
+    number: u32,
     rows: u32,
     first_key: CubeKey,
     last_key: CubeKey,
@@ -302,7 +304,7 @@ fn block_region(blocks: &[BlockInfo], column: &ColumnInfo, block: usize) -> Segm
     let info = blocks.get(block);
     SegmentPart::Block {
         column: column.name.clone(),
-        block: block as u32,
+        block: info.map_or(block as u32, |b| b.number),
         first_key: info.map(|b| b.first_key).unwrap_or_default(),
         last_key: info.map(|b| b.last_key).unwrap_or_default(),
     }
@@ -481,6 +483,7 @@ impl<'a> SegmentReader<'a> {
             }
             row_sum += u64::from(block_rows);
             blocks.push(BlockInfo {
+                number: blocks.len() as u32,
                 rows: block_rows,
                 first_key,
                 last_key,
@@ -584,6 +587,36 @@ impl<'a> SegmentReader<'a> {
     /// The last row's key.
     pub fn last_key(&self) -> CubeKey {
         self.blocks.last().map(|b| b.last_key).unwrap_or_default()
+    }
+
+    /// The same segment with only the blocks whose first and last keys `keep` accepts: its
+    /// reads decode only their chunks, and the other blocks' rows are absent (extraction reads
+    /// a neighbour unit's cubes along the shared face only).
+    pub fn with_blocks_where(&self, keep: impl Fn(CubeKey, CubeKey) -> bool) -> SegmentReader<'a> {
+        let kept: Vec<bool> = self.blocks.iter().map(|b| keep(b.first_key, b.last_key)).collect();
+        let blocks: Vec<BlockInfo> = self
+            .blocks
+            .iter()
+            .zip(&kept)
+            .filter(|(_, k)| **k)
+            .map(|(b, _)| *b)
+            .collect();
+        let columns = self.columns.iter().map(|column| ColumnInfo {
+            chunks: column
+                .chunks
+                .iter()
+                .zip(&kept)
+                .filter(|(_, k)| **k)
+                .map(|(c, _)| *c)
+                .collect(),
+            ..column.clone()
+        });
+        SegmentReader {
+            bytes: self.bytes,
+            rows: blocks.iter().map(|b| u64::from(b.rows)).sum(),
+            blocks,
+            columns: columns.collect(),
+        }
     }
 
     /// The column called `name`.
@@ -794,100 +827,4 @@ fn decompress_to_buffer(compressed: &[u8], out: &mut [u8]) -> std::io::Result<us
 }
 
 #[cfg(test)]
-#[expect(clippy::unwrap_used, clippy::indexing_slicing, reason = "tests")]
-mod tests {
-    use super::*;
-
-    fn sample(rows: usize) -> Vec<Column> {
-        let keys: Vec<CubeKey> = (0..rows as u32).map(|i| CubeKey::new(16, i, i / 3, 7)).collect();
-        let mut sorted = keys.clone();
-        sorted.sort();
-        vec![
-            Column::keys(sorted),
-            Column::new("u", 1, ColumnValues::F32((0..rows).map(|i| i as f32 * 0.5).collect())),
-            Column::new("v", 3, ColumnValues::F32((0..rows * 3).map(|i| -(i as f32)).collect())),
-            Column::new("count", 1, ColumnValues::U32((0..rows as u32).collect())),
-        ]
-    }
-
-    fn encode(columns: &[Column], block_rows: u32) -> (Vec<u8>, SegmentSummary) {
-        let mut out = Vec::new();
-        let summary = encode_segment_with_block_rows(columns, block_rows, &mut out).unwrap();
-        (out, summary)
-    }
-
-    #[test]
-    fn round_trip_and_digest() {
-        let columns = sample(1000);
-        let (bytes, summary) = encode(&columns, 64);
-        assert_eq!(summary.bytes as usize, bytes.len());
-        assert_eq!(summary.file_checksum, xxh3_64(&bytes));
-        let reader = SegmentReader::parse(&bytes).unwrap();
-        for column in &columns {
-            assert_eq!(&reader.read_column(&column.name).unwrap(), column);
-        }
-        assert_eq!(reader.verify().unwrap(), summary.content_digest);
-        // The content digest does not depend on block size; the bytes do.
-        let (other, other_summary) = encode(&columns, 1000);
-        assert_ne!(other, bytes);
-        assert_eq!(other_summary.content_digest, summary.content_digest);
-    }
-
-    #[test]
-    fn every_flipped_byte_and_every_truncation_is_detected() {
-        let (bytes, _) = encode(&sample(40), 16);
-        for i in 0..bytes.len() {
-            let mut bad = bytes.clone();
-            bad[i] ^= 0x20;
-            let result = SegmentReader::parse(&bad).and_then(|r| r.verify());
-            assert!(result.is_err(), "flip at byte {i} of {} went unnoticed", bytes.len());
-        }
-        for len in 0..bytes.len() {
-            let result = SegmentReader::parse(&bytes[..len]).and_then(|r| r.verify());
-            assert!(result.is_err(), "truncation to {len} went unnoticed");
-        }
-    }
-
-    /// A detached directory decodes every block from the chunk bytes it names as the reader
-    /// does, and refuses bytes of the wrong length or with a flipped bit.
-    #[test]
-    fn a_detached_directory_decodes_blocks_from_their_chunks() {
-        let columns = sample(1000);
-        let (bytes, _) = encode(&columns, 64);
-        let reader = SegmentReader::parse(&bytes).unwrap();
-        let directory = reader.directory();
-        assert_eq!(directory.block_count(), reader.block_count());
-        for column in &columns {
-            for block in 0..directory.block_count() {
-                assert_eq!(directory.block_key_range(block), reader.block_key_range(block));
-                let (offset, len) = directory.chunk_range(&column.name, block).unwrap();
-                let chunk = &bytes[offset as usize..offset as usize + len];
-                assert_eq!(
-                    directory.decode_block(&column.name, block, chunk).unwrap(),
-                    reader.read_block(&column.name, block).unwrap()
-                );
-                assert!(directory.decode_block(&column.name, block, &chunk[1..]).is_err());
-                let mut flipped = chunk.to_vec();
-                flipped[len / 2] ^= 1;
-                assert!(directory.decode_block(&column.name, block, &flipped).is_err());
-            }
-        }
-        assert!(directory.chunk_range("no such column", 0).is_err());
-        assert!(directory.chunk_range("key", directory.block_count()).is_err());
-    }
-
-    #[test]
-    fn rejects_invalid_content() {
-        let mut columns = sample(10);
-        columns[1].values = ColumnValues::F32(vec![0.0; 3]);
-        assert!(encode_segment(&columns, &mut Vec::new()).is_err());
-        let unsorted = vec![Column::keys(vec![CubeKey::new(3, 1, 0, 0), CubeKey::new(3, 0, 0, 0)])];
-        assert!(encode_segment(&unsorted, &mut Vec::new()).is_err());
-    }
-
-    #[test]
-    fn encoding_is_deterministic() {
-        let columns = sample(5000);
-        assert_eq!(encode(&columns, 1024).0, encode(&columns, 1024).0);
-    }
-}
+mod tests;

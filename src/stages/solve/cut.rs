@@ -4,8 +4,9 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-use super::{LEVEL_STAGES, LevelSegments, read_level_u};
+use super::{LEVEL_STAGES, LevelSegments};
 use crate::format::key::{axis_bits, corner_axis_bits};
+use crate::format::segment::SegmentReader;
 use crate::format::{CubeKey, MAX_DEPTH};
 use crate::stages::treetop::Treetop;
 use crate::store::{Result, Snapshot};
@@ -20,7 +21,7 @@ fn full_resolution_side(cube: CubeKey) -> u64 {
 /// compare with the bounds' as the corner does with the bounds. Decoding the corner of every
 /// key of every neighbour group a unit's extraction reads took about a tenth of extraction's
 /// CPU (`perf` on RedKitchen: 17 K samples before, 15 K after).
-struct WindowTest {
+pub(super) struct WindowTest {
     /// Per axis, the bits of `high` (`None` past the largest corner: every corner is below).
     below: [Option<u128>; 3],
     /// Per depth and axis, the bits of the least corner of a cube of that depth that reaches
@@ -29,6 +30,21 @@ struct WindowTest {
 }
 
 impl WindowTest {
+    /// The box of the cubes of treetop units `units` grown by one finest cell: it meets every
+    /// cube that touches one of them.
+    pub(super) fn around_units(treetop: &Treetop, units: &[usize]) -> WindowTest {
+        let (mut low, mut high) = ([u64::MAX; 3], [0u64; 3]);
+        for unit in units.iter().filter_map(|&u| treetop.units.get(u)) {
+            let corner = unit.key.corner_full_resolution().map(u64::from);
+            let side = full_resolution_side(unit.key);
+            for axis in 0..3 {
+                low[axis] = low[axis].min(corner[axis].saturating_sub(1));
+                high[axis] = high[axis].max(corner[axis] + side + 1);
+            }
+        }
+        WindowTest::new(low, high)
+    }
+
     fn new(low: [u64; 3], high: [u64; 3]) -> WindowTest {
         let bits = |c: u64| u32::try_from(c).ok().map(axis_bits);
         WindowTest {
@@ -36,7 +52,7 @@ impl WindowTest {
             least: std::array::from_fn(|depth| {
                 let side = 1u64 << (u32::from(MAX_DEPTH) - depth as u32);
                 // low <= 2^32, so the least corner fits in 32 bits.
-                low.map(|low| bits((low + 1).saturating_sub(side)).unwrap_or(u128::MAX))
+                low.map(|low| bits(low.saturating_add(1).saturating_sub(side)).unwrap_or(u128::MAX))
             }),
         }
     }
@@ -51,6 +67,49 @@ impl WindowTest {
             corner >= *least && below.is_none_or(|below| corner < below)
         })
     }
+
+    /// Whether a cube of a cut (no key is another's ancestor) whose keys run from `first` to
+    /// `last` may meet the window. The cut's cubes between them lie in the Morton interval from
+    /// `first`'s corner to the end of `last`'s cube; that interval is covered by aligned cubes,
+    /// those it holds whole tested as cubes, those at its two ends split again down to
+    /// [`RANGE_SPLIT_LEVELS`] below the smallest cube holding the interval (beyond, they count
+    /// as meeting: the answer errs only towards `true`).
+    pub(super) fn may_meet_cut_between(&self, first: CubeKey, last: CubeKey) -> bool {
+        let (low, high) = (first.morton(), morton_end(last));
+        // The smallest aligned cube holding [low, high]: the bits above their highest
+        // differing one, rounded to whole levels.
+        let varying = (u128::BITS - (low ^ high).leading_zeros()).div_ceil(3);
+        let depth = u32::from(MAX_DEPTH).saturating_sub(varying) as u8;
+        let code = low & !span_of(depth);
+        self.may_meet_interval(low, high, code, depth, RANGE_SPLIT_LEVELS)
+    }
+
+    fn may_meet_interval(&self, low: u128, high: u128, code: u128, depth: u8, splits: u32) -> bool {
+        let end = code | span_of(depth);
+        if end < low || code > high || !self.meets(CubeKey::from_morton(code, depth)) {
+            return false;
+        }
+        if (low <= code && end <= high) || splits == 0 || depth >= MAX_DEPTH {
+            return true;
+        }
+        let child_span = span_of(depth + 1) + 1;
+        (0..8u128).any(|child| self.may_meet_interval(low, high, code | (child * child_span), depth + 1, splits - 1))
+    }
+}
+
+/// How far [`WindowTest::may_meet_cut_between`] splits the ends of a key interval: enough to
+/// tell a block along a unit's face from one behind it, at a few hundred tests a block.
+const RANGE_SPLIT_LEVELS: u32 = 6;
+
+/// The Morton codes a cube of `depth` spans beyond its corner's: all bits below its size.
+fn span_of(depth: u8) -> u128 {
+    let bits = 3 * u32::from(MAX_DEPTH - depth.min(MAX_DEPTH));
+    (1u128 << bits) - 1
+}
+
+/// The Morton code of the last full-resolution cell of `key`'s cube.
+fn morton_end(key: CubeKey) -> u128 {
+    key.morton() | span_of(key.depth())
 }
 
 /// The indicator of a cut cube and what the data says about it (`stages::observed`). Equal
@@ -88,6 +147,73 @@ impl PartialEq for CutValue {
 
 /// Sorted cut keys of a unit at one level and their values.
 pub type LeafValues = (Vec<CubeKey>, Vec<CutValue>);
+
+/// Reads a level segment's keys, u and what the data says about each cube ([`CutValue`]) only:
+/// what the indicator field needs (extraction and queries), without decoding v, p and q, which
+/// are 3.4 times the bytes. A segment written before those columns existed reads as seen,
+/// measured and sampled everywhere, with no offsets (extraction then gives the closed
+/// surface).
+pub fn read_level_u(snapshot: &Snapshot<'_>, segment: &str) -> Result<LeafValues> {
+    read_level_u_where(snapshot, segment, |_, _| true)
+}
+
+/// [`read_level_u`] of the blocks whose first and last keys `keep` accepts (level segments
+/// have blocks of [`LEVEL_BLOCK_ROWS`](super::LEVEL_BLOCK_ROWS) rows).
+fn read_level_u_where(
+    snapshot: &Snapshot<'_>,
+    segment: &str,
+    keep: impl Fn(CubeKey, CubeKey) -> bool,
+) -> Result<LeafValues> {
+    let file = snapshot.open_segment(segment)?;
+    let whole = file.reader()?;
+    let reader: SegmentReader<'_> = whole.with_blocks_where(keep);
+    let c = |e| file.corruption(e);
+    let keys = reader.read_keys().map_err(c)?;
+    let (_, u) = reader.read_f32("u").map_err(c)?;
+    let optional = |name: &str, missing: f32| -> Result<Vec<f32>> {
+        if reader.column(name).is_ok() {
+            Ok(reader.read_f32(name).map_err(c)?.1)
+        } else {
+            Ok(vec![missing; keys.len()])
+        }
+    };
+    let seen = optional("seen", 1.0)?;
+    let offset = optional("surface_offset", f32::NAN)?;
+    let measured = if reader.column("measured").is_ok() {
+        reader.read_f32("measured").map_err(c)?.1
+    } else {
+        seen.clone()
+    };
+    let sampled = if reader.column("sampled").is_ok() {
+        reader.read_u32("sampled").map_err(c)?.1
+    } else {
+        vec![1; keys.len()]
+    };
+    let n = keys.len();
+    if [seen.len(), offset.len(), sampled.len(), measured.len(), u.len()]
+        .iter()
+        .any(|len| *len != n)
+    {
+        return Err(file.corruption(crate::format::DecodeError::MissingColumn(
+            "u, seen, sampled, surface_offset and measured of the keys' length".into(),
+        )));
+    }
+    let values = u
+        .into_iter()
+        .zip(seen)
+        .zip(sampled)
+        .zip(offset)
+        .zip(measured)
+        .map(|((((u, votes), sampled), offset), measured)| CutValue {
+            u,
+            votes,
+            measured,
+            sampled: sampled > 0,
+            offset,
+        })
+        .collect();
+    Ok((keys, values))
+}
 
 /// The values of one solved level, unit by unit, loaded on demand; answers "which cut cube
 /// contains this point".
@@ -135,12 +261,16 @@ impl<'a, 's> LevelCut<'a, 's> {
         if let Some(values) = self.groups.get(&id) {
             return Ok(Some(values.clone()));
         }
-        let mut loaded = read_level_u(self.snapshot, name)?;
-        if let Some([low, high]) = self.window {
+        let window = self.window.map(|[low, high]| WindowTest::new(low, high));
+        let mut loaded = read_level_u_where(self.snapshot, name, |first, last| {
+            window
+                .as_ref()
+                .is_none_or(|window| window.may_meet_cut_between(first, last))
+        })?;
+        if let Some(window) = window {
             // Only a cube that meets the window can hold a point of it, and dropping the others
             // leaves that cube the last key at or before such a point (the cut has no keys
             // between a cube and its descendants).
-            let window = WindowTest::new(low, high);
             let (keys, values) = loaded;
             loaded = keys
                 .into_iter()
@@ -229,15 +359,19 @@ pub fn cut_cube_ending_at<T: Copy>(
 mod tests {
     use super::*;
 
-    #[test]
-    fn the_window_test_on_morton_codes_agrees_with_decoded_corners() {
-        let mut state = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = move || {
+    /// A repeatable stream of 64-bit numbers.
+    fn xorshift(mut state: u64) -> impl FnMut() -> u64 {
+        move || {
             state ^= state << 13;
             state ^= state >> 7;
             state ^= state << 17;
             state
-        };
+        }
+    }
+
+    #[test]
+    fn the_window_test_on_morton_codes_agrees_with_decoded_corners() {
+        let mut next = xorshift(0x9E37_79B9_7F4A_7C15u64);
         let (mut inside, mut outside) = (0, 0);
         for _ in 0..200 {
             // Windows as `LevelCut::around` makes them, around cubes of any depth, the root's
@@ -259,7 +393,7 @@ mod tests {
                     ((c as u64) >> shift) as u32
                 };
                 let any = |r: u64| (r % (1u64 << depth)) as u32;
-                let key = if next() % 4 == 0 {
+                let key = if next().is_multiple_of(4) {
                     CubeKey::new(depth, any(next()), any(next()), any(next()))
                 } else {
                     CubeKey::new(depth, near(0, next()), near(1, next()), near(2, next()))
@@ -276,5 +410,60 @@ mod tests {
             }
         }
         assert!(inside > 1000 && outside > 1000, "{inside} inside, {outside} outside");
+    }
+
+    /// A cut of mixed depths (random subdivisions of the root, down to depth 8), its keys in
+    /// runs as a segment's blocks hold them: a run with a cube that meets a window always may
+    /// meet it, and most runs far from the window are told apart.
+    #[test]
+    fn a_key_run_that_holds_a_cube_in_the_window_may_meet_it() {
+        let mut next = xorshift(0x2545_F491_4F6C_DD1Du64);
+        let mut cut = Vec::new();
+        let mut open = vec![CubeKey::new(0, 0, 0, 0)];
+        while let Some(cube) = open.pop() {
+            let depth = cube.depth();
+            // Deep along a plane (a surface), shallow elsewhere, as an octree is.
+            let z = u64::from(cube.corner_full_resolution()[2]);
+            let on_plane = (z..z + full_resolution_side(cube)).contains(&0x5555_5555);
+            if depth < 8 && (depth < 3 || (on_plane && !next().is_multiple_of(8)) || next().is_multiple_of(4)) {
+                let [x, y, z] = cube.coords();
+                for child in 0..8u32 {
+                    open.push(CubeKey::new(
+                        depth + 1,
+                        2 * x + (child & 1),
+                        2 * y + (child >> 1 & 1),
+                        2 * z + (child >> 2),
+                    ));
+                }
+            } else {
+                cut.push(cube);
+            }
+        }
+        cut.sort();
+        let (mut kept, mut told_apart, mut not_told) = (0, 0, 0);
+        for _ in 0..100 {
+            let cube = cut[(next() % cut.len() as u64) as usize];
+            let corner = cube.corner_full_resolution().map(u64::from);
+            let side = full_resolution_side(cube);
+            let (low, high) = (corner.map(|c| c.saturating_sub(1)), corner.map(|c| c + side + 1));
+            let window = WindowTest::new(low, high);
+            let run = 1 + (next() % 64) as usize;
+            for block in cut.chunks(run) {
+                let (first, last) = (block[0], block[block.len() - 1]);
+                let may = window.may_meet_cut_between(first, last);
+                if block.iter().any(|k| window.meets(*k)) {
+                    assert!(may, "{first:?}..={last:?} holds a cube in [{low:?}, {high:?})");
+                    kept += 1;
+                } else if may {
+                    not_told += 1;
+                } else {
+                    told_apart += 1;
+                }
+            }
+        }
+        assert!(
+            kept > 300 && told_apart > 4 * not_told,
+            "{kept} kept, {told_apart} told apart, {not_told} not"
+        );
     }
 }

@@ -36,7 +36,8 @@ pub use coarse::{COARSE_ROWS_LEVEL, CoarseRowsCache};
 
 pub use ssd::{CoarseSamplesCache, METHOD_COLUMN, PendingCoarseSamples, method_of_segment};
 
-pub use cut::{CutValue, LeafValues, LevelCut, cut_cube_ending_at};
+use cut::WindowTest;
+pub use cut::{CutValue, LeafValues, LevelCut, cut_cube_ending_at, read_level_u};
 
 pub use params::{DEFAULT_SSD_TOLERANCE, DEFAULT_TOLERANCE, Method, SolveParams, SsdParams};
 
@@ -109,6 +110,11 @@ fn columns_of(values: &LevelValues, observed: ObservedColumns) -> Vec<Column> {
     ]
 }
 
+/// Rows per block of a level segment (format-spec.md, "Segment kinds"): small enough that a
+/// unit's extraction decodes only the blocks of a neighbour's segment that lie along the faces
+/// they share (`LevelCut::around`).
+pub const LEVEL_BLOCK_ROWS: u32 = 2048;
+
 /// A level segment's columns from `stages::observed`, one row per cube.
 struct ObservedColumns {
     seen: Vec<f32>,
@@ -117,66 +123,16 @@ struct ObservedColumns {
     measured: Vec<f32>,
 }
 
-/// Reads a level segment's keys, u and what the data says about each cube ([`CutValue`]) only:
-/// what the indicator field needs (extraction and queries), without decoding v, p and q, which
-/// are 3.4 times the bytes. A segment written before those columns existed reads as seen,
-/// measured and sampled everywhere, with no offsets (extraction then gives the closed
-/// surface).
-pub fn read_level_u(snapshot: &Snapshot<'_>, segment: &str) -> Result<LeafValues> {
-    let file = snapshot.open_segment(segment)?;
-    let reader = file.reader()?;
-    let c = |e| file.corruption(e);
-    let keys = reader.read_keys().map_err(c)?;
-    let (_, u) = reader.read_f32("u").map_err(c)?;
-    let optional = |name: &str, missing: f32| -> Result<Vec<f32>> {
-        if reader.column(name).is_ok() {
-            Ok(reader.read_f32(name).map_err(c)?.1)
-        } else {
-            Ok(vec![missing; keys.len()])
-        }
-    };
-    let seen = optional("seen", 1.0)?;
-    let offset = optional("surface_offset", f32::NAN)?;
-    let measured = if reader.column("measured").is_ok() {
-        reader.read_f32("measured").map_err(c)?.1
-    } else {
-        seen.clone()
-    };
-    let sampled = if reader.column("sampled").is_ok() {
-        reader.read_u32("sampled").map_err(c)?.1
-    } else {
-        vec![1; keys.len()]
-    };
-    let n = keys.len();
-    if [seen.len(), offset.len(), sampled.len(), measured.len(), u.len()]
-        .iter()
-        .any(|len| *len != n)
-    {
-        return Err(file.corruption(crate::format::DecodeError::MissingColumn(
-            "u, seen, sampled, surface_offset and measured of the keys' length".into(),
-        )));
-    }
-    let values = u
-        .into_iter()
-        .zip(seen)
-        .zip(sampled)
-        .zip(offset)
-        .zip(measured)
-        .map(|((((u, votes), sampled), offset), measured)| CutValue {
-            u,
-            votes,
-            measured,
-            sampled: sampled > 0,
-            offset,
-        })
-        .collect();
-    Ok((keys, values))
-}
-
 /// Reads a level segment.
 pub fn read_level_values(snapshot: &Snapshot<'_>, segment: &str) -> Result<LevelValues> {
+    read_level_values_where(snapshot, segment, None)
+}
+
+/// [`read_level_values`] of the blocks whose cubes may meet `window` (all when `None`).
+fn read_level_values_where(snapshot: &Snapshot<'_>, segment: &str, window: Option<&WindowTest>) -> Result<LevelValues> {
     let file = snapshot.open_segment(segment)?;
-    let reader = file.reader()?;
+    let whole = file.reader()?;
+    let reader = whole.with_blocks_where(|first, last| window.is_none_or(|w| w.may_meet_cut_between(first, last)));
     let c = |e| file.corruption(e);
     let keys = reader.read_keys().map_err(c)?;
     let (_, u) = reader.read_f32("u").map_err(c)?;
@@ -246,6 +202,10 @@ struct Neighbourhood<'a, 's> {
     keys: BTreeMap<usize, Arc<LevelKeys>>,
     /// Previous-level values by group id.
     values: BTreeMap<u64, Arc<LevelValues>>,
+    /// The cubes whose previous-level values are asked for (the units' own and those across
+    /// their faces) all meet this box: the blocks of a neighbour's segment behind the shared
+    /// face are not decoded.
+    window: WindowTest,
 }
 
 /// A unit's octree keys down to the level being solved, with their rows in the unit's segment.
@@ -321,7 +281,7 @@ impl Neighbourhood<'_, '_> {
         let values = match self.values.get(&group) {
             Some(values) => values.clone(),
             None => {
-                let loaded = Arc::new(read_level_values(self.base, name)?);
+                let loaded = Arc::new(read_level_values_where(self.base, name, Some(&self.window))?);
                 self.values.insert(group, loaded.clone());
                 loaded
             }
@@ -532,6 +492,7 @@ impl LevelStage {
             coarse: self.coarse_rows(),
             keys: BTreeMap::new(),
             values: BTreeMap::new(),
+            window: WindowTest::around_units(treetop, &members),
         };
         let histogram_segments: BTreeMap<u128, String> = base
             .segments(HISTOGRAMS)
@@ -813,7 +774,7 @@ impl Stage for LevelStage {
                 energy_after: solved.energy_after,
                 iterations: solved.iterations as u64,
             }),
-            block_rows: 0,
+            block_rows: LEVEL_BLOCK_ROWS,
         })
     }
 
