@@ -20,6 +20,13 @@ pub const OCTREE: &str = "octree";
 pub const HISTOGRAMS: &str = "histograms";
 pub const SOLUTION: &str = "solution";
 
+/// Rows per block of the octree's and the levels' segments (format-spec.md, "Columns used by
+/// stages"), which units read across their faces: small enough that a unit decodes only the
+/// blocks of a neighbour's segment whose key range can reach it (`stages::solve::cut`).
+/// Measured on RedKitchen's extraction: 512, 1024, 2048 and 4096 rows alike, 65536 a fifth
+/// slower.
+pub const FACE_READ_BLOCK_ROWS: u32 = 2048;
+
 /// Meta key: deepest level of the latest octree (u8), written by the octree stage.
 pub const META_OCTREE_MAX_DEPTH: &str = "octree_max_depth";
 

@@ -532,7 +532,7 @@ impl Stage for OctreeStage {
         Ok(UnitOutput {
             segments: vec![columns_of(&records).into()],
             extra: catalog::encode(&extra),
-            block_rows: 0,
+            block_rows: super::FACE_READ_BLOCK_ROWS,
         })
     }
 

@@ -75,7 +75,22 @@ impl WindowTest {
     /// [`RANGE_SPLIT_LEVELS`] below the smallest cube holding the interval (beyond, they count
     /// as meeting: the answer errs only towards `true`).
     pub(super) fn may_meet_cut_between(&self, first: CubeKey, last: CubeKey) -> bool {
-        let (low, high) = (first.morton(), morton_end(last));
+        self.may_meet_codes(first.morton(), morton_end(last))
+    }
+
+    /// [`WindowTest::may_meet_cut_between`] for any sorted keys, a whole octree's among them:
+    /// the keys between `first` and `last` may then include ancestors of `last`, and the
+    /// interval reaches the end of the largest of them that does not sort before `first`.
+    pub(super) fn may_meet_keys_between(&self, first: CubeKey, last: CubeKey) -> bool {
+        let mut widest = last;
+        while let Some(parent) = widest.parent().filter(|parent| *parent >= first) {
+            widest = parent;
+        }
+        self.may_meet_codes(first.morton(), morton_end(widest))
+    }
+
+    /// Whether a cube whose Morton codes lie in `[low, high]` may meet the window.
+    fn may_meet_codes(&self, low: u128, high: u128) -> bool {
         // The smallest aligned cube holding [low, high]: the bits above their highest
         // differing one, rounded to whole levels.
         let varying = (u128::BITS - (low ^ high).leading_zeros()).div_ceil(3);
@@ -158,7 +173,7 @@ pub fn read_level_u(snapshot: &Snapshot<'_>, segment: &str) -> Result<LeafValues
 }
 
 /// [`read_level_u`] of the blocks whose first and last keys `keep` accepts (level segments
-/// have blocks of [`LEVEL_BLOCK_ROWS`](super::LEVEL_BLOCK_ROWS) rows).
+/// have blocks of [`FACE_READ_BLOCK_ROWS`](crate::stages::FACE_READ_BLOCK_ROWS) rows).
 fn read_level_u_where(
     snapshot: &Snapshot<'_>,
     segment: &str,
@@ -412,15 +427,17 @@ mod tests {
         assert!(inside > 1000 && outside > 1000, "{inside} inside, {outside} outside");
     }
 
-    /// A cut of mixed depths (random subdivisions of the root, down to depth 8), its keys in
-    /// runs as a segment's blocks hold them: a run with a cube that meets a window always may
-    /// meet it, and most runs far from the window are told apart.
+    /// A cut of mixed depths (random subdivisions of the root, down to depth 8) and the whole
+    /// octree above it, their keys in runs as a segment's blocks hold them: a run with a cube
+    /// that meets a window always may meet it, and most runs far from the window are told
+    /// apart.
     #[test]
     fn a_key_run_that_holds_a_cube_in_the_window_may_meet_it() {
         let mut next = xorshift(0x2545_F491_4F6C_DD1Du64);
-        let mut cut = Vec::new();
+        let (mut cut, mut octree) = (Vec::new(), Vec::new());
         let mut open = vec![CubeKey::new(0, 0, 0, 0)];
         while let Some(cube) = open.pop() {
+            octree.push(cube);
             let depth = cube.depth();
             // Deep along a plane (a surface), shallow elsewhere, as an octree is.
             let z = u64::from(cube.corner_full_resolution()[2]);
@@ -440,30 +457,38 @@ mod tests {
             }
         }
         cut.sort();
-        let (mut kept, mut told_apart, mut not_told) = (0, 0, 0);
-        for _ in 0..100 {
-            let cube = cut[(next() % cut.len() as u64) as usize];
-            let corner = cube.corner_full_resolution().map(u64::from);
-            let side = full_resolution_side(cube);
-            let (low, high) = (corner.map(|c| c.saturating_sub(1)), corner.map(|c| c + side + 1));
-            let window = WindowTest::new(low, high);
-            let run = 1 + (next() % 64) as usize;
-            for block in cut.chunks(run) {
-                let (first, last) = (block[0], block[block.len() - 1]);
-                let may = window.may_meet_cut_between(first, last);
-                if block.iter().any(|k| window.meets(*k)) {
-                    assert!(may, "{first:?}..={last:?} holds a cube in [{low:?}, {high:?})");
-                    kept += 1;
-                } else if may {
-                    not_told += 1;
-                } else {
-                    told_apart += 1;
+        octree.sort();
+        type RangeTest = fn(&WindowTest, CubeKey, CubeKey) -> bool;
+        let sets: [(&[CubeKey], RangeTest); 2] = [
+            (&cut, WindowTest::may_meet_cut_between),
+            (&octree, WindowTest::may_meet_keys_between),
+        ];
+        for (keys, may_meet) in sets {
+            let (mut kept, mut told_apart, mut not_told) = (0, 0, 0);
+            for _ in 0..100 {
+                let cube = cut[(next() % cut.len() as u64) as usize];
+                let corner = cube.corner_full_resolution().map(u64::from);
+                let side = full_resolution_side(cube);
+                let (low, high) = (corner.map(|c| c.saturating_sub(1)), corner.map(|c| c + side + 1));
+                let window = WindowTest::new(low, high);
+                let run = 1 + (next() % 64) as usize;
+                for block in keys.chunks(run) {
+                    let (first, last) = (block[0], block[block.len() - 1]);
+                    let may = may_meet(&window, first, last);
+                    if block.iter().any(|k| window.meets(*k)) {
+                        assert!(may, "{first:?}..={last:?} holds a cube in [{low:?}, {high:?})");
+                        kept += 1;
+                    } else if may {
+                        not_told += 1;
+                    } else {
+                        told_apart += 1;
+                    }
                 }
             }
+            assert!(
+                kept > 300 && told_apart > 4 * not_told,
+                "{kept} kept, {told_apart} told apart, {not_told} not"
+            );
         }
-        assert!(
-            kept > 300 && told_apart > 4 * not_told,
-            "{kept} kept, {told_apart} told apart, {not_told} not"
-        );
     }
 }

@@ -110,11 +110,6 @@ fn columns_of(values: &LevelValues, observed: ObservedColumns) -> Vec<Column> {
     ]
 }
 
-/// Rows per block of a level segment (format-spec.md, "Segment kinds"): small enough that a
-/// unit's extraction decodes only the blocks of a neighbour's segment that lie along the faces
-/// they share (`LevelCut::around`).
-pub const LEVEL_BLOCK_ROWS: u32 = 2048;
-
 /// A level segment's columns from `stages::observed`, one row per cube.
 struct ObservedColumns {
     seen: Vec<f32>,
@@ -202,10 +197,12 @@ struct Neighbourhood<'a, 's> {
     keys: BTreeMap<usize, Arc<LevelKeys>>,
     /// Previous-level values by group id.
     values: BTreeMap<u64, Arc<LevelValues>>,
-    /// The cubes whose previous-level values are asked for (the units' own and those across
-    /// their faces) all meet this box: the blocks of a neighbour's segment behind the shared
-    /// face are not decoded.
+    /// The cubes whose previous-level values or octree nodes are asked for (the units' own
+    /// and those across their faces, and their ancestors) all meet this box: the blocks of a
+    /// neighbour's segment behind the shared face are not decoded.
     window: WindowTest,
+    /// The units being solved, whose keys are read whole (their rows index the histograms).
+    members: &'a [usize],
 }
 
 /// A unit's octree keys down to the level being solved, with their rows in the unit's segment.
@@ -248,7 +245,17 @@ impl Neighbourhood<'_, '_> {
             return Ok(loaded);
         }
         let file = self.base.open_segment(&info.segment)?;
-        let all = file.reader()?.read_keys().map_err(|e| file.corruption(e))?;
+        let whole = file.reader()?;
+        // A neighbour is asked only about cubes that touch the units (and their ancestors),
+        // whose leaf test holds on the blocks that may hold such cubes: an internal node that
+        // meets the window has a descendant that does, in a kept block, and every key between
+        // them is its descendant. Its rows are then not the segment's, and never read.
+        let reader = if self.members.contains(&unit) {
+            whole
+        } else {
+            whole.with_blocks_where(|first, last| self.window.may_meet_keys_between(first, last))
+        };
+        let all = reader.read_keys().map_err(|e| file.corruption(e))?;
         let total = all.len();
         let (keys, rows): (Vec<CubeKey>, Vec<u32>) = all
             .into_iter()
@@ -493,6 +500,7 @@ impl LevelStage {
             keys: BTreeMap::new(),
             values: BTreeMap::new(),
             window: WindowTest::around_units(treetop, &members),
+            members: &members,
         };
         let histogram_segments: BTreeMap<u128, String> = base
             .segments(HISTOGRAMS)
@@ -774,7 +782,7 @@ impl Stage for LevelStage {
                 energy_after: solved.energy_after,
                 iterations: solved.iterations as u64,
             }),
-            block_rows: LEVEL_BLOCK_ROWS,
+            block_rows: super::FACE_READ_BLOCK_ROWS,
         })
     }
 

@@ -506,7 +506,7 @@ impl LevelStage {
                 energy_after: solved.energy_after,
                 iterations: solved.iterations as u64,
             }),
-            block_rows: super::LEVEL_BLOCK_ROWS,
+            block_rows: crate::stages::FACE_READ_BLOCK_ROWS,
         })
     }
 }
