@@ -591,7 +591,8 @@ impl<'a> SegmentReader<'a> {
 
     /// The same segment with only the blocks whose first and last keys `keep` accepts: its
     /// reads decode only their chunks, and the other blocks' rows are absent (extraction reads
-    /// a neighbour unit's cubes along the shared face only).
+    /// a neighbour unit's cubes along the shared face only). Its `verify` digests the kept
+    /// rows alone, so it matches the recorded digest only when every block is kept.
     pub fn with_blocks_where(&self, keep: impl Fn(CubeKey, CubeKey) -> bool) -> SegmentReader<'a> {
         let kept: Vec<bool> = self.blocks.iter().map(|b| keep(b.first_key, b.last_key)).collect();
         let blocks: Vec<BlockInfo> = self
