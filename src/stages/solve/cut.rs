@@ -75,7 +75,7 @@ impl WindowTest {
     /// [`RANGE_SPLIT_LEVELS`] below the smallest cube holding the interval (beyond, they count
     /// as meeting: the answer errs only towards `true`).
     pub(super) fn may_meet_cut_between(&self, first: CubeKey, last: CubeKey) -> bool {
-        self.may_meet_codes(first.morton(), morton_end(last))
+        self.may_meet_codes(first.morton(), last.subtree_last().morton())
     }
 
     /// [`WindowTest::may_meet_cut_between`] for any sorted keys, a whole octree's among them:
@@ -86,7 +86,7 @@ impl WindowTest {
         while let Some(parent) = widest.parent().filter(|parent| *parent >= first) {
             widest = parent;
         }
-        self.may_meet_codes(first.morton(), morton_end(widest))
+        self.may_meet_codes(first.morton(), widest.subtree_last().morton())
     }
 
     /// Whether a cube whose Morton codes lie in `[low, high]` may meet the window.
@@ -120,11 +120,6 @@ const RANGE_SPLIT_LEVELS: u32 = 6;
 fn span_of(depth: u8) -> u128 {
     let bits = 3 * u32::from(MAX_DEPTH - depth.min(MAX_DEPTH));
     (1u128 << bits) - 1
-}
-
-/// The Morton code of the last full-resolution cell of `key`'s cube.
-fn morton_end(key: CubeKey) -> u128 {
-    key.morton() | span_of(key.depth())
 }
 
 /// The indicator of a cut cube and what the data says about it (`stages::observed`). Equal
@@ -236,9 +231,9 @@ pub struct LevelCut<'a, 's> {
     snapshot: &'a Snapshot<'s>,
     treetop: &'a Treetop,
     segments: LevelSegments,
-    /// When set, only points in this box (full-resolution cells, `[low, high)` per axis) are
-    /// asked about, and groups keep only the cubes that meet it.
-    window: Option<[[u64; 3]; 2]>,
+    /// When set, only points in this box (full-resolution cells) are asked about, and groups
+    /// keep only the cubes that meet it.
+    window: Option<WindowTest>,
     groups: BTreeMap<u64, Arc<LeafValues>>,
     units: BTreeMap<usize, Option<Arc<LeafValues>>>,
 }
@@ -263,7 +258,10 @@ impl<'a, 's> LevelCut<'a, 's> {
         let corner = cube.corner_full_resolution().map(u64::from);
         let side = full_resolution_side(cube);
         LevelCut {
-            window: Some([corner.map(|c| c.saturating_sub(1)), corner.map(|c| c + side + 1)]),
+            window: Some(WindowTest::new(
+                corner.map(|c| c.saturating_sub(1)),
+                corner.map(|c| c + side + 1),
+            )),
             ..LevelCut::new(snapshot, treetop, level)
         }
     }
@@ -276,11 +274,9 @@ impl<'a, 's> LevelCut<'a, 's> {
         if let Some(values) = self.groups.get(&id) {
             return Ok(Some(values.clone()));
         }
-        let window = self.window.map(|[low, high]| WindowTest::new(low, high));
+        let window = self.window.as_ref();
         let mut loaded = read_level_u_where(self.snapshot, name, |first, last| {
-            window
-                .as_ref()
-                .is_none_or(|window| window.may_meet_cut_between(first, last))
+            window.is_none_or(|window| window.may_meet_cut_between(first, last))
         })?;
         if let Some(window) = window {
             // Only a cube that meets the window can hold a point of it, and dropping the others
