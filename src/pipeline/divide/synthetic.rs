@@ -66,14 +66,15 @@ impl SyntheticCloud {
         while !rest.is_empty() {
             let in_run = (1u64 << 32) - (first & 0xFFFF_FFFF);
             let records = usize::try_from(in_run).unwrap_or(usize::MAX).min(rest.len() / 12);
+            // Only a partial record left (never, for whole records).
+            if records == 0 {
+                break;
+            }
             let (run, after) = rest.split_at_mut(records * 12);
             let salt = self.salt((first >> 32) as u32);
             for (i, record) in (first..).zip(run.chunks_exact_mut(12)) {
                 let [x, y, z] = Self::point(salt, i as u32);
                 record.copy_from_slice([x.to_le_bytes(), y.to_le_bytes(), z.to_le_bytes()].as_flattened());
-            }
-            if records == 0 {
-                break;
             }
             first += records as u64;
             rest = after;
