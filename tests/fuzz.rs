@@ -6,8 +6,10 @@
 //! give; a panic fails the test and leaves the input in `OCTSTORE_FUZZ_CRASHES` (default the
 //! system temporary folder) with the seed that made it (README, "Fuzzing").
 //!
-//! `OCTSTORE_FUZZ_SECONDS=600 cargo test --release --test fuzz -- --test-threads 1` is the
-//! long run.
+//! Integer overflow while decoding must be an error too, so CI runs this file a second time
+//! with overflow checks on in the release profile (`.ci/run`). The long run:
+//! `OCTSTORE_FUZZ_SECONDS=600 cargo test --release --locked --config
+//! 'profile.release.package.octstore.overflow-checks=true' --test fuzz -- --test-threads 2`.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};

@@ -157,20 +157,15 @@ impl PointSource for SyntheticCloud {
 mod tests {
     use super::*;
 
-    fn records(cloud: &SyntheticCloud, from: u64, points: usize) -> Vec<[f32; 3]> {
+    /// The positions of `points` generated records, read back the way `divide` reads them.
+    fn records(cloud: &SyntheticCloud, from: u64, points: usize) -> Vec<[f64; 3]> {
         let mut bytes = vec![0u8; points * 12];
         cloud.generate_block(from, &mut bytes);
-        bytes
-            .chunks_exact(12)
-            .map(|r| {
-                let f = |k: usize| {
-                    r.get(4 * k..4 * k + 4)
-                        .and_then(|b| b.try_into().ok())
-                        .map_or(f32::NAN, f32::from_le_bytes)
-                };
-                [f(0), f(1), f(2)]
-            })
-            .collect()
+        let mut read = Vec::with_capacity(points);
+        cloud
+            .layout()
+            .for_each_positions(&bytes, |_, positions| read.extend_from_slice(positions));
+        read
     }
 
     #[test]
