@@ -54,57 +54,84 @@ struct PagesJob {
     whole: usize,
 }
 
-/// The thread that writes [`PagesJob`]s in the order they come, and the buffers it is done
-/// with. Jobs wait in a queue of [`WRITES_IN_FLIGHT`], which bounds the memory they hold.
+/// The threads that write [`PagesJob`]s, and the buffers they are done with. Jobs wait in a
+/// queue of [`WRITES_IN_FLIGHT`], which bounds the memory they hold.
+///
+/// Several threads, because a direct write returns only when the disk has the pages: one
+/// thread writing a file's share at a time left the pass's workers waiting for the queue
+/// (measured below at [`WRITER_THREADS`]). Jobs of one file may be written in any order:
+/// each names its offset, and every file exists before the first job is queued.
 struct Writer {
     jobs: Option<std::sync::mpsc::SyncSender<PagesJob>>,
     spares: std::sync::mpsc::Receiver<PageBuffer>,
-    thread: Option<std::thread::JoinHandle<std::io::Result<()>>>,
+    threads: Vec<std::thread::JoinHandle<std::io::Result<()>>>,
 }
 
-/// Jobs queued for the writer besides the one it writes.
-const WRITES_IN_FLIGHT: usize = 2;
+/// Jobs queued for the writers besides those being written.
+const WRITES_IN_FLIGHT: usize = 4;
+
+/// Threads writing pages at once.
+const WRITER_THREADS: usize = 4;
 
 impl Writer {
-    /// A writer whose first writes try `O_DIRECT` when `direct`.
-    fn start(mut direct: bool) -> std::io::Result<Writer> {
+    /// Writers whose first writes try `O_DIRECT` when `direct`.
+    fn start(direct: bool) -> std::io::Result<Writer> {
         use std::os::unix::fs::FileExt;
+        use std::sync::atomic::{AtomicBool, Ordering};
         let (jobs, queue) = std::sync::mpsc::sync_channel::<PagesJob>(WRITES_IN_FLIGHT);
+        let queue = std::sync::Arc::new(std::sync::Mutex::new(queue));
+        // Set by a writer that failed, so that the others stop and the queue refuses jobs.
+        let failed = std::sync::Arc::new(AtomicBool::new(false));
         let (done, spares) = std::sync::mpsc::channel();
-        let thread =
-            std::thread::Builder::new()
-                .name("divide-writer".into())
-                .spawn(move || -> std::io::Result<()> {
-                    for mut job in queue {
-                        let pages = job.buffer.bytes().get(..job.whole).unwrap_or_default();
-                        // The first pages of a file create it.
-                        let create = job.offset == 0;
-                        if direct {
-                            match open_for_writes(&job.path, create, true)
-                                .and_then(|f| f.write_all_at(pages, job.offset))
-                            {
-                                Ok(()) => {}
-                                Err(e) if refuses_direct(&e) => direct = false,
-                                Err(e) => return Err(e),
-                            }
-                        }
-                        if !direct {
-                            open_for_writes(&job.path, create, false)?.write_all_at(pages, job.offset)?;
-                        }
-                        job.buffer.filled = 0;
-                        // The appenders may be gone: then the buffer is not needed.
-                        let _ = done.send(job.buffer);
+        let mut threads = Vec::with_capacity(WRITER_THREADS);
+        for _ in 0..WRITER_THREADS {
+            let (queue, failed, done) = (queue.clone(), failed.clone(), done.clone());
+            let mut direct = direct;
+            let mut write = move |job: &PagesJob| -> std::io::Result<()> {
+                let pages = job.buffer.bytes().get(..job.whole).unwrap_or_default();
+                if direct {
+                    match open_for_writes(&job.path, false, true).and_then(|f| f.write_all_at(pages, job.offset)) {
+                        Ok(()) => return Ok(()),
+                        Err(e) if refuses_direct(&e) => direct = false,
+                        Err(e) => return Err(e),
                     }
-                    Ok(())
-                })?;
+                }
+                open_for_writes(&job.path, false, false)?.write_all_at(pages, job.offset)
+            };
+            let thread =
+                std::thread::Builder::new()
+                    .name("divide-writer".into())
+                    .spawn(move || -> std::io::Result<()> {
+                        loop {
+                            // The lock is held only to take a job; a poisoned lock means another
+                            // writer panicked, which `stop` reports.
+                            let next = match queue.lock() {
+                                Ok(queue) => queue.recv(),
+                                Err(_) => return Ok(()),
+                            };
+                            let Ok(mut job) = next else { return Ok(()) };
+                            if failed.load(Ordering::Relaxed) {
+                                return Ok(());
+                            }
+                            if let Err(e) = write(&job) {
+                                failed.store(true, Ordering::Relaxed);
+                                return Err(e);
+                            }
+                            job.buffer.filled = 0;
+                            // The appenders may be gone: then the buffer is not needed.
+                            let _ = done.send(job.buffer);
+                        }
+                    })?;
+            threads.push(thread);
+        }
         Ok(Writer {
             jobs: Some(jobs),
             spares,
-            thread: Some(thread),
+            threads,
         })
     }
 
-    /// Queues `job`; an error when the writer has failed (its own error) or is gone.
+    /// Queues `job`; an error when a writer has failed (its error) or they are gone.
     fn send(&mut self, job: PagesJob) -> std::io::Result<()> {
         match self.jobs.as_ref().map(|jobs| jobs.send(job)) {
             Some(Ok(())) => Ok(()),
@@ -115,14 +142,20 @@ impl Writer {
         }
     }
 
-    /// Waits for every queued job to be written; the writer's error if it failed.
+    /// Waits for every queued job to be written; the first writer's error if one failed.
     fn stop(&mut self) -> std::io::Result<()> {
         self.jobs = None;
-        match self.thread.take().map(std::thread::JoinHandle::join) {
-            None | Some(Ok(Ok(()))) => Ok(()),
-            Some(Ok(Err(e))) => Err(e),
-            Some(Err(_)) => Err(std::io::Error::other("the file writer panicked")),
+        let mut outcome = Ok(());
+        for thread in self.threads.drain(..) {
+            let result = match thread.join() {
+                Ok(result) => result,
+                Err(_) => Err(std::io::Error::other("the file writer panicked")),
+            };
+            if outcome.is_ok() {
+                outcome = result;
+            }
         }
+        outcome
     }
 }
 
@@ -205,6 +238,10 @@ impl Appenders {
     ) -> std::io::Result<Appenders> {
         let n = files.len();
         let (paths, notes): (Vec<PathBuf>, Vec<String>) = files.into_iter().unzip();
+        // Every file exists, empty, before a job is queued (the writers only open them).
+        for path in &paths {
+            open_for_writes(path, true, false)?;
+        }
         let buffers = notes
             .iter()
             .map(|note| {
@@ -220,9 +257,10 @@ impl Appenders {
             buffers,
             records: vec![0; n],
             written: vec![0; n],
-            // The writer holds at most `WRITES_IN_FLIGHT + 2` buffers besides the files' own
-            // (queued, being written, and returned but not yet reused).
-            share: (buffer_limit / (n + WRITES_IN_FLIGHT + 2)).max(MIN_SHARE),
+            // Besides the files' own buffers, at most `WRITES_IN_FLIGHT + WRITER_THREADS + 1`
+            // exist: queued, being written, and the one waiting for room in the queue (a
+            // buffer handed back is reused before a new one is made).
+            share: (buffer_limit / (n + WRITES_IN_FLIGHT + WRITER_THREADS + 1)).max(MIN_SHARE),
             writer: Writer::start(direct)?,
         })
     }
