@@ -150,12 +150,13 @@ impl Root {
             root: *self,
             level,
             nodes,
+            nodes_whole: 1u64 << level,
             // Exact: powers of two.
             per_node: nodes / self.size,
             // The subtraction errs by at most half a grid unit, 2^(level - GRID_BITS - 1) of a
             // node (see `grid_axis`): a fraction farther than four times that from both faces
             // names the node exactly.
-            margin: nodes * (4.0 * 0.5 * UNIT_PER_SIDE),
+            clear_half: 0.5 - nodes * (4.0 * 0.5 * UNIT_PER_SIDE),
         }
     }
 
@@ -200,8 +201,12 @@ pub struct NodeLocator {
     root: Root,
     level: u32,
     nodes: f64,
+    /// `nodes` as an integer.
+    nodes_whole: u64,
     per_node: f64,
-    margin: f64,
+    /// Half a node less the margin: a fraction `f` of a node with `|f - 0.5|` below it lies
+    /// farther than the margin from both faces.
+    clear_half: f64,
 }
 
 impl NodeLocator {
@@ -216,11 +221,15 @@ impl NodeLocator {
         let mut index = [0u32; 3];
         let mut clear = true;
         for ((i, &pa), &min) in index.iter_mut().zip(&p).zip(&self.root.min) {
-            let t = (pa - min) * self.per_node;
+            // Clamped, so the conversion needs no saturation or NaN fix-up; NaN becomes -1,
+            // which is not clear.
+            let t = ((pa - min) * self.per_node).max(-1.0).min(self.nodes);
             let whole = t as i64;
-            // Exact: `t` and `whole` are within one of each other (or `whole` is 0).
+            // Exact: `t` and `whole` are within one of each other. For -1 < t < 0 the fraction
+            // is negative, so the fraction's test also keeps out what truncation sent to 0.
             let fraction = t - whole as f64;
-            clear &= (t >= 0.0) & (t < self.nodes) & (fraction > self.margin) & (fraction < 1.0 - self.margin);
+            // `fraction - 0.5` errs by at most 2^-54, far inside the margin's slack of four.
+            clear &= ((whole as u64) < self.nodes_whole) & ((fraction - 0.5).abs() < self.clear_half);
             *i = whole as u32;
         }
         if clear { index } else { self.exact(p) }
@@ -697,6 +706,11 @@ mod tests {
                 }
             }
         }
+        // Just below the root's corner (within a node of it and farther), and no number at all.
+        for below in [1e-12, 1e-3, 0.7, 3.0] {
+            points.push([root.min[0] - below, root.min[1] - below, 2.5]);
+        }
+        points.extend([[f64::NAN, 100.5, 2.5], [f64::INFINITY, 100.5, f64::NEG_INFINITY]]);
         let mut state = 1u64;
         for _ in 0..10_000 {
             state = state
