@@ -585,6 +585,11 @@ impl Lookup {
         }
     }
 
+    /// Bytes it takes.
+    pub fn bytes(&self) -> u64 {
+        ((self.cells.len() + self.lists.len()) * std::mem::size_of::<u32>()) as u64
+    }
+
     /// Calls `hit` with every target, in increasing order of the cell's list (those that hold
     /// the cell, then the others), whose grown cube (`grown`, as given to [`Lookup::new`])
     /// holds the point `p` of grid coordinates `g`.

@@ -736,8 +736,13 @@ impl Context<'_> {
         let layout = &self.layout;
 
         let lookup = Lookup::new(&root, top, lookup_depth(depth, self.options.memory_budget), grown);
-        // Buffers take at most twice their limit: a quarter of the budget.
-        let buffer_limit = usize::try_from(self.options.memory_budget / 8).unwrap_or(usize::MAX);
+        // Buffers take at most twice their limit: half of what the lookup leaves, so with the
+        // lookup (at most half the budget) at most three quarters of it. Larger buffers make
+        // larger writes, which the disk takes faster and with less of the kernel's CPU (10^9
+        // points at 256 MiB, four writer threads: with an eighth of the budget, 62.6 and
+        // 70.4 s, 12 s in the kernel; with this, 54.4 and 52.7 s, 5 s in the kernel).
+        let buffer_limit =
+            usize::try_from(self.options.memory_budget.saturating_sub(lookup.bytes()) / 4).unwrap_or(usize::MAX);
         let mut appenders =
             Appenders::new(layout.clone(), files, buffer_limit).map_err(io("write", &self.dir.join(STAGING)))?;
         let bar = progress(self.options, "writes", feeds);
