@@ -32,8 +32,8 @@ pub fn fixed_header(layout: &PointLayout, count: u64, note: &str) -> Vec<u8> {
 /// through the page cache, the kernel's copy and writeback cost about a second of CPU per GB
 /// on the 2-core machine of the README, a quarter of the write pass. The partial page left at
 /// the end, and every write on a file system that refuses direct I/O, go through the page
-/// cache; the bytes in the files are the same either way. The pages are written on a thread
-/// of their own, so a pass's workers go on while the disk takes them.
+/// cache; the bytes in the files are the same either way. The pages are written on threads
+/// of their own ([`Writer`]), so a pass's workers go on while the disk takes them.
 pub struct Appenders {
     layout: PointLayout,
     paths: Vec<PathBuf>,
