@@ -218,18 +218,27 @@ impl NodeLocator {
     /// The index of the node that holds `p`.
     #[inline(always)]
     pub fn index(&self, p: [f64; 3]) -> [u32; 3] {
+        // Adding 1.5 * 2^52 rounds a float below 2^51 in magnitude to a whole number, which
+        // then sits in the low bits of the sum: a conversion with no saturation or NaN checks
+        // (those took a quarter of the counting pass), and one that runs in SIMD lanes.
+        const ROUNDER: f64 = 6_755_399_441_055_744.0;
         let mut index = [0u32; 3];
         let mut clear = true;
         for ((i, &pa), &min) in index.iter_mut().zip(&p).zip(&self.root.min) {
-            // Clamped, so the conversion needs no saturation or NaN fix-up; NaN becomes -1,
-            // which is not clear.
-            let t = ((pa - min) * self.per_node).max(-1.0).min(self.nodes);
-            let whole = t as i64;
-            // Exact: `t` and `whole` are within one of each other. For -1 < t < 0 the fraction
-            // is negative, so the fraction's test also keeps out what truncation sent to 0.
-            let fraction = t - whole as f64;
+            // Clamped with comparisons that send NaN to -1, which is not clear.
+            let t = (pa - min) * self.per_node;
+            let t = if t > -1.0 { t } else { -1.0 };
+            let t = if t < self.nodes { t } else { self.nodes };
+            // The nearest whole number to t - 1/2 (exact: t < 2^33), which is t's floor
+            // wherever t is clear of whole numbers.
+            let rounded = (t - 0.5) + ROUNDER;
+            let whole = rounded.to_bits().wrapping_sub(ROUNDER.to_bits());
+            // Exact: `t` and the whole number are within one of each other. A fraction of 0
+            // or 1 (t clamped, or a tie rounded to even) is not clear, nor is a whole number
+            // below 0, which wraps to a huge value.
+            let fraction = t - (rounded - ROUNDER);
             // `fraction - 0.5` errs by at most 2^-54, far inside the margin's slack of four.
-            clear &= ((whole as u64) < self.nodes_whole) & ((fraction - 0.5).abs() < self.clear_half);
+            clear &= (whole < self.nodes_whole) & ((fraction - 0.5).abs() < self.clear_half);
             *i = whole as u32;
         }
         if clear { index } else { self.exact(p) }
@@ -303,6 +312,70 @@ pub struct Counts {
     levels: Vec<Vec<u64>>,
 }
 
+/// The finest counted cells of a [`Counts`], apart from the counts: a copy in the hot loop
+/// stays in registers, where the fields of [`Counts`] (behind atomics and locks, which any
+/// write may change) are loaded again for every point.
+#[derive(Clone, Copy, Debug)]
+pub struct CountCells {
+    /// The index of the first finest cell along each axis.
+    base: [u32; 3],
+    /// Finest cells along each axis.
+    n: u32,
+}
+
+impl CountCells {
+    /// The finest counted cell of the node of index `index` at [`Counts::level`], `None`
+    /// outside the counted node.
+    #[inline]
+    pub fn of_index(&self, index: [u32; 3]) -> Option<usize> {
+        let relative = [0, 1, 2].map(|a| index[a].wrapping_sub(self.base[a]));
+        relative.iter().all(|r| *r < self.n).then(|| {
+            let n = self.n as usize;
+            relative[0] as usize + n * (relative[1] as usize + n * relative[2] as usize)
+        })
+    }
+}
+
+/// Adds points to the cells of [`Counts`] ([`Counts::add_with`]).
+pub struct CellAdder<'a> {
+    copy: Option<std::sync::MutexGuard<'a, Vec<u64>>>,
+    shared: &'a [AtomicU64],
+    /// Points of one cell not yet added to `shared`.
+    run: Option<(usize, u64)>,
+}
+
+impl CellAdder<'_> {
+    /// Adds one point to `cell`.
+    #[inline]
+    pub fn add(&mut self, cell: usize) {
+        match &mut self.copy {
+            Some(copy) => {
+                if let Some(c) = copy.get_mut(cell) {
+                    *c += 1;
+                }
+            }
+            None => match &mut self.run {
+                Some((c, n)) if *c == cell => *n += 1,
+                run => {
+                    if let Some((c, n)) = run.replace((cell, 1))
+                        && let Some(shared) = self.shared.get(c)
+                    {
+                        shared.fetch_add(n, Ordering::Relaxed);
+                    }
+                }
+            },
+        }
+    }
+
+    fn flush(&mut self) {
+        if let Some((c, n)) = self.run.take()
+            && let Some(shared) = self.shared.get(c)
+        {
+            shared.fetch_add(n, Ordering::Relaxed);
+        }
+    }
+}
+
 /// Bytes a count grid of `depth` levels takes (finest counts and the sums above them).
 pub fn counts_bytes(depth: u32) -> u64 {
     (8u64.pow(depth) * 8) * 8 / 7 * 2
@@ -328,36 +401,21 @@ impl Counts {
         }
     }
 
-    /// Adds one point to each cell of `cells` (cells of [`Counts::cell_of_index`]): to this thread's
-    /// private copy when there is one (locked once for the whole block), else atomically, one
-    /// add per run of equal cells.
-    pub fn add_cells(&self, cells: &[usize]) {
-        let copy = rayon::current_thread_index().and_then(|t| self.per_thread.get(t));
-        match copy.map(|m| m.lock()) {
-            Some(Ok(mut counts)) => {
-                for &cell in cells {
-                    if let Some(c) = counts.get_mut(cell) {
-                        *c += 1;
-                    }
-                }
-            }
-            _ => {
-                let mut run: Option<(usize, u64)> = None;
-                for &cell in cells {
-                    match &mut run {
-                        Some((c, n)) if *c == cell => *n += 1,
-                        _ => {
-                            if let Some((c, n)) = run.replace((cell, 1)) {
-                                self.add(c, n);
-                            }
-                        }
-                    }
-                }
-                if let Some((c, n)) = run {
-                    self.add(c, n);
-                }
-            }
-        }
+    /// Lets `fill` add points to cells (cells of [`Counts::cells`]) through a
+    /// [`CellAdder`]: to this thread's private copy when there is one (locked once for all of
+    /// `fill`), else atomically, one add per run of equal cells.
+    pub fn add_with<R>(&self, fill: impl FnOnce(&mut CellAdder<'_>) -> R) -> R {
+        let copy = rayon::current_thread_index()
+            .and_then(|t| self.per_thread.get(t))
+            .and_then(|m| m.lock().ok());
+        let mut adder = CellAdder {
+            copy,
+            shared: &self.finest,
+            run: None,
+        };
+        let result = fill(&mut adder);
+        adder.flush();
+        result
     }
 
     fn linear(&self, relative: [u32; 3], depth: u32) -> usize {
@@ -370,24 +428,11 @@ impl Counts {
         self.top.level + self.depth
     }
 
-    /// The finest counted cell of the node of index `index` at [`Counts::level`], `None`
-    /// outside `top`.
-    #[inline]
-    pub fn cell_of_index(&self, index: [u32; 3]) -> Option<usize> {
-        let base = self.top.index.map(|c| c << self.depth);
-        let n = 1u32 << self.depth;
-        let relative = [0, 1, 2].map(|a| index[a].wrapping_sub(base[a]));
-        relative
-            .iter()
-            .all(|r| *r < n)
-            .then(|| self.linear(relative, self.depth))
-    }
-
-    /// Adds `count` points to a cell ([`Counts::cell`]).
-    #[inline]
-    pub fn add(&self, cell: usize, count: u64) {
-        if let Some(c) = self.finest.get(cell) {
-            c.fetch_add(count, Ordering::Relaxed);
+    /// Finds the finest counted cells ([`CountCells`]).
+    pub fn cells(&self) -> CountCells {
+        CountCells {
+            base: self.top.index.map(|c| c << self.depth),
+            n: 1u32 << self.depth,
         }
     }
 
@@ -735,6 +780,54 @@ mod tests {
         }
     }
 
+    /// Points added on pool threads with private copies, and on a thread of no pool (one
+    /// atomic add per run of equal cells), give the same counts.
+    #[test]
+    fn counts_with_private_copies_and_shared_adds_agree() -> Result<(), rayon::ThreadPoolBuildError> {
+        let root = Root::around([0.0; 3], [1.0; 3]).expect("a box");
+        let points: Vec<[f64; 3]> = (0..5000u32)
+            .map(|i| {
+                let t = f64::from(i) / 5000.0;
+                // Runs of equal cells and jumps between them.
+                [t, (t * 7.0).fract(), if i % 3 == 0 { 0.9 } else { t * t }]
+            })
+            .collect();
+        let count = |counts: &Counts| {
+            let locator = root.locator(counts.level());
+            for chunk in points.chunks(700) {
+                counts.add_with(|adder| {
+                    for p in chunk {
+                        if let Some(cell) = counts.cells().of_index(locator.index(*p)) {
+                            adder.add(cell);
+                        }
+                    }
+                });
+            }
+        };
+        let mut shared = Counts::new(Node::ROOT, 3, 0);
+        count(&shared);
+        shared.finish();
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build()?;
+        let mut private = pool.install(|| {
+            let counts = Counts::new(Node::ROOT, 3, u64::MAX);
+            count(&counts);
+            counts
+        });
+        assert_eq!(private.per_thread.len(), 2);
+        private.finish();
+        assert_eq!(private.of(Node::ROOT), 5000);
+        for x in 0..8 {
+            for z in 0..8 {
+                let node = Node {
+                    level: 3,
+                    index: [x, 5, z],
+                };
+                assert_eq!(private.of(node), shared.of(node), "{node:?}");
+            }
+        }
+        Ok(())
+    }
+
     #[test]
     fn counts_sum_up_and_leaves_respect_the_limit() {
         let root = Root::around([0.0; 3], [1.0; 3]).expect("a box");
@@ -745,12 +838,15 @@ mod tests {
             let t = f64::from(i) / 1000.0;
             points.push([t * t, t * t * t, t * 0.5]);
         }
-        for p in &points {
-            let cell = counts
-                .cell_of_index(root.locator(counts.level()).index(*p))
-                .expect("inside");
-            counts.add(cell, 1);
-        }
+        counts.add_with(|adder| {
+            for p in &points {
+                let cell = counts
+                    .cells()
+                    .of_index(root.locator(counts.level()).index(*p))
+                    .expect("inside");
+                adder.add(cell);
+            }
+        });
         counts.finish();
         assert_eq!(counts.of(Node::ROOT), 1000);
         let (leaves, again) = choose_leaves(&counts, 100);

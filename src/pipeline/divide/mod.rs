@@ -489,89 +489,103 @@ fn stream<T: Send>(
     Ok(points)
 }
 
-/// The write pass's work on one block: its records grouped by the targets whose grown cube
-/// holds them (a record goes to each of them), ignoring records outside `keep`.
-#[inline(never)]
-fn place_block(
+/// [`place_block`] for one record length.
+type Placer = fn(&[u8], &PointLayout, &Lookup, &[Bounds], Option<&Bounds>, &mut Bins);
+
+/// [`place_block`] for records of `record_len` bytes: common lengths get copies of a known
+/// size (a call to memmove per record costs more than the rest of the placement).
+fn placer(record_len: usize) -> Placer {
+    match record_len {
+        12 => place_block::<12>,
+        15 => place_block::<15>,
+        24 => place_block::<24>,
+        27 => place_block::<27>,
+        _ => place_block::<0>,
+    }
+}
+
+/// The write pass's work on one block: its records, in `bins`, grouped by the targets whose
+/// grown cube holds them (a record goes to each of them, in block order), ignoring records
+/// outside `keep`. `LEN`, when not 0, is the layout's record length known at compile time.
+fn place_block<const LEN: usize>(
     block: &[u8],
     layout: &PointLayout,
     lookup: &Lookup,
     grown: &[Bounds],
     keep: Option<&Bounds>,
-) -> Grouped {
-    let len = layout.record_len();
-    let mut memberships: Vec<(u32, u32)> = Vec::with_capacity(block.len() / len.max(1) * 2 + 16);
+    bins: &mut Bins,
+) {
+    let len = if LEN > 0 { LEN } else { layout.record_len() };
+    bins.targets.resize_with(grown.len(), Vec::new);
+    let targets = &mut bins.targets;
+    let mut put = |record: usize, target: u32| {
+        if let (Some(bin), Some(bytes)) = (
+            targets.get_mut(target as usize),
+            block.get(record * len..(record + 1) * len),
+        ) {
+            bin.extend_from_slice(bytes);
+        }
+    };
     layout.for_each_positions(block, |first, positions| match keep {
-        None => lookup.place_run(positions, grown, |i, target| {
-            memberships.push((target, (first + i) as u32))
-        }),
+        None => lookup.place_run(positions, grown, |i, target| put(first + i, target)),
         Some(keep) => {
             for (i, &p) in (first..).zip(positions) {
                 if keep.contains(p) {
-                    lookup.place(p, grown, |target| memberships.push((target, i as u32)));
+                    lookup.place(p, grown, |target| put(i, target));
                 }
             }
         }
     });
-    // Common record lengths get copies of a known size (a call to memmove per record costs
-    // more than the rest of the placement).
-    let targets = grown.len();
-    match len {
-        12 => group_by_target::<12>(block, len, &memberships, targets),
-        15 => group_by_target::<15>(block, len, &memberships, targets),
-        24 => group_by_target::<24>(block, len, &memberships, targets),
-        27 => group_by_target::<27>(block, len, &memberships, targets),
-        _ => group_by_target::<0>(block, len, &memberships, targets),
-    }
 }
 
-/// The records of `block` that `memberships` (target, record index; in record order) send
-/// to each target, grouped by target (a counting sort: records keep their order within a
-/// target): one buffer, and each target's range in it. `LEN`, when not 0, is `len` known at
-/// compile time.
-fn group_by_target<const LEN: usize>(block: &[u8], len: usize, memberships: &[(u32, u32)], targets: usize) -> Grouped {
-    let len = if LEN > 0 { LEN } else { len };
-    let mut starts = vec![0usize; targets + 1];
-    for &(target, _) in memberships {
-        if let Some(s) = starts.get_mut(target as usize + 1) {
-            *s += len;
-        }
-    }
-    for i in 1..starts.len() {
-        let before = starts.get(i - 1).copied().unwrap_or(0);
-        if let Some(s) = starts.get_mut(i) {
-            *s += before;
-        }
-    }
-    let mut bytes = vec![0u8; memberships.len() * len];
-    let mut at = starts.clone();
-    for &(target, i) in memberships {
-        let (Some(to), Some(record)) = (
-            at.get_mut(target as usize),
-            block.get(i as usize * len..(i as usize + 1) * len),
-        ) else {
-            continue;
-        };
-        if let Some(slot) = bytes.get_mut(*to..*to + len) {
-            slot.copy_from_slice(record);
-        }
-        *to += len;
-    }
-    let ranges = starts
-        .windows(2)
-        .enumerate()
-        .filter_map(|(target, w)| match *w {
-            [from, to] if to > from => Some((target as u32, from..to)),
-            _ => None,
-        })
-        .collect();
-    Grouped { bytes, ranges }
+/// The write pass's records of one block grouped by target: one buffer a target, in the
+/// order of the targets' files. A worker fills a set and the pass's consumer empties it into
+/// the files; the sets go round a [`BinsPool`] and keep their capacity, so the steady state
+/// allocates nothing. (The block's records were first listed as (target, record) pairs and
+/// then sorted into one fresh buffer: the list, the sort's copies and zeroing the fresh
+/// memory cost more than the placement.)
+#[derive(Default)]
+struct Bins {
+    targets: Vec<Vec<u8>>,
 }
 
-/// [`group_by_target`]'s result.
-struct Grouped {
-    bytes: Vec<u8>,
-    ranges: Vec<(u32, std::ops::Range<usize>)>,
+/// Bytes the write pass's blocks in flight hold at most, about: [`stream`] works on a batch of
+/// two blocks a thread while the last batch's results wait, and a block's [`Bins`] hold its
+/// records (once for each target they go to, about 1.4 times with an overlap of 0.1) and up
+/// to as much again of spare capacity: three blocks' bytes for each.
+fn placing_bytes() -> u64 {
+    (rayon::current_num_threads() * 2 * 2 * 3 * BLOCK_BYTES) as u64
+}
+
+/// The [`Bins`] not in use.
+#[derive(Default)]
+struct BinsPool {
+    spare: std::sync::Mutex<Vec<Bins>>,
+}
+
+impl BinsPool {
+    fn take(&self) -> Bins {
+        self.spare
+            .lock()
+            .ok()
+            .and_then(|mut spare| spare.pop())
+            .unwrap_or_default()
+    }
+
+    /// Takes back emptied bins.
+    fn give_back(&self, mut bins: Bins) {
+        for bin in &mut bins.targets {
+            // At most twice what the bin took this time: a run of records that all went to
+            // one target (a sorted input sends a block to few targets) does not leave every
+            // target holding a block's capacity, and bins of about the same use each time
+            // keep theirs.
+            bin.shrink_to(2 * bin.len());
+            bin.clear();
+        }
+        if let Ok(mut spare) = self.spare.lock() {
+            spare.push(bins);
+        }
+    }
 }
 
 /// What dividing one node needs.
@@ -646,17 +660,18 @@ impl Context<'_> {
             &bar,
             |block, keep| {
                 let locator = root.locator(counts.level());
-                let mut cells = Vec::with_capacity(block.len() / layout.record_len().max(1));
-                layout.for_each_positions(block, |_, positions| {
-                    for &p in positions {
-                        if keep.is_none_or(|k| k.contains(p))
-                            && let Some(cell) = counts.cell_of_index(locator.index(p))
-                        {
-                            cells.push(cell);
+                let cells = counts.cells();
+                counts.add_with(|adder| {
+                    layout.for_each_positions(block, |_, positions| {
+                        for &p in positions {
+                            if keep.is_none_or(|k| k.contains(p))
+                                && let Some(cell) = cells.of_index(locator.index(p))
+                            {
+                                adder.add(cell);
+                            }
                         }
-                    }
+                    })
                 });
-                counts.add_cells(&cells);
             },
             |_, ()| Ok(()),
         )?;
@@ -741,22 +756,38 @@ impl Context<'_> {
         // larger writes, which the disk takes faster and with less of the kernel's CPU (10^9
         // points at 256 MiB, four writer threads: with an eighth of the budget, 62.6 and
         // 70.4 s, 12 s in the kernel; with this, 54.4 and 52.7 s, 5 s in the kernel).
-        let buffer_limit =
-            usize::try_from(self.options.memory_budget.saturating_sub(lookup.bytes()) / 4).unwrap_or(usize::MAX);
+        // What the pass's blocks in flight hold is set aside first ([`placing_bytes`]).
+        let buffer_limit = usize::try_from(
+            self.options
+                .memory_budget
+                .saturating_sub(lookup.bytes())
+                .saturating_sub(placing_bytes())
+                / 4,
+        )
+        .unwrap_or(usize::MAX);
         let mut appenders =
             Appenders::new(layout.clone(), files, buffer_limit).map_err(io("write", &self.dir.join(STAGING)))?;
         let bar = progress(self.options, "writes", feeds);
+        let pool = BinsPool::default();
+        let place = placer(layout.record_len());
         stream(
             feeds,
             layout,
             &bar,
-            |block, keep| place_block(block, layout, &lookup, grown, keep),
-            |_, grouped: Grouped| {
-                for (target, range) in grouped.ranges {
-                    appenders
-                        .append(target as usize, grouped.bytes.get(range).unwrap_or_default())
-                        .map_err(io("write", &self.dir.join(STAGING)))?;
+            |block, keep| {
+                let mut bins = pool.take();
+                place(block, layout, &lookup, grown, keep, &mut bins);
+                bins
+            },
+            |_, bins: Bins| {
+                for (target, bytes) in bins.targets.iter().enumerate() {
+                    if !bytes.is_empty() {
+                        appenders
+                            .append(target, bytes)
+                            .map_err(io("write", &self.dir.join(STAGING)))?;
+                    }
                 }
+                pool.give_back(bins);
                 Ok(())
             },
         )?;
