@@ -549,8 +549,8 @@ fn place_block<const LEN: usize>(
 /// order of the targets' files. A worker fills a set and the pass's consumer empties it into
 /// the files; the sets go round a [`BinsPool`] and keep their capacity, so the steady state
 /// allocates nothing. (The block's records were first listed as (target, record) pairs and
-/// then sorted into one fresh buffer: the list, the sort's copies and zeroing the fresh
-/// memory cost more than the placement.)
+/// then sorted into one fresh, zeroed buffer a block: the bins skip the list, one copy and
+/// the zeroing.)
 #[derive(Default)]
 struct Bins {
     targets: Vec<Vec<u8>>,
