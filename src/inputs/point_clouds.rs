@@ -619,6 +619,7 @@ mod tests {
         assert!(message.contains("line 1") && message.contains("4 numbers"), "{message}");
         Ok(())
     }
+
     /// The run decoder's fast paths (float x, y, z alone; floats among other properties or out
     /// of order; doubles) give what the general decoder gives, record by record, across runs.
     #[test]

@@ -329,11 +329,17 @@ impl CountCells {
     #[inline]
     pub fn of_index(&self, index: [u32; 3]) -> Option<usize> {
         let relative = [0, 1, 2].map(|a| index[a].wrapping_sub(self.base[a]));
-        relative.iter().all(|r| *r < self.n).then(|| {
-            let n = self.n as usize;
-            relative[0] as usize + n * (relative[1] as usize + n * relative[2] as usize)
-        })
+        relative
+            .iter()
+            .all(|r| *r < self.n)
+            .then(|| linear_cell(relative, self.n as usize))
     }
+}
+
+/// The place of the cell at `relative` in a grid of `n` cells along each axis, x fastest.
+#[inline]
+fn linear_cell(relative: [u32; 3], n: usize) -> usize {
+    relative[0] as usize + n * (relative[1] as usize + n * relative[2] as usize)
 }
 
 /// Adds points to the cells of [`Counts`] ([`Counts::add_with`]).
@@ -356,12 +362,9 @@ impl CellAdder<'_> {
             }
             None => match &mut self.run {
                 Some((c, n)) if *c == cell => *n += 1,
-                run => {
-                    if let Some((c, n)) = run.replace((cell, 1))
-                        && let Some(shared) = self.shared.get(c)
-                    {
-                        shared.fetch_add(n, Ordering::Relaxed);
-                    }
+                _ => {
+                    self.flush();
+                    self.run = Some((cell, 1));
                 }
             },
         }
@@ -418,11 +421,6 @@ impl Counts {
         result
     }
 
-    fn linear(&self, relative: [u32; 3], depth: u32) -> usize {
-        let n = 1usize << depth;
-        relative[0] as usize + n * (relative[1] as usize + n * relative[2] as usize)
-    }
-
     /// The level of the finest counted cells.
     pub fn level(&self) -> u32 {
         self.top.level + self.depth
@@ -477,7 +475,7 @@ impl Counts {
         let relative = [0, 1, 2].map(|a| node.index[a] - (self.top.index[a] << depth));
         self.levels
             .get(depth as usize)
-            .and_then(|level| level.get(self.linear(relative, depth)))
+            .and_then(|level| level.get(linear_cell(relative, 1 << depth)))
             .copied()
             .unwrap_or(0)
     }
