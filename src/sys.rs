@@ -1,5 +1,5 @@
-//! The only module with `unsafe` code: memory-mapping immutable segment files, and asking the C
-//! allocator to return freed memory.
+//! The only module with `unsafe` code: memory-mapping immutable segment files, asking the C
+//! allocator to return freed memory, and calling code compiled for AVX2 once the processor has it.
 
 use std::fs::File;
 
@@ -37,4 +37,40 @@ pub fn die_quietly_on_closed_pipe() {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
+}
+
+/// Work for [`with_wide_vectors`]: a hot loop and what it reads.
+pub trait WideWork {
+    /// What the work gives.
+    type Output;
+
+    /// Does the work. Implementations mark it `#[inline(always)]`: only code inlined into
+    /// [`with_wide_vectors`]'s AVX2 function gets AVX2. (A closure or a function item is
+    /// called through a shim of its own, which the compiler may leave out of line, compiled
+    /// for the baseline.)
+    fn run(self) -> Self::Output;
+}
+
+/// Runs `work` compiled for AVX2 where the processor has it, else as compiled for the
+/// baseline (SSE2 on x86-64; every other architecture runs `work` as it is). The per-point
+/// loops that `work` inlines then run eight 32-bit lanes at a time, with the 32-bit integer
+/// multiplies that SSE2 lacks and emulates.
+///
+/// Results are bit for bit those of the baseline: AVX2 adds integer and IEEE float
+/// instructions of the same results, and fused multiply-adds, which round differently, stay
+/// off (they are a separate feature).
+#[inline(always)]
+pub fn with_wide_vectors<W: WideWork>(work: W) -> W::Output {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        fn wide<W: WideWork>(work: W) -> W::Output {
+            work.run()
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: `wide` needs only AVX2, and the processor was just found to have it.
+            return unsafe { wide(work) };
+        }
+    }
+    work.run()
 }

@@ -100,8 +100,9 @@ impl PointLayout {
     /// pass over points. The layout's kind is decided once per block, and a run's positions
     /// are decoded in one tight loop into a small buffer that stays in the L1 cache, so the
     /// caller's loop over them reads plain arrays (a per-record call that returns a position
-    /// goes through memory and stalls on store forwarding).
-    #[inline]
+    /// goes through memory and stalls on store forwarding). Always inlined, so that a caller
+    /// compiled for AVX2 (`crate::sys::with_wide_vectors`) decodes in AVX2 as well.
+    #[inline(always)]
     pub fn for_each_positions(&self, block: &[u8], mut each: impl FnMut(usize, &[[f64; 3]])) {
         const RUN: usize = 1024;
         let len = self.record_len.max(1);

@@ -526,3 +526,60 @@ fn a_store_is_divided_as_its_depth_maps_samples() -> TestResult {
     assert!(error.to_string().contains("not an octstore store"), "{error}");
     Ok(())
 }
+
+/// A block counted by [`super::CountBlock`] compiled for AVX2 gives the counts it gives
+/// compiled for the baseline. (On a processor without AVX2 both run the baseline.)
+#[test]
+fn a_block_counts_alike_in_avx2_and_in_the_baseline() -> Result<(), Box<dyn std::error::Error>> {
+    use super::CountBlock;
+    use super::grid::{Counts, Node, Root};
+    use crate::sys::WideWork;
+
+    let cloud = SyntheticCloud::new(40_000, 3);
+    let mut block = Vec::new();
+    cloud.read_block(40_000, 0, &mut block)?;
+    let root = Root::around([0.0; 3], [1000.0; 3]).ok_or("no root")?;
+    let keep = super::Bounds {
+        min: [100.0, 0.0, 0.0],
+        max: [900.0, 1000.0, 1000.0],
+    };
+    let count = |wide: bool| {
+        let mut counts = Counts::new(Node::ROOT, 5, 0);
+        let locator = root.locator(counts.level());
+        let cells = counts.cells();
+        counts.add_with(|adder| {
+            let work = CountBlock {
+                layout: cloud.layout(),
+                block: &block,
+                keep: Some(&keep),
+                locator,
+                cells,
+                adder,
+            };
+            if wide {
+                crate::sys::with_wide_vectors(work)
+            } else {
+                work.run()
+            }
+        });
+        counts.finish();
+        let mut cells = Vec::new();
+        for x in 0..32 {
+            for y in 0..32 {
+                for z in 0..32 {
+                    cells.push(counts.of(Node {
+                        level: 5,
+                        index: [x, y, z],
+                    }));
+                }
+            }
+        }
+        cells
+    };
+    let wide = count(true);
+    assert_eq!(wide, count(false));
+    // Most of the points, not all: `keep` leaves some out.
+    let counted: u64 = wide.iter().sum();
+    assert!(counted > 20_000 && counted < 40_000, "{counted}");
+    Ok(())
+}
