@@ -53,6 +53,7 @@ fn node_locator_agrees_with_the_exact_grid() {
         let unit = |shift: u32| ((state >> shift) & 0xFFFF) as f64 / 65_536.0;
         points.push([-4.0 + 17.0 * unit(0), 100.0 + 1.5 * unit(16), -0.5 + 6.0 * unit(32)]);
     }
+    let (mut clear, mut in_root) = (0, 0);
     for p in points {
         for level in [0, 1, 4, 7, 10, 21, 32] {
             assert_eq!(
@@ -60,8 +61,26 @@ fn node_locator_agrees_with_the_exact_grid() {
                 Node::holding(root.grid(p), level).index,
                 "{p:?} at level {level}"
             );
+            // A clear point lies strictly inside its node (the write pass skips the node's
+            // test for it).
+            if let Some(index) = root.locator(level).clear_index(p) {
+                let cube = root.core(Node { level, index });
+                assert!(
+                    (0..3).all(|a| cube.min[a] < p[a] && p[a] < cube.max[a]),
+                    "{p:?} at level {level}"
+                );
+                if level <= 10 {
+                    clear += 1;
+                }
+            }
+            if level <= 10 && root.contains(p) {
+                in_root += 1;
+            }
         }
     }
+    // Nearly every point inside the root at the levels up to 10 (nodes of at least a
+    // thousandth of the root; the finest levels' nodes are a few grid units).
+    assert!(clear <= in_root && clear >= in_root * 99 / 100, "{clear} of {in_root}");
 }
 
 /// Points added on pool threads with private copies, and on a thread of no pool (one
