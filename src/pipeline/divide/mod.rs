@@ -344,6 +344,9 @@ fn scan(feeds: &[Feed<'_>], layout: &PointLayout, options: &DivideOptions) -> Re
     let mut low = [f64::INFINITY; 3];
     let mut high = [f64::NEG_INFINITY; 3];
     let mut digests: Vec<xxhash_rust::xxh3::Xxh3> = feeds.iter().map(|_| xxhash_rust::xxh3::Xxh3::new()).collect();
+    // One source has one order: its blocks are not hashed (xxh3 took about a seventh of
+    // the pass's CPU in a profile of 3 * 10^8 generated points).
+    let order_by_content = feeds.len() > 1;
     let points = stream(
         feeds,
         layout,
@@ -362,7 +365,15 @@ fn scan(feeds: &[Feed<'_>], layout: &PointLayout, options: &DivideOptions) -> Re
                     }
                 }
             });
-            (lo, hi, xxhash_rust::xxh3::xxh3_64(block))
+            (
+                lo,
+                hi,
+                if order_by_content {
+                    xxhash_rust::xxh3::xxh3_64(block)
+                } else {
+                    0
+                },
+            )
         },
         |feed, (lo, hi, digest)| {
             for a in 0..3 {
