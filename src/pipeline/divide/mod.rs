@@ -404,8 +404,7 @@ fn scan(feeds: &[Feed<'_>], layout: &PointLayout, options: &DivideOptions) -> Re
 /// [`crate::sys::with_wide_vectors`], which decodes the positions in AVX2; the loop over a
 /// run of them is a closure that the compiler keeps out of line, for the baseline. (The pass
 /// took 2.94, 2.99, 2.99 s on 3 * 10^8 points against 3.14, 2.96, 4.04 s all baseline,
-/// alternating; the write pass's placement in AVX2 took more CPU than in the baseline, 26.5,
-/// 24.6, 26.3 s of the whole run against 23.9, 23.7, 23.8 s, and stays baseline.)
+/// alternating.)
 struct CountBlock<'a, 'b> {
     layout: &'a PointLayout,
     block: &'a [u8],
@@ -562,6 +561,9 @@ fn placer(record_len: usize) -> Placer {
 /// The write pass's work on one block: its records, in `bins`, grouped by the targets whose
 /// grown cube holds them (a record goes to each of them, in block order), ignoring records
 /// outside `keep`. `LEN`, when not 0, is the layout's record length known at compile time.
+/// Compiled for the baseline only: in AVX2 (`crate::sys::with_wide_vectors`) the placement
+/// took more CPU, 26.5, 24.6, 26.3 s of a whole run of 3 * 10^8 points against 23.9, 23.7,
+/// 23.8 s, alternating.
 fn place_block<const LEN: usize>(
     block: &[u8],
     layout: &PointLayout,
