@@ -651,13 +651,16 @@ impl Lookup {
     #[inline]
     pub fn place_grid(&self, g: [u32; 3], p: [f64; 3], grown: &[Bounds], hit: impl FnMut(u32)) {
         let index = Node::holding(g, self.top.level + self.depth).index;
-        self.place_index(index, p, grown, hit);
+        // The grid coordinates' node and the float point's can differ on a face: the node's
+        // cube decides.
+        self.place_entry(self.cell_entry(index).0, p, self.node.contains(p), grown, hit);
     }
 
     /// [`Lookup::place_grid`] for a point whose grid coordinates are not known.
     #[inline]
     pub fn place(&self, p: [f64; 3], grown: &[Bounds], hit: impl FnMut(u32)) {
-        self.place_index(self.locator.index(p), p, grown, hit);
+        let (entry, in_node) = self.locate(p);
+        self.place_entry(entry, p, in_node, grown, hit);
     }
 
     /// [`Lookup::place`] for a run of points: `hit` gets each point's index in `positions`
@@ -671,13 +674,7 @@ impl Lookup {
         let mut inside = [false; CHUNK];
         for (chunk_index, chunk) in positions.chunks(CHUNK).enumerate() {
             for ((entry, in_node), &p) in entries.iter_mut().zip(&mut inside).zip(chunk) {
-                // A point clear of its node's faces lies inside the lookup's node when its
-                // index does: no test of the node's cube for nearly every point (a tenth of
-                // the write pass). The others get the test.
-                (*entry, *in_node) = match self.locator.clear_index(p) {
-                    Some(index) => self.cell_entry(index),
-                    None => (self.cell_entry(self.locator.exact(p)).0, self.node.contains(p)),
-                };
+                (*entry, *in_node) = self.locate(p);
             }
             for (i, ((&p, &entry), &in_node)) in chunk.iter().zip(&entries).zip(&inside).enumerate() {
                 let at = chunk_index * CHUNK + i;
@@ -702,9 +699,16 @@ impl Lookup {
         (self.cells.get(cell).copied().unwrap_or(!Self::SOLE), inside)
     }
 
-    #[inline]
-    fn place_index(&self, index: [u32; 3], p: [f64; 3], grown: &[Bounds], hit: impl FnMut(u32)) {
-        self.place_entry(self.cell_entry(index).0, p, self.node.contains(p), grown, hit);
+    /// The [`Lookup::cells`] entry for `p`, and whether `p` lies inside the lookup's node.
+    #[inline(always)]
+    fn locate(&self, p: [f64; 3]) -> (u32, bool) {
+        // A point clear of its node's faces lies inside the lookup's node when its index
+        // does: no test of the node's cube for nearly every point (a tenth of the write
+        // pass). The others get the test.
+        match self.locator.clear_index(p) {
+            Some(index) => self.cell_entry(index),
+            None => (self.cell_entry(self.locator.exact(p)).0, self.node.contains(p)),
+        }
     }
 
     /// Calls `hit` with the targets of the cell of `entry` that hold `p`; `in_cell`: whether

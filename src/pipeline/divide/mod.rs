@@ -343,10 +343,13 @@ fn scan(feeds: &[Feed<'_>], layout: &PointLayout, options: &DivideOptions) -> Re
     let bar = progress(options, "bounds", feeds);
     let mut low = [f64::INFINITY; 3];
     let mut high = [f64::NEG_INFINITY; 3];
-    let mut digests: Vec<xxhash_rust::xxh3::Xxh3> = feeds.iter().map(|_| xxhash_rust::xxh3::Xxh3::new()).collect();
     // One source has one order: its blocks are not hashed (xxh3 took about a seventh of
-    // the pass's CPU in a profile of 3 * 10^8 generated points).
+    // the pass's CPU in a profile of 3 * 10^8 generated points) and it has no digest.
     let order_by_content = feeds.len() > 1;
+    let mut digests: Vec<xxhash_rust::xxh3::Xxh3> = match order_by_content {
+        true => feeds.iter().map(|_| xxhash_rust::xxh3::Xxh3::new()).collect(),
+        false => Vec::new(),
+    };
     let points = stream(
         feeds,
         layout,
@@ -365,22 +368,14 @@ fn scan(feeds: &[Feed<'_>], layout: &PointLayout, options: &DivideOptions) -> Re
                     }
                 }
             });
-            (
-                lo,
-                hi,
-                if order_by_content {
-                    xxhash_rust::xxh3::xxh3_64(block)
-                } else {
-                    0
-                },
-            )
+            (lo, hi, order_by_content.then(|| xxhash_rust::xxh3::xxh3_64(block)))
         },
         |feed, (lo, hi, digest)| {
             for a in 0..3 {
                 low[a] = low[a].min(lo[a]);
                 high[a] = high[a].max(hi[a]);
             }
-            if let Some(d) = digests.get_mut(feed) {
+            if let (Some(d), Some(digest)) = (digests.get_mut(feed), digest) {
                 d.update(&digest.to_le_bytes());
             }
             Ok(())
