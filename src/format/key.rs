@@ -144,6 +144,12 @@ impl CubeKey {
         (self.0 & 0xFF) as u8
     }
 
+    /// The cube's side in root units, 2^-depth: built from its bits, where `powi` was a call
+    /// per cube in the solver's loops (the same value: a power of two is exact either way).
+    pub fn side(self) -> f64 {
+        f64::from_bits((1023 - u64::from(self.depth())) << 52)
+    }
+
     /// The 96-bit Morton code of the minimum corner at full resolution.
     pub fn morton(self) -> u128 {
         self.0 >> 8
@@ -339,6 +345,18 @@ mod tests {
         assert!(child.is_ancestor_or_self_of(grandchild));
         assert!(!other.is_ancestor_or_self_of(grandchild));
         assert!(root.is_ancestor_or_self_of(other));
+    }
+
+    #[test]
+    fn a_side_is_the_power_of_one_half() {
+        for depth in 0..=u8::MAX {
+            let key = CubeKey::from_raw(u128::from(depth));
+            assert_eq!(
+                key.side().to_bits(),
+                0.5f64.powi(i32::from(depth)).to_bits(),
+                "depth {depth}"
+            );
+        }
     }
 
     proptest! {

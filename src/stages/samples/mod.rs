@@ -76,7 +76,7 @@ impl Moments {
         if self.weight <= 0 {
             return None;
         }
-        let side = 0.5f64.powi(i32::from(key.depth()));
+        let side = key.side();
         let area = side * side / FIXED_POINT;
         let centre = cube_centre(key);
         let w = self.weight as f64;
@@ -123,7 +123,7 @@ pub const DISAGREEMENT_QUANTILE: f64 = 0.25;
 
 /// A cube's centre in root units.
 pub fn cube_centre(key: CubeKey) -> [f64; 3] {
-    let side = 0.5f64.powi(i32::from(key.depth()));
+    let side = key.side();
     key.coords().map(|c| (f64::from(c) + 0.5) * side)
 }
 

@@ -442,7 +442,7 @@ impl LevelStage {
         let Some(cut) = self.build_cut(base, unit_index)? else {
             return Ok(None);
         };
-        let side = |k: CubeKey| (0.5f64).powi(i32::from(k.depth())) as f32;
+        let side = |k: CubeKey| k.side() as f32;
         let n = cut.keys.len();
         let mut state = State::zeros(n);
         for (c, previous) in cut.previous.iter().enumerate() {
@@ -570,7 +570,7 @@ impl LevelStage {
 
         // Lengths in units of the root side: the discrete problem, and so every iterate, is then
         // the same for a scaled or translated scene.
-        let side = |k: CubeKey| (0.5f64).powi(i32::from(k.depth())) as f32;
+        let side = |k: CubeKey| k.side() as f32;
         let mut frozen: BTreeMap<CubeKey, u32> = BTreeMap::new();
         let mut frozen_cubes: Vec<(CubeKey, Option<Inherited>)> = Vec::new();
         let mut start = Vec::with_capacity(3 * n + 1);

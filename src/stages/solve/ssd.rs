@@ -61,7 +61,7 @@ pub fn evidence(hist: &[f32; BINS]) -> f64 {
 
 /// A cube's side in root units.
 fn side(key: CubeKey) -> f64 {
-    0.5f64.powi(i32::from(key.depth()))
+    key.side()
 }
 
 /// f at `key`'s centre from the values of the cube it inherits from, `source`.
@@ -79,6 +79,43 @@ fn carried(key: CubeKey, source: CubeKey, values: Option<&Inherited>) -> (f64, [
 fn probe(point: [f64; 3]) -> CubeKey {
     let full = |c: f64| (c * 4294967296.0).floor().clamp(0.0, 4294967295.0) as u32;
     CubeKey::from_full_resolution(MAX_DEPTH, full(point[0]), full(point[1]), full(point[2]))
+}
+
+/// Finds the cube of a sorted, distinct list of keys that is a key or holds it.
+struct HoldingCube<'k> {
+    keys: &'k [CubeKey],
+    /// The index the last search found.
+    last: std::cell::Cell<usize>,
+}
+
+impl<'k> HoldingCube<'k> {
+    fn new(keys: &'k [CubeKey]) -> HoldingCube<'k> {
+        HoldingCube {
+            keys,
+            last: std::cell::Cell::new(0),
+        }
+    }
+
+    /// The index of the last key at or below `key` if that key is `key` or holds it. Keys
+    /// asked in order (a unit's nodes) nearly always find the last search's or the next, so
+    /// those are tried before a binary search over the whole list (which was half of
+    /// `cut_samples`' sums).
+    fn find(&self, key: CubeKey) -> Option<usize> {
+        let at_or_below = |i: usize| self.keys.get(i).is_some_and(|k| *k <= key);
+        let last_at_or_below = |i: usize| at_or_below(i) && !at_or_below(i + 1);
+        let hint = self.last.get();
+        let found = if last_at_or_below(hint) {
+            Some(hint)
+        } else if last_at_or_below(hint + 1) {
+            Some(hint + 1)
+        } else {
+            self.keys.partition_point(|k| *k <= key).checked_sub(1)
+        };
+        if let Some(i) = found {
+            self.last.set(i);
+        }
+        found.filter(|&i| self.keys.get(i).is_some_and(|k| k.is_ancestor_or_self_of(key)))
+    }
 }
 
 /// Samples added up (root units).
@@ -256,12 +293,8 @@ fn cut_samples(
         }
     };
     let keys = &cut.keys;
-    // The cut cube that is `key` or holds it.
-    let holding = |key: CubeKey| {
-        keys.partition_point(|k| *k <= key)
-            .checked_sub(1)
-            .filter(|&i| keys.get(i).is_some_and(|k| k.is_ancestor_or_self_of(key)))
-    };
+    let holding = HoldingCube::new(keys);
+    let holding = |key: CubeKey| holding.find(key);
     let sums = std::cell::RefCell::new((
         vec![0.0f64; keys.len()],
         vec![[0.0f64; 3]; keys.len()],
@@ -514,6 +547,34 @@ impl LevelStage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_holding_cube_is_found_in_any_order_of_asking() {
+        // A cut of depth-2 cubes with one octant refined to depth 3, and keys below it.
+        let mut keys: Vec<CubeKey> = (0..64u32)
+            .filter(|i| i % 8 != 3)
+            .map(|i| CubeKey::new(2, i & 3, (i >> 2) & 3, i >> 4))
+            .chain((0..8u32).map(|i| CubeKey::new(3, 2 + (i & 1), (i >> 1) & 1, (i >> 2) & 1)))
+            .collect();
+        keys.sort();
+        let asked: Vec<CubeKey> = (0..512u32)
+            .map(|i| CubeKey::new(4, (i * 7) & 15, ((i * 5) >> 3) & 15, ((i * 3) >> 5) & 15))
+            .chain(keys.iter().copied())
+            .collect();
+        let by_search = |key: CubeKey| {
+            keys.partition_point(|k| *k <= key)
+                .checked_sub(1)
+                .filter(|&i| keys[i].is_ancestor_or_self_of(key))
+        };
+        let mut in_order = asked.clone();
+        in_order.sort();
+        for order in [asked, in_order] {
+            let holding = HoldingCube::new(&keys);
+            for key in order {
+                assert_eq!(holding.find(key), by_search(key), "{key:?}");
+            }
+        }
+    }
 
     /// A node whose samples weigh `weight` (fixed point) in two halves with unit normals
     /// `angle` radians apart.
