@@ -423,8 +423,8 @@ impl SsdProblem {
         };
         let mut diagonal = vec![0.0; n];
         // Where each free cube sits in the support of the cube at hand (u32::MAX: not in it),
-        // so that a term's two supports are matched in one pass (a search per entry took
-        // about a fifth of the solve's CPU outside the iterations).
+        // so that a term's two supports are matched in one pass (a search per entry was a
+        // fifth of this loop's time).
         let mut position = vec![u32::MAX; n];
         let mut difference: Vec<[f64; 3]> = Vec::new();
         for c in 0..n {
