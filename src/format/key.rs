@@ -84,6 +84,31 @@ pub fn sub_axis_bits(a: u128, b: u128) -> u128 {
     (a & AXIS_BITS).wrapping_sub(b) & AXIS_BITS
 }
 
+/// The index of `key` in `sorted` (ascending and distinct), searched from `from` on by
+/// doubling steps and then bisection: keys asked in ascending order are found near the last
+/// one found, where a bisection of the whole slice missed the cache at every step. A key below
+/// `sorted[from]` is searched in the whole slice. The same answer as
+/// `sorted.binary_search(&key).ok()`.
+pub fn find_sorted_from(sorted: &[CubeKey], from: usize, key: CubeKey) -> Option<usize> {
+    if sorted.get(from).is_none_or(|first| key < *first) {
+        return sorted.binary_search(&key).ok();
+    }
+    // sorted[low] <= key < sorted[high], with high = len past the end.
+    let (mut low, mut step) = (from, 1);
+    let high = loop {
+        let probe = from.saturating_add(step);
+        match sorted.get(probe) {
+            Some(k) if *k <= key => {
+                low = probe;
+                step = step.saturating_mul(2);
+            }
+            _ => break probe.min(sorted.len()),
+        }
+    };
+    let window = sorted.get(low..high)?;
+    window.binary_search(&key).ok().map(|i| low + i)
+}
+
 /// Moves bit i of `v` to bit 3i.
 fn spread3(v: u32) -> u128 {
     let mut x = u128::from(v);
@@ -356,6 +381,27 @@ mod tests {
                 0.5f64.powi(i32::from(depth)).to_bits(),
                 "depth {depth}"
             );
+        }
+    }
+
+    #[test]
+    fn a_search_from_a_place_finds_what_bisection_finds() {
+        let sorted: Vec<CubeKey> = (0..300u32)
+            .map(|i| CubeKey::new(9, 3 * i, i % 7, 0))
+            .collect::<std::collections::BTreeSet<_>>()
+            .into_iter()
+            .collect();
+        for probe in (0..400u32)
+            .map(|i| CubeKey::new(9, 3 * i / 2, (i / 2) % 7, 0))
+            .chain([CubeKey::new(0, 0, 0, 0)])
+        {
+            for from in [0, 1, 2, 50, 150, 299, 300, 1000] {
+                assert_eq!(
+                    find_sorted_from(&sorted, from, probe),
+                    sorted.binary_search(&probe).ok(),
+                    "{probe:?} from {from}"
+                );
+            }
         }
     }
 

@@ -9,6 +9,7 @@ use std::collections::BTreeMap;
 use super::ingest::SPIKE_COUNT;
 use super::treetop::Treetop;
 use crate::format::CubeKey;
+use crate::format::key::find_sorted_from;
 use crate::kernels::votes::BINS;
 use crate::store::{Result, Snapshot};
 
@@ -172,17 +173,20 @@ pub fn unit_sampled(
 
 /// [`unit_sampled`] for the cubes `keys` of a level cut.
 pub fn sampled_of(base: &Snapshot<'_>, treetop: &Treetop, keys: &[CubeKey]) -> Result<Vec<bool>> {
-    let mut units: BTreeMap<usize, Option<UnitSampled>> = BTreeMap::new();
+    // Per unit, its nodes and flags, and where the last key was found among its nodes: the cut
+    // keys come in order, so each search starts there.
+    let mut units: BTreeMap<usize, (Option<UnitSampled>, usize)> = BTreeMap::new();
     let mut top = None;
     let mut out = Vec::with_capacity(keys.len());
     for key in keys {
         let unit = treetop.unit_of(*key);
         if let std::collections::btree_map::Entry::Vacant(slot) = units.entry(unit) {
-            slot.insert(unit_sampled(base, treetop, unit, &mut top)?);
+            slot.insert((unit_sampled(base, treetop, unit, &mut top)?, 0));
         }
-        let flag = units.get(&unit).and_then(|entry| {
+        let flag = units.get_mut(&unit).and_then(|(entry, last)| {
             let (nodes, flags) = entry.as_ref()?;
-            let at = nodes.binary_search(key).ok()?;
+            let at = find_sorted_from(nodes, *last, *key)?;
+            *last = at;
             flags.get(at).copied()
         });
         out.push(flag.unwrap_or(false));

@@ -285,17 +285,16 @@ impl Neighbourhood<'_, '_> {
         let Some((group, name)) = segments.group_of(self.treetop.unit_of(key)) else {
             return Ok(None);
         };
-        let values = match self.values.get(&group) {
-            Some(values) => values.clone(),
-            None => {
-                let loaded = Arc::new(read_level_values_where(self.base, name, Some(&self.window))?);
-                self.values.insert(group, loaded.clone());
-                loaded
-            }
-        };
-        Ok(values
-            .find(key)
-            .map(|i| (values.u[i], values.v[i], values.p[i], values.q[i])))
+        if !self.values.contains_key(&group) {
+            let loaded = Arc::new(read_level_values_where(self.base, name, Some(&self.window))?);
+            self.values.insert(group, loaded);
+        }
+        // Borrowed, not cloned: two atomic counts per cut cube were a tenth of this lookup.
+        Ok(self.values.get(&group).and_then(|values| {
+            values
+                .find(key)
+                .map(|i| (values.u[i], values.v[i], values.p[i], values.q[i]))
+        }))
     }
 }
 
