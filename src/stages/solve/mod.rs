@@ -18,6 +18,7 @@ use super::HISTOGRAMS;
 use super::observed::{measured_weight, sampled_of, seen_weight, surface_offset};
 use super::treetop::{Treetop, UnitKeys, children_on_min_face};
 use crate::format::Scene;
+use crate::format::key::find_sorted_from;
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
 use crate::kernels::tgv::{Problem, State};
 use crate::kernels::votes::BINS;
@@ -30,7 +31,7 @@ mod params;
 mod plus_faces;
 mod ssd;
 
-use plus_faces::{KeyPositions, PlusNeighbours};
+use plus_faces::PlusNeighbours;
 
 pub use coarse::{COARSE_ROWS_LEVEL, CoarseRowsCache};
 
@@ -562,10 +563,11 @@ impl LevelStage {
             hist.push(row);
         }
         let n = keys.len();
-        // Two lookups per cube and axis: a binary search over the unit's keys was most of
-        // this loop.
-        let positions: KeyPositions = keys.iter().zip(0u32..).map(|(k, i)| (*k, i)).collect();
-        let index_of = |k: CubeKey| positions.get(&k).copied();
+        // Up to two lookups per cube and axis. A `+` neighbour (or the leaf holding it) sorts
+        // after its cube, mostly a few keys on, so each search starts at the cube's own index:
+        // a hash table of the keys missed the cache twice a lookup (half of this function in
+        // `perf`), and a binary search over the whole cut was most of this loop before that.
+        let index_of = |from: usize, k: CubeKey| find_sorted_from(&keys, from, k).map(|i| i as u32);
 
         // Lengths in units of the root side: the discrete problem, and so every iterate, is then
         // the same for a scaled or translated scene.
@@ -575,12 +577,12 @@ impl LevelStage {
         let mut start = Vec::with_capacity(3 * n + 1);
         start.push(0u32);
         let mut terms: Vec<(u32, f32)> = Vec::with_capacity(3 * n);
-        for &key in &keys {
+        for (at, &key) in keys.iter().enumerate() {
             for axis in 0..3 {
                 let neighbours = match key.plus_neighbour(axis) {
                     None => PlusNeighbours::default(),
                     // A neighbour in the unit's own cut is a cut cube: no need to ask the octree.
-                    Some(n0) => match index_of(n0) {
+                    Some(n0) => match index_of(at, n0) {
                         Some(i) => PlusNeighbours::one(n0, Some(i)),
                         None => match hood.node(n0)? {
                             Some(leaf) if leaf || n0.depth() == level => PlusNeighbours::one(n0, None),
@@ -603,7 +605,7 @@ impl LevelStage {
                 let count = neighbours.len() as f32;
                 for (neighbour, known) in neighbours.iter() {
                     let w = 1.0 / (count * 0.5 * (side(key) + side(neighbour)));
-                    let target = match known.or_else(|| index_of(neighbour)) {
+                    let target = match known.or_else(|| index_of(at, neighbour)) {
                         Some(i) => i,
                         None => {
                             let slot = match frozen.get(&neighbour) {

@@ -2,9 +2,6 @@
 
 use crate::format::CubeKey;
 
-/// Each cut key's position in the unit's sorted keys.
-pub(super) type KeyPositions = std::collections::HashMap<CubeKey, u32, foldhash::fast::FixedState>;
-
 /// The cubes across one `+` face of a cut cube (none, one, or the four children on its side),
 /// each with its position in the cut when already known; no allocation per face.
 #[derive(Default)]
