@@ -84,14 +84,14 @@ pub fn sub_axis_bits(a: u128, b: u128) -> u128 {
     (a & AXIS_BITS).wrapping_sub(b) & AXIS_BITS
 }
 
-/// The index of `key` in `sorted` (ascending and distinct), searched from `from` on by
-/// doubling steps and then bisection: keys asked in ascending order are found near the last
-/// one found, where a bisection of the whole slice missed the cache at every step. A key below
-/// `sorted[from]` is searched in the whole slice. The same answer as
-/// `sorted.binary_search(&key).ok()`.
-pub fn find_sorted_from(sorted: &[CubeKey], from: usize, key: CubeKey) -> Option<usize> {
+/// The index of the last key at or below `key` in `sorted` (ascending and distinct), searched
+/// from `from` on by doubling steps and then bisection: keys asked in ascending order are
+/// found near the last one found, where a bisection of the whole slice missed the cache at
+/// every step. A key below `sorted[from]` is searched in the whole slice. The same answer as
+/// `sorted.partition_point(|k| *k <= key).checked_sub(1)`.
+pub fn last_at_or_below_from(sorted: &[CubeKey], from: usize, key: CubeKey) -> Option<usize> {
     if sorted.get(from).is_none_or(|first| key < *first) {
-        return sorted.binary_search(&key).ok();
+        return sorted.partition_point(|k| *k <= key).checked_sub(1);
     }
     // sorted[low] <= key < sorted[high], with high = len past the end.
     let (mut low, mut step) = (from, 1);
@@ -106,7 +106,13 @@ pub fn find_sorted_from(sorted: &[CubeKey], from: usize, key: CubeKey) -> Option
         }
     };
     let window = sorted.get(low..high)?;
-    window.binary_search(&key).ok().map(|i| low + i)
+    (low + window.partition_point(|k| *k <= key)).checked_sub(1)
+}
+
+/// The index of `key` in `sorted` (ascending and distinct), searched as
+/// [`last_at_or_below_from`] does. The same answer as `sorted.binary_search(&key).ok()`.
+pub fn find_sorted_from(sorted: &[CubeKey], from: usize, key: CubeKey) -> Option<usize> {
+    last_at_or_below_from(sorted, from, key).filter(|&i| sorted.get(i) == Some(&key))
 }
 
 /// Moves bit i of `v` to bit 3i.
@@ -399,6 +405,11 @@ mod tests {
                 assert_eq!(
                     find_sorted_from(&sorted, from, probe),
                     sorted.binary_search(&probe).ok(),
+                    "{probe:?} from {from}"
+                );
+                assert_eq!(
+                    last_at_or_below_from(&sorted, from, probe),
+                    sorted.partition_point(|k| *k <= probe).checked_sub(1),
                     "{probe:?} from {from}"
                 );
             }

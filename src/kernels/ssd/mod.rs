@@ -380,21 +380,27 @@ impl SsdProblem {
         length
     }
 
+    /// Where cube c's slots start in [`supports`](Self::supports)' entries: one per term of
+    /// the rows before it, and one more per cube before it.
+    fn support_slot(&self, c: usize) -> usize {
+        c + self.start.get(3 * c).copied().unwrap_or(0) as usize
+    }
+
     /// Every free cube's [`support_into`](Self::support_into), packed: cube c's take the
     /// slots from c plus the index of its first term (one per term and one more), of which the
     /// first `lengths[c]` are written. One allocation for all, and the supports of
     /// neighbouring cubes lie side by side.
     fn supports(&self) -> (Vec<u32>, Vec<(u32, [f64; 3])>) {
         let n = self.n;
-        let first_slot = |c: usize| c + self.start.get(3 * c).copied().unwrap_or(0) as usize;
-        let mut entries = vec![(0u32, [0.0; 3]); first_slot(n)];
+        let mut entries = vec![(0u32, [0.0; 3]); self.support_slot(n)];
         let mut lengths = vec![0u32; n];
         // Each piece of cubes writes its own run of slots.
         let mut runs = Vec::with_capacity(n.div_ceil(PIECE));
         let mut rest = entries.as_mut_slice();
         for piece_start in (0..n).step_by(PIECE) {
             let end = (piece_start + PIECE).min(n);
-            let (run, tail) = rest.split_at_mut((first_slot(end) - first_slot(piece_start)).min(rest.len()));
+            let (run, tail) =
+                rest.split_at_mut((self.support_slot(end) - self.support_slot(piece_start)).min(rest.len()));
             runs.push((piece_start, run));
             rest = tail;
         }
@@ -403,7 +409,7 @@ impl SsdProblem {
             .for_each(|((piece_start, run), lengths)| {
                 for (i, length) in lengths.iter_mut().enumerate() {
                     let c = piece_start + i;
-                    let from = first_slot(c) - first_slot(piece_start);
+                    let from = self.support_slot(c) - self.support_slot(piece_start);
                     let written = self.support_into(c, run.get_mut(from..).unwrap_or_default());
                     *length = written as u32;
                 }
@@ -417,7 +423,7 @@ impl SsdProblem {
         let n = self.n;
         let (lengths, entries) = self.supports();
         let support = |c: usize| {
-            let from = c + self.start.get(3 * c).copied().unwrap_or(0) as usize;
+            let from = self.support_slot(c);
             let length = lengths.get(c).copied().unwrap_or(0) as usize;
             entries.get(from..from + length).unwrap_or_default()
         };

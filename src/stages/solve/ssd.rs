@@ -10,6 +10,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use rayon::prelude::*;
 
 use super::{Inherited, LevelStage, LevelUnitExtra, LevelValues, ObservedColumns, UnitCut, columns_of};
+use crate::format::key::last_at_or_below_from;
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
 use crate::kernels::ssd::{CubeSamples, Solved, SsdProblem, UNSAMPLED_ANCHOR, solve};
 use crate::stages::observed::{measured_weight, seen_weight};
@@ -98,19 +99,10 @@ impl<'k> HoldingCube<'k> {
 
     /// The index of the last key at or below `key` if that key is `key` or holds it. Keys
     /// asked in order (a unit's nodes) nearly always find the last search's or the next, so
-    /// those are tried before a binary search over the whole list (which was half of
-    /// `cut_samples`' sums).
+    /// the search starts there ([`last_at_or_below_from`]): a binary search over the whole
+    /// list was half of `cut_samples`' sums.
     fn find(&self, key: CubeKey) -> Option<usize> {
-        let at_or_below = |i: usize| self.keys.get(i).is_some_and(|k| *k <= key);
-        let last_at_or_below = |i: usize| at_or_below(i) && !at_or_below(i + 1);
-        let hint = self.last.get();
-        let found = if last_at_or_below(hint) {
-            Some(hint)
-        } else if last_at_or_below(hint + 1) {
-            Some(hint + 1)
-        } else {
-            self.keys.partition_point(|k| *k <= key).checked_sub(1)
-        };
+        let found = last_at_or_below_from(self.keys, self.last.get(), key);
         if let Some(i) = found {
             self.last.set(i);
         }
