@@ -62,6 +62,39 @@ fn main() {
         smoothness: DEFAULT_SMOOTHNESS,
         ..SsdProblem::default()
     };
+    // What a level unit computes besides the iterations, each timed on its own, the fastest of
+    // five (a solve computes each once, the energy twice). The first right-hand side also
+    // builds the reverse lists, which the later ones and the product reuse.
+    let warm: Vec<f64> = (0..cubes).map(|c| (c % 7) as f64 * 1e-3).collect();
+    let per_cube = |seconds: f64| seconds * 1e9 / cubes as f64;
+    let started = Instant::now();
+    std::hint::black_box(problem.rhs());
+    println!(
+        "ssd right-hand side with the reverse lists: {:.1} ns a cube",
+        per_cube(started.elapsed().as_secs_f64())
+    );
+    let timed = |name: &str, work: &dyn Fn()| {
+        let fastest = (0..5)
+            .map(|_| {
+                let started = Instant::now();
+                work();
+                started.elapsed().as_secs_f64()
+            })
+            .fold(f64::INFINITY, f64::min);
+        println!("ssd {name}: {:.1} ns a cube", per_cube(fastest));
+    };
+    timed("right-hand side", &|| {
+        std::hint::black_box(problem.rhs());
+    });
+    timed("diagonal", &|| {
+        std::hint::black_box(problem.diagonal());
+    });
+    timed("energy", &|| {
+        std::hint::black_box(problem.energy(&warm));
+    });
+    timed("product with its packing", &|| {
+        std::hint::black_box(problem.apply(&warm));
+    });
     let mut f = vec![0.0; cubes];
     let started = Instant::now();
     let solved = solve(&problem, &mut f, 1e-4, iterations);

@@ -190,8 +190,23 @@ impl MomentColumn {
     }
 }
 
-/// A unit's keys and moments from its samples segment.
-pub fn read_samples(snapshot: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeKey>, Vec<Moments>)> {
+/// A samples segment's rows as they decoded, read row by row: building every row's
+/// [`Moments`] first wrote and read 56 bytes a row again.
+pub struct SampleRows(RunBlock);
+
+impl SampleRows {
+    /// Each row's key and moments, in key order.
+    pub fn iter(&self) -> impl Iterator<Item = (CubeKey, Moments)> + '_ {
+        self.0
+            .keys
+            .iter()
+            .enumerate()
+            .map(|(row, key)| (*key, self.0.moments(row)))
+    }
+}
+
+/// A unit's rows from its samples segment.
+pub fn read_sample_rows(snapshot: &Snapshot<'_>, segment: &str) -> Result<SampleRows> {
     let file = snapshot.open_segment(segment)?;
     let reader = file.reader()?;
     let c = |e| file.corruption(e);
@@ -200,15 +215,21 @@ pub fn read_samples(snapshot: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeK
         Ok(MomentColumn::of(reader.read_column(name).map_err(c)?.values))
     };
     let (weight, offset, normal) = (moment(SAMPLE_WEIGHT)?, moment(SAMPLE_OFFSET)?, moment(SAMPLE_NORMAL)?);
-    let rows = weight
+    weight
         .zip(offset)
         .zip(normal)
         .and_then(|((weight, offset), normal)| RunBlock::new(keys, weight, offset, normal))
+        .map(SampleRows)
         .ok_or_else(|| {
             file.corruption(crate::format::DecodeError::MissingColumn(
                 "sample_weight, sample_offset, sample_normal of the keys' length".into(),
             ))
-        })?;
+        })
+}
+
+/// A unit's keys and moments from its samples segment.
+pub fn read_samples(snapshot: &Snapshot<'_>, segment: &str) -> Result<(Vec<CubeKey>, Vec<Moments>)> {
+    let SampleRows(rows) = read_sample_rows(snapshot, segment)?;
     let moments = rows.all_moments();
     Ok((rows.keys, moments))
 }

@@ -14,7 +14,9 @@ use crate::format::key::last_at_or_below_from;
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
 use crate::kernels::ssd::{CubeSamples, Solved, SsdProblem, UNSAMPLED_ANCHOR, solve};
 use crate::stages::observed::{measured_weight, seen_weight};
-use crate::stages::samples::{Moments, SAMPLES, cube_centre, normal_disagreement, read_samples};
+use crate::stages::samples::{
+    Moments, SAMPLES, SampleRows, cube_centre, normal_disagreement, read_sample_rows, read_samples,
+};
 use crate::stages::treetop::Treetop;
 use crate::store::catalog;
 use crate::store::{Result, Snapshot, StoreError};
@@ -78,7 +80,9 @@ fn carried(key: CubeKey, source: CubeKey, values: Option<&Inherited>) -> (f64, [
 
 /// The finest key holding a point in root units.
 fn probe(point: [f64; 3]) -> CubeKey {
-    let full = |c: f64| (c * 4294967296.0).floor().clamp(0.0, 4294967295.0) as u32;
+    // floor, then clamped to [0, 2^32 - 1]: the cast truncates (floor for what is not
+    // negative) and saturates (negatives and NaN to 0), without the call `floor` is here.
+    let full = |c: f64| ((c * 4294967296.0) as u64).min(u64::from(u32::MAX)) as u32;
     CubeKey::from_full_resolution(MAX_DEPTH, full(point[0]), full(point[1]), full(point[2]))
 }
 
@@ -278,9 +282,9 @@ fn cut_samples(
         unit: format!("unit {unit}"),
         message: "no samples for this unit: run the samples stage first".into(),
     };
-    let read = |unit: usize| -> Result<(Vec<CubeKey>, Vec<Moments>)> {
+    let read = |unit: usize| -> Result<SampleRows> {
         match segments.get(&(unit as u64)) {
-            Some(name) => read_samples(base, name),
+            Some(name) => read_sample_rows(base, name),
             None => Err(missing(unit)),
         }
     };
@@ -303,6 +307,17 @@ fn cut_samples(
             }
         }
     };
+    // The centre of the cut cube that took the last node's samples: consecutive nodes
+    // mostly go to the same one, and decoding its key's coordinates again was most of this.
+    let last_centre = std::cell::Cell::new(None::<(usize, [f64; 3])>);
+    let centre_of = |i: usize| match last_centre.get() {
+        Some((last, centre)) if last == i => centre,
+        _ => {
+            let centre = keys.get(i).map_or([0.0; 3], |key| cube_centre(*key));
+            last_centre.set(Some((i, centre)));
+            centre
+        }
+    };
     let add = |node: CubeKey, m: &Moments| {
         let Some((w, centroid, n)) = m.in_root_units(node) else {
             return;
@@ -310,7 +325,7 @@ fn cut_samples(
         let Some(i) = holding(probe(centroid)) else {
             return;
         };
-        let centre = cube_centre(keys[i]);
+        let centre = centre_of(i);
         gather(i, w, std::array::from_fn(|k| w * (centroid[k] - centre[k])), n);
     };
     let top = treetop.units.iter().position(|u| u.top);
@@ -318,8 +333,7 @@ fn cut_samples(
     // Every node of unit `index`, through its coarse sums at the coarse levels.
     let add_unit = |index: usize| -> Result<()> {
         if level >= COARSE_LEVELS {
-            let (node_keys, moments) = read(index)?;
-            node_keys.iter().zip(&moments).for_each(|(k, m)| add(*k, m));
+            read(index)?.iter().for_each(|(k, m)| add(k, &m));
             return Ok(());
         }
         let segment = segments.get(&(index as u64)).ok_or_else(|| missing(index))?;
@@ -331,7 +345,7 @@ fn cut_samples(
             .unwrap_or_default()
         {
             if let Some(i) = holding(*ancestor) {
-                let centre = cube_centre(keys[i]);
+                let centre = centre_of(i);
                 let offset = std::array::from_fn(|k| totals.position[k] - totals.weight * centre[k]);
                 gather(i, totals.weight, offset, totals.normal);
             }
@@ -360,14 +374,13 @@ fn cut_samples(
     match top {
         Some(top) if members.contains(&top) => {}
         Some(top) => {
-            let (node_keys, moments) = read(top)?;
-            for (k, m) in node_keys.iter().zip(&moments) {
+            for (k, m) in read(top)?.iter() {
                 if members
                     .iter()
                     .filter_map(|&member| treetop.units.get(member))
-                    .any(|unit| k.is_ancestor_or_self_of(unit.key) && *k != unit.key)
+                    .any(|unit| k.is_ancestor_or_self_of(unit.key) && k != unit.key)
                 {
-                    add(*k, m);
+                    add(k, &m);
                 }
             }
         }
@@ -539,6 +552,41 @@ impl LevelStage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_probe_floors_and_clamps_as_floor_and_clamp_do() {
+        let reference = |point: [f64; 3]| {
+            let full = |c: f64| (c * 4294967296.0).floor().clamp(0.0, 4294967295.0) as u32;
+            CubeKey::from_full_resolution(MAX_DEPTH, full(point[0]), full(point[1]), full(point[2]))
+        };
+        let tiny = f64::from_bits(1);
+        let edges = [
+            0.0,
+            -0.0,
+            tiny,
+            -tiny,
+            0.25,
+            0.5 - f64::EPSILON,
+            0.5,
+            1.0 - f64::EPSILON,
+            1.0,
+            1.5,
+            -0.3,
+            -1e300,
+            1e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            2.3283064365386963e-10,
+        ];
+        for x in edges {
+            for y in edges {
+                for z in [0.75, x, -y] {
+                    assert_eq!(probe([x, y, z]), reference([x, y, z]), "{x} {y} {z}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn the_holding_cube_is_found_in_any_order_of_asking() {
