@@ -28,22 +28,33 @@ impl Drop for ReaderPin {
     fn drop(&mut self) {
         // Closing the file releases the lock; a file left behind is removed by the next gc.
         let _ = fs::remove_file(&self.path);
+        // The folder goes with the last pin (removing a folder that still holds pins fails),
+        // so that reading a store leaves its files as they were; `pin` makes it again.
+        if let Some(dir) = self.path.parent() {
+            let _ = fs::remove_dir(dir);
+        }
     }
 }
+
+/// How many times [`pin`] makes the folder and its file, where a reader dropping the last pin
+/// removed the folder in between.
+const PIN_ATTEMPTS: usize = 3;
 
 /// Pins `version` of the store at `root`. `None` where no pin can be written (a read-only
 /// file system): the reader then runs unprotected, and learns from a failed segment open
 /// that gc collected its version.
 pub fn pin(root: &Path, version: u64) -> Option<ReaderPin> {
     let dir = root.join(PINS_DIR);
-    fs::create_dir_all(&dir).ok()?;
     let name = format!(
         "v{version:020}-p{}-{}{PIN_SUFFIX}",
         std::process::id(),
         NEXT_PIN.fetch_add(1, Ordering::Relaxed)
     );
     let path = dir.join(name);
-    let file = File::create(&path).ok()?;
+    let file = (0..PIN_ATTEMPTS).find_map(|_| {
+        fs::create_dir_all(&dir).ok()?;
+        File::create(&path).ok()
+    })?;
     if file.lock_shared().is_err() {
         let _ = fs::remove_file(&path);
         return None;
@@ -113,5 +124,11 @@ mod tests {
         assert_eq!(live_pinned_versions(dir.path()).unwrap(), vec![7]);
         drop(b);
         assert!(live_pinned_versions(dir.path()).unwrap().is_empty());
+        // The last pin took the folder with it: reading a store leaves no trace.
+        assert!(!dir.path().join(PINS_DIR).exists());
+        let c = pin(dir.path(), 9).unwrap();
+        assert_eq!(live_pinned_versions(dir.path()).unwrap(), vec![9]);
+        drop(c);
+        assert!(!dir.path().join(PINS_DIR).exists());
     }
 }
