@@ -80,8 +80,9 @@ fn carried(key: CubeKey, source: CubeKey, values: Option<&Inherited>) -> (f64, [
 
 /// The finest key holding a point in root units.
 fn probe(point: [f64; 3]) -> CubeKey {
-    // floor, then clamped to [0, 2^32 - 1]: the cast truncates (floor for what is not
-    // negative) and saturates (negatives and NaN to 0), without the call `floor` is here.
+    // floor, then clamped to [0, 2^32 - 1]: the cast truncates (the floor of what is not
+    // negative) and saturates (negatives and NaN to 0), where `floor` is a library call on
+    // the baseline x86-64 this is built for.
     let full = |c: f64| ((c * 4294967296.0) as u64).min(u64::from(u32::MAX)) as u32;
     CubeKey::from_full_resolution(MAX_DEPTH, full(point[0]), full(point[1]), full(point[2]))
 }
@@ -308,7 +309,7 @@ fn cut_samples(
         }
     };
     // The centre of the cut cube that took the last node's samples: consecutive nodes
-    // mostly go to the same one, and decoding its key's coordinates again was most of this.
+    // mostly go to the same one, whose key's coordinates were decoded again for each.
     let last_centre = std::cell::Cell::new(None::<(usize, [f64; 3])>);
     let centre_of = |i: usize| match last_centre.get() {
         Some((last, centre)) if last == i => centre,
