@@ -22,20 +22,26 @@ trap 'rm -rf "$work"' EXIT
 stride=$((1000 / frames))
 "$bin" --memory-budget "$memory" --quiet ingest "$work/voted" "$data" --stride "$stride" --limit "$frames" --max-depth 10 --sample-sums >/dev/null
 "$bin" --memory-budget "$memory" --quiet solve "$work/voted" --until histograms >/dev/null
-# One solve of a copy: "wall user peak_MiB samples_stage".
+# One solve of a copy: sets wall, user, peak (MiB) and samples (SSD's samples stage, or -).
 solve() {
   rm -rf "$work/copy"
   cp -r "$work/voted" "$work/copy"
-  /usr/bin/time -f '%e %U %M' -o "$work/time" "$bin" --memory-budget "$memory" solve "$work/copy" --method "$1" --quiet >"$work/log"
+  if ! /usr/bin/time -f '%e %U %M' -o "$work/time" "$bin" --memory-budget "$memory" solve "$work/copy" --method "$1" --quiet >"$work/log"; then
+    echo "tools/ssd-vs-tgv.sh: solve --method $1 failed (its error is above)" >&2
+    exit 1
+  fi
+  local peak_kib
   read -r wall user peak_kib <"$work/time"
+  peak=$((peak_kib / 1024))
   samples=$(sed -n 's/^samples .*| \([0-9.]*\)s | peak.*/\1/p' "$work/log")
-  echo "$wall $user $((peak_kib / 1024)) ${samples:--}"
+  samples=${samples:--}
 }
 printf '%-6s %-6s %-9s %-9s %-9s %-9s %s\n' round method wall_s user_s peak_MiB samples_s ssd/tgv
 for round in $(seq 1 "$rounds"); do
-  read -r tgv_wall tgv_user tgv_peak _ <<<"$(solve tgv)"
-  printf '%-6s %-6s %-9s %-9s %-9s %-9s\n' "$round" tgv "$tgv_wall" "$tgv_user" "$tgv_peak" -
-  read -r ssd_wall ssd_user ssd_peak ssd_samples <<<"$(solve ssd)"
-  ratio=$(awk -v s="$ssd_wall" -v t="$tgv_wall" 'BEGIN { printf "%.2f", s / t }')
-  printf '%-6s %-6s %-9s %-9s %-9s %-9s %s\n' "$round" ssd "$ssd_wall" "$ssd_user" "$ssd_peak" "$ssd_samples" "$ratio"
+  solve tgv
+  tgv_wall=$wall
+  printf '%-6s %-6s %-9s %-9s %-9s %-9s\n' "$round" tgv "$wall" "$user" "$peak" -
+  solve ssd
+  ratio=$(awk -v s="$wall" -v t="$tgv_wall" 'BEGIN { printf "%.2f", s / t }')
+  printf '%-6s %-6s %-9s %-9s %-9s %-9s %s\n' "$round" ssd "$wall" "$user" "$peak" "$samples" "$ratio"
 done
