@@ -436,8 +436,6 @@ impl SsdProblem {
         for c in 0..n {
             let (s, h) = (self.samples[c], self.side[c]);
             let h2 = h * h;
-            // pair_weight's factor, once per cube rather than once per term.
-            let h5 = h2 * h2 * h;
             diagonal[c] += self.anchor_weight(c);
             let own = support(c);
             for (index, (j, coefficient)) in own.iter().enumerate() {
@@ -453,7 +451,7 @@ impl SsdProblem {
             // coefficient less g_t's: the order of the adds to each diagonal entry, and so
             // every bit, is that of a pass over the merged supports.
             for (t, w) in (0..3).flat_map(|axis| self.row(3 * c + axis)) {
-                let sigma = self.smoothness * f64::from(*w) * h5;
+                let sigma = self.pair_weight(c, *w);
                 difference.clear();
                 difference.extend(own.iter().map(|(_, coefficient)| *coefficient));
                 if (*t as usize) < n {

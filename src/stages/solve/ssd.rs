@@ -62,11 +62,6 @@ pub fn evidence(hist: &[f32; BINS]) -> f64 {
     f64::from(((share - NO_EVIDENCE) / (FULL_EVIDENCE - NO_EVIDENCE)).clamp(0.0, 1.0))
 }
 
-/// A cube's side in root units.
-fn side(key: CubeKey) -> f64 {
-    key.side()
-}
-
 /// f at `key`'s centre from the values of the cube it inherits from, `source`.
 fn carried(key: CubeKey, source: CubeKey, values: Option<&Inherited>) -> (f64, [f64; 3]) {
     let Some((u, v, _, _)) = values else {
@@ -472,7 +467,7 @@ impl LevelStage {
             n: cut.keys.len(),
             start: cut.start.clone(),
             terms: cut.terms.clone(),
-            side: cut.keys.iter().map(|k| side(*k)).collect(),
+            side: cut.keys.iter().map(|k| k.side()).collect(),
             samples,
             anchor: start.clone(),
             frozen_f,
