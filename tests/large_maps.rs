@@ -79,10 +79,12 @@ fn a_map_larger_than_the_budget_ingests_in_bounded_memory_into_the_same_store() 
         let peak_small = ingest(&small, input, "32MiB");
         let peak_large = ingest(&large, input, "8GiB");
         assert_same_store(&fingerprint(&small), &fingerprint(&large), name);
-        // The whole-map path holds the map's cubes in one table plus its columns (about
-        // 0.27 GB); the streaming path a 32 MiB budget's share plus the process itself.
+        // The whole-map path holds the map's cubes in one table plus its columns (about 90 MB
+        // more than the streaming path's peak: the table keeps 32-byte totals and index slots;
+        // with 96-byte sums per slot it was about 0.27 GB); the streaming path a 32 MiB
+        // budget's share plus the process itself.
         assert!(
-            peak_large > peak_small + 100.0,
+            peak_large > peak_small + 50.0,
             "{name}: the reference did not hold the map in memory ({peak_large} MB, {peak_small} MB at 32 MiB)"
         );
         assert!(peak_small < 150.0, "{name}: {peak_small} MB at a 32 MiB budget");

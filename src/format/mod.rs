@@ -12,7 +12,7 @@ mod world;
 
 pub use key::{CubeKey, MAX_DEPTH};
 pub use segment::{Column, ColumnShape, ColumnValues, ElementType, SegmentReader, SegmentSummary};
-pub use world::{BoundingBox, META_SCENE, RADIUS_FRACTION_BITS, Scene, round_half_away_from_zero};
+pub use world::{BoundingBox, META_SCENE, RADIUS_FRACTION_BITS, RadiusDepths, Scene, round_half_away_from_zero};
 
 #[cfg(target_endian = "big")]
 compile_error!("octstore stores little-endian columns and reinterprets them in place");

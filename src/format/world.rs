@@ -105,9 +105,22 @@ impl Scene {
         DVec3::from_array(self.root_min)
     }
 
+    /// `p` as a fraction of the root cube on each axis, in [0, 1) inside it: what
+    /// [`Scene::contains`] and [`Scene::key_at`] both compute first, so that a caller asking
+    /// both divides once ([`Scene::fraction_inside`], [`Scene::key_at_fraction`]).
+    #[inline]
+    pub fn root_fraction(&self, p: DVec3) -> DVec3 {
+        (p - self.min()) / self.root_side
+    }
+
     /// Whether `p` lies in the root cube.
     pub fn contains(&self, p: DVec3) -> bool {
-        let q = (p - self.min()) / self.root_side;
+        Scene::fraction_inside(self.root_fraction(p))
+    }
+
+    /// Whether a [`Scene::root_fraction`] lies in the root cube.
+    #[inline]
+    pub fn fraction_inside(q: DVec3) -> bool {
         q.cmpge(DVec3::ZERO).all() && q.cmplt(DVec3::ONE).all()
     }
 
@@ -124,7 +137,12 @@ impl Scene {
 
     /// The key of the cube at `depth` containing `p` (which must be inside the root).
     pub fn key_at(&self, p: DVec3, depth: u8) -> CubeKey {
-        let q = (p - self.min()) / self.root_side;
+        Scene::key_at_fraction(self.root_fraction(p), depth)
+    }
+
+    /// [`Scene::key_at`] of the point whose [`Scene::root_fraction`] is `q`.
+    #[inline]
+    pub fn key_at_fraction(q: DVec3, depth: u8) -> CubeKey {
         // Clamped first, the float-to-int cast truncates a non-negative value, which is its
         // floor: the same key as `floor().clamp()`, without a call to libm's floor (the
         // crate's baseline x86-64 has no rounding instruction).
@@ -168,6 +186,56 @@ impl Scene {
             return f64::NAN;
         }
         sum as f64 / f64::from(count) / 2f64.powi(RADIUS_FRACTION_BITS) * self.root_radius()
+    }
+}
+
+/// [`Scene::depth_for_radius`] by comparisons, for a scene's ingest: per depth d from 1 to the
+/// scene's max depth, the largest radius to which the formula gives d or deeper, found by
+/// bisection over the formula itself. The formula is non-increasing in r (a quotient, a log
+/// and a floor, each monotone), so a positive finite radius's depth is the number of
+/// thresholds it does not exceed: the formula's depth to the bit, without the division, the
+/// libm `log2` and the `floor` it costs on every sample.
+#[derive(Clone, Debug)]
+pub struct RadiusDepths {
+    scene: Scene,
+    /// `thresholds[d - 1]`: the largest radius of depth d or deeper; decreasing in d.
+    thresholds: Vec<f64>,
+}
+
+impl RadiusDepths {
+    /// The thresholds of `scene`'s depths (a few thousand evaluations of the formula).
+    pub fn new(scene: &Scene) -> RadiusDepths {
+        let thresholds = (1..=scene.max_depth)
+            .map(|depth| {
+                // Bit patterns of positive finite doubles order as the doubles do. The
+                // smallest one has the deepest depth there is and the largest one depth 0, so
+                // the bisection keeps depth(lo) >= depth > depth(hi).
+                let (mut lo, mut hi) = (1u64, f64::MAX.to_bits());
+                while hi - lo > 1 {
+                    let mid = lo + (hi - lo) / 2;
+                    if scene.depth_for_radius(f64::from_bits(mid)) >= depth {
+                        lo = mid;
+                    } else {
+                        hi = mid;
+                    }
+                }
+                f64::from_bits(lo)
+            })
+            .collect();
+        RadiusDepths {
+            scene: *scene,
+            thresholds,
+        }
+    }
+
+    /// [`Scene::depth_for_radius`] of `r`.
+    #[inline]
+    pub fn depth(&self, r: f64) -> u8 {
+        if r > 0.0 && r <= f64::MAX {
+            self.thresholds.partition_point(|t| r <= *t) as u8
+        } else {
+            self.scene.depth_for_radius(r)
+        }
     }
 }
 
@@ -260,6 +328,40 @@ mod tests {
                 0.75 * r <= cube_radius && cube_radius < 1.5 * r,
                 "r {r} d {d} cube {cube_radius}"
             );
+        }
+    }
+
+    #[test]
+    fn radius_depths_give_the_formulas_depth_at_and_around_every_threshold() {
+        for (side, max_depth) in [(10.0, 32u8), (3.7, 10), (0.01, 12), (1e6, 0)] {
+            let scene = Scene::around(DVec3::ZERO, DVec3::splat(side), 0.05, max_depth);
+            let depths = RadiusDepths::new(&scene);
+            let mut radii = vec![
+                0.0,
+                -0.0,
+                -1.0,
+                f64::MIN_POSITIVE,
+                1e-300,
+                f64::MAX,
+                f64::INFINITY,
+                f64::NAN,
+            ];
+            for t in &depths.thresholds {
+                let bits = t.to_bits();
+                radii.extend((bits - 3..=bits + 3).map(f64::from_bits));
+            }
+            let mut state = 11u64;
+            for _ in 0..100_000 {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let r = state >> 11;
+                // Radii from 1e-12 to 1e4 times the root's side, log-uniform.
+                radii.push(side * 10f64.powf((r % 1_000_000) as f64 / 1_000_000.0 * 16.0 - 12.0));
+            }
+            for r in radii {
+                assert_eq!(depths.depth(r), scene.depth_for_radius(r), "side {side} r {r:e}");
+            }
         }
     }
 

@@ -20,21 +20,123 @@ use crate::format::{Column, ColumnShape, ColumnValues, CubeKey};
 use crate::stages::samples::{Moments, moment_columns};
 use crate::store::{Result, SegmentContent, SegmentSpill, StoreError};
 
-/// A sample's contribution to its cube: key, quantised radius, spike, SSD moments.
-pub(super) type Entry = (CubeKey, u64, bool, Moments);
-
-/// Bytes a cube costs in memory while buffered and once merged into columns: its slot in the
-/// table (with a control byte, at the table's 7/8 load), the sorted copy, and its row in the
-/// in-memory columns.
-pub(super) const BYTES_PER_CUBE: u64 =
-    ((size_of::<(CubeKey, CubeSums)>() + 1) * 8 / 7 + size_of::<CubeSums>() + 16 + 8 + 4 + 4 + 7 * 8) as u64;
+/// Bytes a cube costs in memory while buffered and once merged into columns: its index slot
+/// (with a control byte, at the table's 7/8 load), its totals and moments, its place in the
+/// sorted order, and its row in the in-memory columns.
+pub(super) const BYTES_PER_CUBE: u64 = ((size_of::<(CubeKey, usize)>() + 1) * 8 / 7
+    + size_of::<CubeTotals>()
+    + size_of::<Moments>()
+    + size_of::<(CubeKey, usize)>()
+    + 16
+    + 8
+    + 4
+    + 4
+    + 7 * 8) as u64;
 
 /// Sample entries per cube the table is first sized for (RedKitchen at `--max-depth 10`: 4.1;
 /// the table grows where there are fewer).
 const EXPECTED_ENTRIES_PER_CUBE: usize = 4;
 
-/// The per-cube sums being gathered. Its order is never observed: cubes leave it sorted.
-type SumsTable = std::collections::HashMap<CubeKey, CubeSums, foldhash::fast::FixedState>;
+/// The per-cube sums being gathered: every cube's totals in the order the cubes first came (and
+/// its moments beside them, in runs that carry moments), and each cube's place there by key.
+/// An index slot and a cube's totals are 32 bytes each where whole sums were 96, so more of
+/// both stays in cache on the lookup every entry makes, and the drain sorts places instead of
+/// sums (sorting 96-byte sums was most of a map's drain). The order of the totals is never
+/// observed: cubes leave the table sorted by key.
+struct SumsTable {
+    index: std::collections::HashMap<CubeKey, usize, foldhash::fast::FixedState>,
+    totals: Vec<CubeTotals>,
+    /// Beside `totals`, when the runs carry moments; else empty.
+    moments: Vec<Moments>,
+    with_moments: bool,
+}
+
+/// A [`CubeSums`] without its moments.
+#[derive(Clone, Copy)]
+struct CubeTotals {
+    key: CubeKey,
+    radius_sum: u64,
+    count: u32,
+    spikes: u32,
+}
+
+impl SumsTable {
+    fn with_capacity(cubes: usize, with_moments: bool) -> SumsTable {
+        SumsTable {
+            index: std::collections::HashMap::with_capacity_and_hasher(cubes, foldhash::fast::FixedState::default()),
+            totals: Vec::with_capacity(cubes),
+            moments: Vec::with_capacity(if with_moments { cubes } else { 0 }),
+            with_moments,
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.totals.len()
+    }
+
+    fn is_empty(&self) -> bool {
+        self.totals.is_empty()
+    }
+
+    /// Adds `sums` to its cube's, if the table holds that cube; else hands `sums` back.
+    fn add_to_existing(&mut self, sums: CubeSums) -> Option<CubeSums> {
+        let Some(&at) = self.index.get(&sums.key) else {
+            return Some(sums);
+        };
+        if let Some(totals) = self.totals.get_mut(at) {
+            totals.radius_sum += sums.radius_sum;
+            totals.count += sums.count;
+            totals.spikes += sums.spikes;
+        }
+        if let Some(moments) = self.moments.get_mut(at) {
+            moments.add(&sums.moments);
+        }
+        None
+    }
+
+    /// Adds a cube the table does not hold.
+    fn insert_new(&mut self, sums: CubeSums) {
+        self.index.insert(sums.key, self.totals.len());
+        self.totals.push(CubeTotals {
+            key: sums.key,
+            radius_sum: sums.radius_sum,
+            count: sums.count,
+            spikes: sums.spikes,
+        });
+        if self.with_moments {
+            self.moments.push(sums.moments);
+        }
+    }
+
+    /// Empties the table into `each` in key order (keys are unique: no two cubes compare
+    /// equal), with zero moments in runs without them. The table keeps its memory: a spilling
+    /// map holds one table at a time.
+    fn drain_in_key_order(&mut self, mut each: impl FnMut(CubeSums) -> Result<()>) -> Result<()> {
+        let mut order: Vec<(CubeKey, usize)> = self.totals.iter().enumerate().map(|(at, c)| (c.key, at)).collect();
+        order.sort_unstable_by_key(|(key, _)| *key);
+        self.index.clear();
+        let result = order.into_iter().try_for_each(|(_, at)| {
+            let Some(totals) = self.totals.get(at) else {
+                return Ok(());
+            };
+            each(CubeSums {
+                key: totals.key,
+                radius_sum: totals.radius_sum,
+                count: totals.count,
+                spikes: totals.spikes,
+                moments: self.moments.get(at).copied().unwrap_or_default(),
+            })
+        });
+        self.totals.clear();
+        self.moments.clear();
+        result
+    }
+
+    /// Frees the table's memory.
+    fn release(&mut self) {
+        *self = SumsTable::with_capacity(0, self.with_moments);
+    }
+}
 
 /// Rows per batch appended to a spilled segment.
 const SPILL_BATCH_ROWS: usize = 1 << 16;
@@ -53,16 +155,6 @@ struct CubeSums {
 const RECORD_LEN: usize = 16 + 8 + 4 + 4 + 7 * 8;
 
 impl CubeSums {
-    fn of(entry: &Entry) -> CubeSums {
-        CubeSums {
-            key: entry.0,
-            radius_sum: entry.1,
-            count: 1,
-            spikes: u32::from(entry.2),
-            moments: entry.3,
-        }
-    }
-
     fn add(&mut self, other: &CubeSums) {
         self.radius_sum += other.radius_sum;
         self.count += other.count;
@@ -119,13 +211,6 @@ impl CubeSums {
             moments: Moments { weight, offset, normal },
         }
     }
-}
-
-/// Empties `table` into `each` in key order (keys are unique: no two cubes compare equal).
-fn drain_in_key_order(table: &mut SumsTable, mut each: impl FnMut(CubeSums) -> Result<()>) -> Result<()> {
-    let mut cubes: Vec<CubeSums> = table.drain().map(|(_, sums)| sums).collect();
-    cubes.sort_unstable_by_key(|c| c.key);
-    cubes.into_iter().try_for_each(&mut each)
 }
 
 /// Column builders for cube sums.
@@ -211,37 +296,48 @@ impl<'a> CubeRuns<'a> {
             capacity,
             with_moments,
             current: None,
-            table: SumsTable::with_capacity_and_hasher(
-                capacity.min(expected / EXPECTED_ENTRIES_PER_CUBE),
-                foldhash::fast::FixedState::default(),
-            ),
+            table: SumsTable::with_capacity(capacity.min(expected / EXPECTED_ENTRIES_PER_CUBE), with_moments),
             runs: Vec::new(),
         }
     }
 
-    pub(super) fn push(&mut self, entry: Entry) -> Result<()> {
-        let sums = CubeSums::of(&entry);
-        match &mut self.current {
-            Some(current) if current.key == sums.key => {
-                current.add(&sums);
-                Ok(())
+    /// Adds one sample's entry. Its fields come as arguments, in registers: an entry built in
+    /// memory just before is read back here with wider loads than its fields were stored
+    /// with, which stalls each sample.
+    pub(super) fn push(&mut self, key: CubeKey, radius_sum: u64, spike: bool, moments: &Moments) -> Result<()> {
+        if let Some(current) = &mut self.current
+            && current.key == key
+        {
+            current.radius_sum += radius_sum;
+            current.count += 1;
+            current.spikes += u32::from(spike);
+            // Runs without moment columns are given zero moments: nothing to add.
+            if self.with_moments {
+                current.moments.add(moments);
             }
-            _ => match self.current.replace(sums) {
-                Some(done) => self.add_to_table(done),
-                None => Ok(()),
-            },
+            return Ok(());
+        }
+        let sums = CubeSums {
+            key,
+            radius_sum,
+            count: 1,
+            spikes: u32::from(spike),
+            moments: *moments,
+        };
+        match self.current.replace(sums) {
+            Some(done) => self.add_to_table(done),
+            None => Ok(()),
         }
     }
 
     fn add_to_table(&mut self, sums: CubeSums) -> Result<()> {
-        if let Some(cube) = self.table.get_mut(&sums.key) {
-            cube.add(&sums);
+        let Some(sums) = self.table.add_to_existing(sums) else {
             return Ok(());
-        }
+        };
         if self.table.len() >= self.capacity {
             self.spill()?;
         }
-        self.table.insert(sums.key, sums);
+        self.table.insert_new(sums);
         Ok(())
     }
 
@@ -253,8 +349,7 @@ impl<'a> CubeRuns<'a> {
         let mut out = BufWriter::with_capacity(1 << 16, file);
         let mut record = [0u8; RECORD_LEN];
         let error = scratch_error(self.scratch, "write scratch in");
-        // The table keeps its memory: a spilling map holds one table at a time.
-        drain_in_key_order(&mut self.table, |c| {
+        self.table.drain_in_key_order(|c| {
             c.encode(&mut record);
             out.write_all(&record).map_err(&error)
         })?;
@@ -271,11 +366,11 @@ impl<'a> CubeRuns<'a> {
         }
         if self.runs.is_empty() {
             let mut columns = CubeColumns::empty(self.with_moments);
-            drain_in_key_order(&mut self.table, |c| {
+            self.table.drain_in_key_order(|c| {
                 columns.push(c);
                 Ok(())
             })?;
-            drop(std::mem::take(&mut self.table));
+            self.table.release();
             let cubes = columns.len() as u64;
             return Ok(((cubes > 0).then(|| columns.into_columns().into()), cubes));
         }
@@ -356,6 +451,9 @@ impl<'a> CubeRuns<'a> {
 mod tests {
     use super::*;
 
+    /// A sample's contribution to its cube: key, quantised radius, spike, SSD moments.
+    type Entry = (CubeKey, u64, bool, Moments);
+
     fn entry(key: u32, radius: u64, spike: bool, weight: i64) -> Entry {
         let moments = Moments {
             weight,
@@ -388,7 +486,7 @@ mod tests {
         for with_moments in [true, false] {
             let mut whole = CubeRuns::new(dir.path(), usize::MAX, 100, with_moments);
             for e in &entries {
-                whole.push(*e).unwrap();
+                whole.push(e.0, e.1, e.2, &e.3).unwrap();
             }
             let (content, cubes) = whole.finish().unwrap();
             let expected = columns_of(content.unwrap());
@@ -396,7 +494,7 @@ mod tests {
             for capacity in [1, 7, 499, 699] {
                 let mut runs = CubeRuns::new(dir.path(), capacity, 100, with_moments);
                 for e in &entries {
-                    runs.push(*e).unwrap();
+                    runs.push(e.0, e.1, e.2, &e.3).unwrap();
                 }
                 let (content, spilled_cubes) = runs.finish().unwrap();
                 assert_eq!(spilled_cubes, cubes);

@@ -29,7 +29,7 @@ pub use growth::{
 
 use super::INGEST;
 use super::samples::Moments;
-use crate::format::{META_SCENE, Scene};
+use crate::format::{META_SCENE, RadiusDepths, Scene};
 use crate::inputs::{DepthMapSource, DepthNoise, InputError, Projection};
 use crate::store::catalog::{self, META, UnitRecord};
 use crate::store::{Plan, Replace, Result, SegmentContent, Snapshot, Stage, Store, StoreError, UnitOutput, UnitSpec};
@@ -190,6 +190,8 @@ pub fn records_sample_sums(store: &Store) -> Result<bool> {
 pub struct IngestStage {
     /// The scene the new maps are keyed in (grown, if they needed it).
     scene: Scene,
+    /// The scene's depth of a sample's radius, by comparisons.
+    radius_depths: RadiusDepths,
     scene_is_new: bool,
     /// The runs carry the SSD sample moments ([`META_SAMPLE_SUMS`]).
     sample_sums: bool,
@@ -363,6 +365,7 @@ impl IngestStage {
             }
         }
         Ok(IngestStage {
+            radius_depths: RadiusDepths::new(&scene),
             scene,
             scene_is_new,
             sample_sums,
@@ -409,20 +412,21 @@ impl IngestStage {
             if failure.is_some() {
                 return;
             }
-            if !self.scene.contains(sample.point) {
+            let fraction = self.scene.root_fraction(sample.point);
+            if !Scene::fraction_inside(fraction) {
                 outside += 1;
                 consistent_outside += u64::from(!sample.spike);
                 return;
             }
-            let depth = self.scene.depth_for_radius(sample.radius);
-            let key = self.scene.key_at(sample.point, depth);
+            let depth = self.radius_depths.depth(sample.radius);
+            let key = Scene::key_at_fraction(fraction, depth);
             // Spikes and samples without a normal say nothing SSD can use.
             let moments = if !self.sample_sums || sample.spike || sample.normal == DVec3::ZERO {
                 Moments::default()
             } else {
                 Moments::of_sample(&self.scene, key, sample.point, sample.area * weight, sample.normal)
             };
-            if let Err(e) = runs.push((key, self.scene.quantize_radius(sample.radius), sample.spike, moments)) {
+            if let Err(e) = runs.push(key, self.scene.quantize_radius(sample.radius), sample.spike, &moments) {
                 failure = Some(e);
             }
         };
