@@ -60,6 +60,18 @@ struct CubeTotals {
     spikes: u32,
 }
 
+impl CubeTotals {
+    fn with_moments(&self, moments: Moments) -> CubeSums {
+        CubeSums {
+            key: self.key,
+            radius_sum: self.radius_sum,
+            count: self.count,
+            spikes: self.spikes,
+            moments,
+        }
+    }
+}
+
 impl SumsTable {
     fn with_capacity(cubes: usize, with_moments: bool) -> SumsTable {
         SumsTable {
@@ -112,20 +124,24 @@ impl SumsTable {
     /// equal), with zero moments in runs without them. The table keeps its memory: a spilling
     /// map holds one table at a time.
     fn drain_in_key_order(&mut self, mut each: impl FnMut(CubeSums) -> Result<()>) -> Result<()> {
+        self.index.clear();
+        if !self.with_moments {
+            // Totals are as small as places: sort them themselves, and read them in order.
+            self.totals.sort_unstable_by_key(|totals| totals.key);
+            let result = self
+                .totals
+                .iter()
+                .try_for_each(|totals| each(totals.with_moments(Moments::default())));
+            self.totals.clear();
+            return result;
+        }
         let mut order: Vec<(CubeKey, usize)> = self.totals.iter().enumerate().map(|(at, c)| (c.key, at)).collect();
         order.sort_unstable_by_key(|(key, _)| *key);
-        self.index.clear();
         let result = order.into_iter().try_for_each(|(_, at)| {
             let Some(totals) = self.totals.get(at) else {
                 return Ok(());
             };
-            each(CubeSums {
-                key: totals.key,
-                radius_sum: totals.radius_sum,
-                count: totals.count,
-                spikes: totals.spikes,
-                moments: self.moments.get(at).copied().unwrap_or_default(),
-            })
+            each(totals.with_moments(self.moments.get(at).copied().unwrap_or_default()))
         });
         self.totals.clear();
         self.moments.clear();
