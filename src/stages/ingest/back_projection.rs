@@ -122,31 +122,46 @@ pub struct Sample {
     pub area: f64,
 }
 
+/// A map's median valid depth and its number of valid pixels ([`SampleStream::median`]).
+pub type DepthMedian = (f32, u64);
+
 /// A map's samples, produced row by row.
 pub struct SampleStream<'r> {
     source: &'r DepthMapSource,
     rows: Box<dyn DepthRowSource + 'r>,
+    median: DepthMedian,
     /// Depths beyond it are absurd.
     limit: f32,
-    valid: u64,
 }
 
 impl<'r> SampleStream<'r> {
     /// Measures the median depth of `rows` (two passes) and stands ready for the samples.
     pub fn new(source: &'r DepthMapSource, mut rows: Box<dyn DepthRowSource + 'r>) -> Result<Self, InputError> {
-        let (median, valid) = exact_median(rows.as_mut())?;
+        let median = exact_median(rows.as_mut())?;
         rows.rewind()?;
-        Ok(SampleStream {
+        Ok(SampleStream::with_median(source, rows, median))
+    }
+
+    /// As [`SampleStream::new`] on rows not yet read, whose map's [`SampleStream::median`] an
+    /// earlier pass over the same map measured (root sizing reads every new map before ingest
+    /// does: the median is a function of the map alone).
+    pub fn with_median(source: &'r DepthMapSource, rows: Box<dyn DepthRowSource + 'r>, median: DepthMedian) -> Self {
+        SampleStream {
             source,
             rows,
-            limit: median * ABSURD_DEPTH_FACTOR,
-            valid,
-        })
+            median,
+            limit: median.0 * ABSURD_DEPTH_FACTOR,
+        }
+    }
+
+    /// The map's median valid depth and its number of valid pixels.
+    pub fn median(&self) -> DepthMedian {
+        self.median
     }
 
     /// Pixels with a valid (finite, positive) depth.
     pub fn valid_pixels(&self) -> u64 {
-        self.valid
+        self.median.1
     }
 
     /// Calls `each` with every sample, in row-major order, and returns the map's statistics.
@@ -176,7 +191,7 @@ impl<'r> SampleStream<'r> {
         let (width, height) = (self.rows.width() as usize, self.rows.height() as usize);
         let mut stats = SampleStats {
             pixels: (width * height) as u64,
-            invalid: (width * height) as u64 - self.valid,
+            invalid: (width * height) as u64 - self.median.1,
             ..SampleStats::default()
         };
         let wraps = matches!(self.source.projection, Projection::Spherical);

@@ -12,7 +12,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 use redb::ReadableTable;
 
-use super::{bounds_sample, input_error, map_samples, robust_bounds};
+use super::{DepthMedian, bounds_sample, input_error, map_samples, robust_bounds};
 use crate::format::{Column, ColumnValues, META_SCENE, Scene};
 use crate::inputs::DepthMapSource;
 use crate::store::catalog::{self, META};
@@ -63,27 +63,35 @@ pub fn root_is_fixed(store: &Store) -> Result<bool> {
     Ok(meta.get(META_ROOT_FIXED)?.is_some())
 }
 
+/// The root's doublings, and beside the new maps each one's median depth.
+pub type GrowthAndMedians = (Vec<[u32; 3]>, Vec<Option<DepthMedian>>);
+
 /// The doublings that let `scene` hold every new map's samples: the union of each map's robust
 /// box (0.1 % to 99.9 % per axis, spikes left out, as the first ingest sizes its root), so a
-/// map that sees a far corner is not trimmed away by the others.
-pub fn growth_for(scene: &Scene, maps: &[(u64, DepthMapSource)], map_memory: u64) -> Result<Vec<[u32; 3]>> {
-    let boxes: Vec<Option<(DVec3, DVec3)>> = maps
+/// map that sees a far corner is not trimmed away by the others. Also each map's median depth,
+/// which this pass measures anyway.
+pub fn growth_for(scene: &Scene, maps: &[(u64, DepthMapSource)], map_memory: u64) -> Result<GrowthAndMedians> {
+    let measured: Vec<(Option<(DVec3, DVec3)>, DepthMedian)> = maps
         .par_iter()
         .map(|(_, source)| {
-            let sample = bounds_sample(map_samples(source, map_memory)?, 20_000).map_err(input_error)?;
-            Ok(robust_bounds(&sample))
+            let stream = map_samples(source, map_memory, None)?;
+            let median = stream.median();
+            let sample = bounds_sample(stream, 20_000).map_err(input_error)?;
+            Ok((robust_bounds(&sample), median))
         })
         .collect::<Result<_>>()?;
+    let medians = measured.iter().map(|(_, median)| Some(*median)).collect();
+    let boxes: Vec<Option<(DVec3, DVec3)>> = measured.into_iter().map(|(b, _)| b).collect();
     let Some((lo, hi)) = boxes
         .iter()
         .flatten()
         .copied()
         .reduce(|(lo, hi), (l, h)| (lo.min(l), hi.max(h)))
     else {
-        return Ok(Vec::new());
+        return Ok((Vec::new(), medians));
     };
     if let Some(octants) = scene.growth_to_hold(lo, hi, GROWTH_MARGIN, MAX_DOUBLINGS_PER_INGEST) {
-        return Ok(octants);
+        return Ok((octants, medians));
     }
     // Name the map that reaches farthest beyond the root.
     let beyond = |(l, h): (DVec3, DVec3)| {

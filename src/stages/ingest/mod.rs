@@ -19,7 +19,8 @@ mod cube_runs;
 mod growth;
 
 pub use back_projection::{
-    DepthRowSource, ImageRows, Sample, SampleStream, Samples, back_project, bounds_sample, open_rows, robust_bounds,
+    DepthMedian, DepthRowSource, ImageRows, Sample, SampleStream, Samples, back_project, bounds_sample, open_rows,
+    robust_bounds,
 };
 
 pub use growth::{
@@ -202,6 +203,8 @@ pub struct IngestStage {
     growth: Option<(Scene, Vec<[u32; 3]>)>,
     /// New depth maps, ordered by id.
     maps: Vec<(u64, DepthMapSource)>,
+    /// Beside `maps` (or empty): each map's median depth, where a pass before ingest measured it.
+    medians: Vec<Option<DepthMedian>>,
     /// Memory for one depth map in flight ([`memory_per_map`]).
     map_memory: u64,
     /// Where maps too large for `map_memory` spill their runs (scratch files are unlinked at
@@ -297,6 +300,8 @@ impl IngestStage {
                 ),
             });
         }
+        // Each new map's median depth, where root sizing or growth measured it first.
+        let mut medians: Vec<Option<DepthMedian>> = Vec::new();
         let (scene, scene_is_new) = match read_scene(store)? {
             Some(scene) => (scene, false),
             None => {
@@ -308,15 +313,18 @@ impl IngestStage {
                     },
                     None => {
                         let map_memory = memory_per_map(options.memory_budget);
-                        let per_map: Vec<Vec<DVec3>> = maps
+                        let per_map: Vec<(Vec<DVec3>, DepthMedian)> = maps
                             .par_iter()
                             .map(|(_, source)| {
                                 // At most ~200,000 points in total, whatever the number of maps.
                                 let per_map = (200_000 / maps.len().max(1)).max(64);
-                                bounds_sample(map_samples(source, map_memory)?, per_map).map_err(input_error)
+                                let stream = map_samples(source, map_memory, None)?;
+                                let median = stream.median();
+                                Ok((bounds_sample(stream, per_map).map_err(input_error)?, median))
                             })
                             .collect::<Result<_>>()?;
-                        let points: Vec<DVec3> = per_map.into_iter().flatten().collect();
+                        medians = per_map.iter().map(|(_, median)| Some(*median)).collect();
+                        let points: Vec<DVec3> = per_map.into_iter().flat_map(|(points, _)| points).collect();
                         let Some((lo, hi)) = robust_bounds(&points) else {
                             return Err(StoreError::Stage {
                                 stage: INGEST.into(),
@@ -351,7 +359,8 @@ impl IngestStage {
         let mut growth = None;
         let mut scene = scene;
         if !scene_is_new && !root_is_fixed && !maps.is_empty() {
-            let octants = growth::growth_for(&scene, &maps, memory_per_map(options.memory_budget))?;
+            let octants;
+            (octants, medians) = growth::growth_for(&scene, &maps, memory_per_map(options.memory_budget))?;
             if !octants.is_empty() {
                 let old = scene;
                 for octant in &octants {
@@ -372,6 +381,7 @@ impl IngestStage {
             root_is_fixed,
             growth,
             maps,
+            medians,
             map_memory: memory_per_map(options.memory_budget),
             scratch: store.scratch_path(INGEST),
         })
@@ -394,8 +404,13 @@ impl IngestStage {
     /// counts, and the SSD solver's sample moments, `stages::samples`); `None` without cubes.
     /// Memory stays within the map's share of the budget whatever its size: rows are read a
     /// few at a time and cube entries spill to sorted runs (`cube_runs.rs`).
-    pub fn cubes(&self, source: &DepthMapSource) -> Result<(Option<SegmentContent>, SampleStats)> {
-        let stream = map_samples(source, self.map_memory / 4)?;
+    /// The cubes of `source`'s samples; `median`: its median depth, if already measured.
+    pub fn cubes(
+        &self,
+        source: &DepthMapSource,
+        median: Option<DepthMedian>,
+    ) -> Result<(Option<SegmentContent>, SampleStats)> {
+        let stream = map_samples(source, self.map_memory / 4, median)?;
         let capacity = (self.map_memory * 3 / 4 / cube_runs::BYTES_PER_CUBE).max(1 << 12) as usize;
         let mut runs = CubeRuns::new(
             &self.scratch,
@@ -464,9 +479,12 @@ impl IngestStage {
 }
 
 /// `source`'s samples, its rows in memory when they take at most `memory` bytes.
-fn map_samples(source: &DepthMapSource, memory: u64) -> Result<SampleStream<'_>> {
+fn map_samples(source: &DepthMapSource, memory: u64, median: Option<DepthMedian>) -> Result<SampleStream<'_>> {
     let rows = open_rows(source, memory).map_err(input_error)?;
-    SampleStream::new(source, rows).map_err(input_error)
+    match median {
+        Some(median) => Ok(SampleStream::with_median(source, rows, median)),
+        None => SampleStream::new(source, rows).map_err(input_error),
+    }
 }
 
 #[derive(Serialize, Deserialize)]
@@ -524,7 +542,8 @@ impl Stage for IngestStage {
             unit: unit.label.clone(),
             message: "unit out of range".into(),
         })?;
-        let (content, stats) = self.cubes(source)?;
+        let median = self.medians.get(unit.id as usize).copied().flatten();
+        let (content, stats) = self.cubes(source, median)?;
         Ok(UnitOutput {
             segments: content.into_iter().collect(),
             extra: catalog::encode(&IngestUnitExtra { id: *id, stats }),
