@@ -206,12 +206,12 @@ impl<'r> SampleStream<'r> {
             horizontal: vec![None; width],
             wraps,
         };
-        // A sampled row needs its own camera points and its neighbours', and the steps down
-        // from the row above; rows that are neither hold stale points nobody reads.
         // A row's samples are handed on once the row is done: `each` reads a sample long after
         // it was written, not right after its fields' stores, which it read back as wider
         // loads that cannot be forwarded from them (a stall on every sample, a tenth of ingest).
         let mut row_samples: Vec<Sample> = Vec::with_capacity(width);
+        // A sampled row needs its own camera points and its neighbours', and the steps down
+        // from the row above; rows that are neither hold stale points nobody reads.
         let sampled = |j: usize| j % row_step == row_step / 2;
         let beside_sampled = |j: usize| sampled(j) || sampled(j + 1) || j.checked_sub(1).is_some_and(sampled);
         if height > 0 {

@@ -403,8 +403,8 @@ impl IngestStage {
     /// One depth map's cubes, merged by key, as one segment (keys, radius sums, counts, spike
     /// counts, and the SSD solver's sample moments, `stages::samples`); `None` without cubes.
     /// Memory stays within the map's share of the budget whatever its size: rows are read a
-    /// few at a time and cube entries spill to sorted runs (`cube_runs.rs`).
-    /// The cubes of `source`'s samples; `median`: its median depth, if already measured.
+    /// few at a time and cube entries spill to sorted runs (`cube_runs.rs`). `median`: the
+    /// map's median depth, where a pass before ingest measured it.
     pub fn cubes(
         &self,
         source: &DepthMapSource,
