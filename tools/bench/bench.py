@@ -300,7 +300,9 @@ def interior(work, out_dir):
 
 def invented_area(mesh, frames, voxel):
     """The fraction of the mesh's area farther than 3 finest cubes from every input sample (the
-    RedKitchen frames' pixels, every second one), from 200,000 area-uniform samples."""
+    RedKitchen frames' pixels, every second one), from 200,000 area-uniform samples, drawn with a
+    fixed seed so that the same mesh gives the same figure (unseeded, one mesh's figure moved by
+    about a tenth between runs: 0.69 and 0.62 %)."""
     import numpy as np
     import open3d as o3d
 
@@ -314,6 +316,7 @@ def invented_area(mesh, frames, voxel):
         y = (jj[keep] - intrinsic[1, 2]) * z[keep] / intrinsic[1, 1]
         points.append((pose @ np.stack([x, y, z[keep], np.ones_like(x)]))[:3].T)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points)))
+    o3d.utility.random.seed(1)
     samples = o3d.io.read_triangle_mesh(str(mesh)).sample_points_uniformly(200000)
     distances = np.asarray(samples.compute_point_cloud_distance(cloud))
     return float((distances > 3 * voxel).mean())
