@@ -12,7 +12,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 use redb::ReadableTable;
 
-use super::{DepthMedian, bounds_sample, input_error, map_samples, robust_bounds};
+use super::{DepthMedian, bounds_and_median, robust_bounds};
 use crate::format::{Column, ColumnValues, META_SCENE, Scene};
 use crate::inputs::DepthMapSource;
 use crate::store::catalog::{self, META};
@@ -64,7 +64,7 @@ pub fn root_is_fixed(store: &Store) -> Result<bool> {
 }
 
 /// The root's doublings, and beside the new maps each one's median depth.
-pub type GrowthAndMedians = (Vec<[u32; 3]>, Vec<Option<DepthMedian>>);
+pub type GrowthAndMedians = (Vec<[u32; 3]>, Vec<DepthMedian>);
 
 /// The doublings that let `scene` hold every new map's samples: the union of each map's robust
 /// box (0.1 % to 99.9 % per axis, spikes left out, as the first ingest sizes its root), so a
@@ -74,13 +74,11 @@ pub fn growth_for(scene: &Scene, maps: &[(u64, DepthMapSource)], map_memory: u64
     let measured: Vec<(Option<(DVec3, DVec3)>, DepthMedian)> = maps
         .par_iter()
         .map(|(_, source)| {
-            let stream = map_samples(source, map_memory, None)?;
-            let median = stream.median();
-            let sample = bounds_sample(stream, 20_000).map_err(input_error)?;
+            let (sample, median) = bounds_and_median(source, map_memory, 20_000)?;
             Ok((robust_bounds(&sample), median))
         })
         .collect::<Result<_>>()?;
-    let medians = measured.iter().map(|(_, median)| Some(*median)).collect();
+    let medians = measured.iter().map(|(_, median)| *median).collect();
     let boxes: Vec<Option<(DVec3, DVec3)>> = measured.into_iter().map(|(b, _)| b).collect();
     let Some((lo, hi)) = boxes
         .iter()

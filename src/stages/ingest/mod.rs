@@ -204,7 +204,7 @@ pub struct IngestStage {
     /// New depth maps, ordered by id.
     maps: Vec<(u64, DepthMapSource)>,
     /// Beside `maps` (or empty): each map's median depth, where a pass before ingest measured it.
-    medians: Vec<Option<DepthMedian>>,
+    medians: Vec<DepthMedian>,
     /// Memory for one depth map in flight ([`memory_per_map`]).
     map_memory: u64,
     /// Where maps too large for `map_memory` spill their runs (scratch files are unlinked at
@@ -301,7 +301,7 @@ impl IngestStage {
             });
         }
         // Each new map's median depth, where root sizing or growth measured it first.
-        let mut medians: Vec<Option<DepthMedian>> = Vec::new();
+        let mut medians: Vec<DepthMedian> = Vec::new();
         let (scene, scene_is_new) = match read_scene(store)? {
             Some(scene) => (scene, false),
             None => {
@@ -318,12 +318,10 @@ impl IngestStage {
                             .map(|(_, source)| {
                                 // At most ~200,000 points in total, whatever the number of maps.
                                 let per_map = (200_000 / maps.len().max(1)).max(64);
-                                let stream = map_samples(source, map_memory, None)?;
-                                let median = stream.median();
-                                Ok((bounds_sample(stream, per_map).map_err(input_error)?, median))
+                                bounds_and_median(source, map_memory, per_map)
                             })
                             .collect::<Result<_>>()?;
-                        medians = per_map.iter().map(|(_, median)| Some(*median)).collect();
+                        medians = per_map.iter().map(|(_, median)| *median).collect();
                         let points: Vec<DVec3> = per_map.into_iter().flat_map(|(points, _)| points).collect();
                         let Some((lo, hi)) = robust_bounds(&points) else {
                             return Err(StoreError::Stage {
@@ -479,6 +477,14 @@ impl IngestStage {
 }
 
 /// `source`'s samples, its rows in memory when they take at most `memory` bytes.
+/// The root-sizing sample of `count` points of `source` ([`bounds_sample`]) and its median
+/// depth, which that pass measures and the map's ingest then need not measure again.
+fn bounds_and_median(source: &DepthMapSource, memory: u64, count: usize) -> Result<(Vec<DVec3>, DepthMedian)> {
+    let stream = map_samples(source, memory, None)?;
+    let median = stream.median();
+    Ok((bounds_sample(stream, count).map_err(input_error)?, median))
+}
+
 fn map_samples(source: &DepthMapSource, memory: u64, median: Option<DepthMedian>) -> Result<SampleStream<'_>> {
     let rows = open_rows(source, memory).map_err(input_error)?;
     match median {
@@ -542,7 +548,7 @@ impl Stage for IngestStage {
             unit: unit.label.clone(),
             message: "unit out of range".into(),
         })?;
-        let median = self.medians.get(unit.id as usize).copied().flatten();
+        let median = self.medians.get(unit.id as usize).copied();
         let (content, stats) = self.cubes(source, median)?;
         Ok(UnitOutput {
             segments: content.into_iter().collect(),
