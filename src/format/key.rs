@@ -124,6 +124,37 @@ fn spread3(v: u32) -> u128 {
     x
 }
 
+/// `SPREAD_BYTE[b]`: bit i of the byte `b` at bit 3i (24 bits), [`spread3`] of one byte.
+const SPREAD_BYTE: [u32; 256] = {
+    let mut table = [0u32; 256];
+    let mut b = 0;
+    while b < 256 {
+        let mut bit = 0;
+        while bit < 8 {
+            table[b] |= ((b as u32 >> bit) & 1) << (3 * bit);
+            bit += 1;
+        }
+        b += 1;
+    }
+    table
+};
+
+/// `spread3(x) | spread3(y) << 1 | spread3(z) << 2`, a byte of each axis at a time from a
+/// 1 KiB table: 12 lookups and 64-bit shifts instead of the 30 masked 128-bit shifts of three
+/// [`spread3`] calls (ingest encodes a key for every sample; the shifts were a fifth of its
+/// per-sample work in `perf annotate`).
+#[inline]
+fn interleave3(x: u32, y: u32, z: u32) -> u128 {
+    // Bytes k of the three coordinates interleave into bits 24k to 24k + 23.
+    let bytes = |k: u32| -> u64 {
+        let spread = |v: u32| u64::from(SPREAD_BYTE[((v >> (8 * k)) & 0xff) as usize]);
+        spread(x) | spread(y) << 1 | spread(z) << 2
+    };
+    let low = bytes(0) | bytes(1) << 24;
+    let high = bytes(2) | bytes(3) << 24;
+    u128::from(low) | u128::from(high) << 48
+}
+
 /// Inverse of [`spread3`] for the bits at positions 3i.
 fn compact3(code: u128) -> u32 {
     let mut x = code & spread_mask(1);
@@ -150,8 +181,7 @@ impl CubeKey {
 
     /// Key from the full-resolution (32-bit) minimum corner; low bits below `depth` must be zero.
     pub fn from_full_resolution(depth: u8, fx: u32, fy: u32, fz: u32) -> CubeKey {
-        let morton = spread3(fx) | (spread3(fy) << 1) | (spread3(fz) << 2);
-        CubeKey((morton << 8) | u128::from(depth))
+        CubeKey((interleave3(fx, fy, fz) << 8) | u128::from(depth))
     }
 
     /// The key of the cube at `depth` whose minimum corner has the 96-bit Morton code `code`
@@ -365,6 +395,26 @@ impl redb::Key for CubeKeyColumn {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    proptest! {
+        #[test]
+        fn the_byte_table_interleaves_as_the_bit_spreads_do(x: u32, y: u32, z: u32) {
+            prop_assert_eq!(interleave3(x, y, z), spread3(x) | spread3(y) << 1 | spread3(z) << 2);
+        }
+    }
+
+    #[test]
+    fn the_byte_table_interleaves_single_bits_and_extremes() {
+        let mut values = vec![0, u32::MAX, 0x8000_0000, 0x7fff_ffff];
+        values.extend((0..32).map(|bit| 1u32 << bit));
+        for &x in &values {
+            for &y in &values {
+                for &z in &values {
+                    assert_eq!(interleave3(x, y, z), spread3(x) | spread3(y) << 1 | spread3(z) << 2);
+                }
+            }
+        }
+    }
 
     #[test]
     fn ancestor_sorts_before_descendants() {

@@ -176,8 +176,16 @@ impl Scene {
 
     /// Fixed-point encoding of a radius (see [`RADIUS_FRACTION_BITS`]).
     pub fn quantize_radius(&self, r: f64) -> u64 {
-        let scaled = round_half_away_from_zero(r / self.root_radius() * 2f64.powi(RADIUS_FRACTION_BITS));
-        scaled.clamp(1.0, 2f64.powi(40)) as u64
+        const MOST: f64 = (1u64 << 40) as f64;
+        let scaled = r / self.root_radius() * 2f64.powi(RADIUS_FRACTION_BITS);
+        // Within [1, 2^40] (every sample's radius) the rounding is the clamp's no-op and the
+        // truncating cast the floor, with an exact fraction: the same integer as the general
+        // path, without its sign handling and float clamp (ingest quantizes every sample).
+        if (1.0..=MOST).contains(&scaled) {
+            let floor = scaled as u64;
+            return floor + u64::from(scaled - floor as f64 >= 0.5);
+        }
+        round_half_away_from_zero(scaled).clamp(1.0, MOST) as u64
     }
 
     /// Mean radius r_c (eq. 5) from a fixed-point sum and a count.
@@ -200,12 +208,22 @@ pub struct RadiusDepths {
     scene: Scene,
     /// `thresholds[d - 1]`: the largest radius of depth d or deeper; decreasing in d.
     thresholds: Vec<f64>,
+    /// `thresholds` and two zeros after them, so that the two thresholds a binade can hold are
+    /// there to compare with for every binade (no positive radius is at or below zero).
+    padded: Vec<f64>,
+    /// Per biased exponent of a normal radius: how many thresholds lie at or above the top of
+    /// that binade (all of them count towards its radii's depth), or [`NO_BINADE_COUNT`].
+    above_binade: Vec<u8>,
 }
+
+/// [`RadiusDepths::above_binade`] of a binade holding more than two thresholds (none, with the
+/// formula's factor 2 between depths; the binade then searches them all).
+const NO_BINADE_COUNT: u8 = u8::MAX;
 
 impl RadiusDepths {
     /// The thresholds of `scene`'s depths (a few thousand evaluations of the formula).
     pub fn new(scene: &Scene) -> RadiusDepths {
-        let thresholds = (1..=scene.max_depth)
+        let thresholds: Vec<f64> = (1..=scene.max_depth)
             .map(|depth| {
                 // Bit patterns of positive finite doubles order as the doubles do. The
                 // smallest one has the deepest depth there is and the largest one depth 0, so
@@ -222,15 +240,42 @@ impl RadiusDepths {
                 f64::from_bits(lo)
             })
             .collect();
+        let above_binade = (0..2048u64)
+            .map(|exponent| {
+                // The binade [2^(e - 1023), 2^(e - 1022)); the top of the last is past f64::MAX.
+                let top = f64::from_bits((exponent + 1) << 52);
+                let bottom = f64::from_bits(exponent << 52);
+                let above = thresholds.iter().filter(|t| **t >= top).count();
+                let within = thresholds.iter().filter(|t| **t >= bottom && **t < top).count();
+                if within <= 2 { above as u8 } else { NO_BINADE_COUNT }
+            })
+            .collect();
+        let mut padded = thresholds.clone();
+        padded.extend([0.0, 0.0]);
         RadiusDepths {
             scene: *scene,
             thresholds,
+            padded,
+            above_binade,
         }
     }
 
-    /// [`Scene::depth_for_radius`] of `r`.
+    /// [`Scene::depth_for_radius`] of `r`: the number of thresholds at or above `r`. Those above
+    /// `r`'s binade all are, those below it none is, and a binade holds at most two (consecutive
+    /// thresholds are a factor 2 apart), so a table by exponent and two comparisons give it
+    /// (a bisection's chain of dependent loads was a twentieth of ingest's per-sample work).
     #[inline]
     pub fn depth(&self, r: f64) -> u8 {
+        let exponent = (r.to_bits() >> 52) as usize;
+        // Positive normal radii (sign bit clear, exponent neither 0 nor all ones).
+        if (1..2047).contains(&exponent)
+            && let Some(&above) = self.above_binade.get(exponent)
+            && above != NO_BINADE_COUNT
+        {
+            let above = usize::from(above);
+            let at = |k: usize| self.padded.get(k).is_some_and(|t| r <= *t);
+            return (above + usize::from(at(above)) + usize::from(at(above + 1))) as u8;
+        }
         if r > 0.0 && r <= f64::MAX {
             self.thresholds.partition_point(|t| r <= *t) as u8
         } else {
@@ -332,6 +377,42 @@ mod tests {
     }
 
     #[test]
+    fn quantized_radii_are_the_rounded_clamped_fixed_point_values() {
+        let scene = Scene::around(DVec3::ZERO, DVec3::splat(3.7), 0.05, 10);
+        let unit = scene.root_radius() / 2f64.powi(RADIUS_FRACTION_BITS);
+        let reference = |r: f64| {
+            round_half_away_from_zero(r / scene.root_radius() * 2f64.powi(RADIUS_FRACTION_BITS))
+                .clamp(1.0, 2f64.powi(40)) as u64
+        };
+        let mut radii = vec![0.0, -1.0, f64::NAN, f64::INFINITY, f64::MAX, 5e-324, 1e300];
+        for k in [
+            0.0,
+            1.0,
+            2.0,
+            7.0,
+            1e6,
+            2f64.powi(40) - 1.0,
+            2f64.powi(40),
+            2f64.powi(41),
+        ] {
+            for offset in [0.0, 0.25, 0.5, 0.75] {
+                let r = (k + offset) * unit;
+                radii.extend((r.to_bits() - 2..=r.to_bits() + 2).map(f64::from_bits));
+            }
+        }
+        let mut state = 5u64;
+        for _ in 0..100_000 {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            radii.push(unit * 10f64.powf((state >> 11) as f64 / (1u64 << 53) as f64 * 14.0 - 1.0));
+        }
+        for r in radii {
+            assert_eq!(scene.quantize_radius(r), reference(r), "r {r:e}");
+        }
+    }
+
+    #[test]
     fn radius_depths_give_the_formulas_depth_at_and_around_every_threshold() {
         for (side, max_depth) in [(10.0, 32u8), (3.7, 10), (0.01, 12), (1e6, 0)] {
             let scene = Scene::around(DVec3::ZERO, DVec3::splat(side), 0.05, max_depth);
@@ -341,6 +422,8 @@ mod tests {
                 -0.0,
                 -1.0,
                 f64::MIN_POSITIVE,
+                5e-324,
+                1e-310,
                 1e-300,
                 f64::MAX,
                 f64::INFINITY,
@@ -349,6 +432,11 @@ mod tests {
             for t in &depths.thresholds {
                 let bits = t.to_bits();
                 radii.extend((bits - 3..=bits + 3).map(f64::from_bits));
+                // The edges of its binade and the next ones, where the exponent table changes.
+                let binade = bits >> 52 << 52;
+                for edge in [binade, binade + (1 << 52), binade - (1 << 52)] {
+                    radii.extend((edge - 2..=edge + 2).map(f64::from_bits));
+                }
             }
             let mut state = 11u64;
             for _ in 0..100_000 {

@@ -90,33 +90,29 @@ impl SumsTable {
         self.totals.is_empty()
     }
 
-    /// Adds `sums` to its cube's, if the table holds that cube; else hands `sums` back.
-    fn add_to_existing(&mut self, sums: CubeSums) -> Option<CubeSums> {
+    /// Adds `sums` (with `moments`, in runs that carry them) to its cube's, if the table holds
+    /// that cube, and says whether it did.
+    fn add_to_existing(&mut self, sums: &CubeTotals, moments: &Moments) -> bool {
         let Some(&at) = self.index.get(&sums.key) else {
-            return Some(sums);
+            return false;
         };
         if let Some(totals) = self.totals.get_mut(at) {
             totals.radius_sum += sums.radius_sum;
             totals.count += sums.count;
             totals.spikes += sums.spikes;
         }
-        if let Some(moments) = self.moments.get_mut(at) {
-            moments.add(&sums.moments);
+        if let Some(existing) = self.moments.get_mut(at) {
+            existing.add(moments);
         }
-        None
+        true
     }
 
     /// Adds a cube the table does not hold.
-    fn insert_new(&mut self, sums: CubeSums) {
+    fn insert_new(&mut self, sums: CubeTotals, moments: &Moments) {
         self.index.insert(sums.key, self.totals.len());
-        self.totals.push(CubeTotals {
-            key: sums.key,
-            radius_sum: sums.radius_sum,
-            count: sums.count,
-            spikes: sums.spikes,
-        });
+        self.totals.push(sums);
         if self.with_moments {
-            self.moments.push(sums.moments);
+            self.moments.push(*moments);
         }
     }
 
@@ -293,8 +289,12 @@ pub(super) struct CubeRuns<'a> {
     /// Whether the runs' columns carry the entries' moments (they are summed either way).
     with_moments: bool,
     /// The cube of the latest entries, not yet in `table`: a row of pixels falls in one cube
-    /// several times in a row, and adding to it here saves a hash lookup each time.
-    current: Option<CubeSums>,
+    /// several times in a row, and adding to it here saves a hash lookup each time. Its
+    /// moments are apart, in `current_moments` (zero in runs without them): replacing a
+    /// 96-byte whole, whose moment fields had just been stored one by one, read them back with
+    /// wider loads than the stores and stalled on every new cube of a run without moments.
+    current: Option<CubeTotals>,
+    current_moments: Moments,
     table: SumsTable,
     /// Sorted, merged runs of earlier full tables.
     runs: Vec<File>,
@@ -312,6 +312,7 @@ impl<'a> CubeRuns<'a> {
             capacity,
             with_moments,
             current: None,
+            current_moments: Moments::default(),
             table: SumsTable::with_capacity(capacity.min(expected / EXPECTED_ENTRIES_PER_CUBE), with_moments),
             runs: Vec::new(),
         }
@@ -329,31 +330,36 @@ impl<'a> CubeRuns<'a> {
             current.spikes += u32::from(spike);
             // Runs without moment columns are given zero moments: nothing to add.
             if self.with_moments {
-                current.moments.add(moments);
+                self.current_moments.add(moments);
             }
             return Ok(());
         }
-        let sums = CubeSums {
+        let totals = CubeTotals {
             key,
             radius_sum,
             count: 1,
             spikes: u32::from(spike),
-            moments: *moments,
         };
-        match self.current.replace(sums) {
-            Some(done) => self.add_to_table(done),
-            None => Ok(()),
+        let Some(done) = self.current.replace(totals) else {
+            self.current_moments = *moments;
+            return Ok(());
+        };
+        if self.with_moments {
+            let done_moments = std::mem::replace(&mut self.current_moments, *moments);
+            self.add_to_table(done, &done_moments)
+        } else {
+            self.add_to_table(done, &Moments::default())
         }
     }
 
-    fn add_to_table(&mut self, sums: CubeSums) -> Result<()> {
-        let Some(sums) = self.table.add_to_existing(sums) else {
+    fn add_to_table(&mut self, sums: CubeTotals, moments: &Moments) -> Result<()> {
+        if self.table.add_to_existing(&sums, moments) {
             return Ok(());
-        };
+        }
         if self.table.len() >= self.capacity {
             self.spill()?;
         }
-        self.table.insert_new(sums);
+        self.table.insert_new(sums, moments);
         Ok(())
     }
 
@@ -378,7 +384,8 @@ impl<'a> CubeRuns<'a> {
     /// The map's segment (`None` without cubes) and its cube count.
     pub(super) fn finish(mut self) -> Result<(Option<SegmentContent>, u64)> {
         if let Some(done) = self.current.take() {
-            self.add_to_table(done)?;
+            let moments = std::mem::take(&mut self.current_moments);
+            self.add_to_table(done, &moments)?;
         }
         if self.runs.is_empty() {
             let mut columns = CubeColumns::empty(self.with_moments);
