@@ -172,7 +172,8 @@ fn frames_inside_the_root_leave_it_as_it_was() {
     assert!(!summary.contains("root grown"), "{summary}");
     let opened = octstore::Store::open(&store).unwrap();
     assert_eq!(read_scene(&opened).unwrap(), before);
-    assert_eq!(opened.latest().unwrap().segments("ingest").len(), 3);
+    // One run for the first ingest's two maps (a group of up to eight), one for the later map.
+    assert_eq!(opened.latest().unwrap().segments("ingest").len(), 2);
 }
 
 #[test]

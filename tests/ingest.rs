@@ -53,6 +53,25 @@ fn small_scene() -> SceneSpec {
 
 /// Ingest + octree through the library; returns the store.
 fn build(dir: &Path, inputs: &[Vec<PathBuf>], root: Option<([f64; 3], f64)>, max_depth: u8, leaf_cubes: u64) -> Store {
+    build_with_runs_of(
+        dir,
+        inputs,
+        root,
+        max_depth,
+        leaf_cubes,
+        IngestOptions::default().maps_per_run,
+    )
+}
+
+/// [`build`], with `maps_per_run` depth maps a run.
+fn build_with_runs_of(
+    dir: &Path,
+    inputs: &[Vec<PathBuf>],
+    root: Option<([f64; 3], f64)>,
+    max_depth: u8,
+    leaf_cubes: u64,
+    maps_per_run: usize,
+) -> Store {
     let store = Store::create(dir).unwrap();
     for batch in inputs {
         let sources = discover(batch, &DiscoverOptions::default()).unwrap();
@@ -63,6 +82,7 @@ fn build(dir: &Path, inputs: &[Vec<PathBuf>], root: Option<([f64; 3], f64)>, max
                 root,
                 root_margin: 0.1,
                 max_depth,
+                maps_per_run,
                 ..IngestOptions::default()
             },
         )
@@ -92,7 +112,7 @@ fn redkitchen_frames_give_a_complete_balanced_octree() {
     let inputs = vec![vec![PathBuf::from(frame(0)), PathBuf::from(frame(500))]];
     let store = build(dir.path(), &inputs, None, 9, 3000);
     let snap = store.latest().unwrap();
-    assert_eq!(snap.segments(INGEST).len(), 2);
+    assert_eq!(snap.segments(INGEST).len(), 1, "the two maps share a run");
     let keys = octree_keys(&store);
     assert!(keys.len() > 1000, "{} cubes", keys.len());
     assert_eq!(check_octree_keys(&keys), Vec::<String>::new());
@@ -298,9 +318,19 @@ fn incremental_ingest_equals_all_at_once_in_any_order() {
         9,
         2000,
     );
+    let reordered = build(
+        &root.path().join("reordered"),
+        &[vec![c.clone(), b.clone(), a.clone()]],
+        fixed,
+        9,
+        2000,
+    );
     let (sa, si) = (all.latest().unwrap(), incremental.latest().unwrap());
     assert_eq!(sa.digest(OCTREE), si.digest(OCTREE));
-    assert_eq!(sa.digest(INGEST), si.digest(INGEST));
+    // The same maps in one ingest write the same runs in any order; split over two ingests
+    // they are grouped otherwise (runs are per ingest), and the octree is the same.
+    assert_eq!(sa.digest(INGEST), reordered.latest().unwrap().digest(INGEST));
+    assert_eq!(sa.digest(OCTREE), reordered.latest().unwrap().digest(OCTREE));
     // Byte-identical octree segment content, leaf by leaf.
     let contents = |snap: &octstore::Snapshot<'_>| -> Vec<Vec<u8>> {
         snap.segments(OCTREE)
@@ -419,7 +449,7 @@ fn merging_more_runs_than_the_fan_in_keeps_every_radius_sum() {
         ..small_scene()
     };
     let manifest = spec.write(&dir.path().join("views")).unwrap();
-    let store = build(&dir.path().join("store"), &[vec![manifest]], None, 8, 500);
+    let store = build_with_runs_of(&dir.path().join("store"), &[vec![manifest]], None, 8, 500, 1);
     let snap = store.latest().unwrap();
     assert_eq!(snap.segments(INGEST).len(), spec.cameras, "one run per depth map");
     let requested = radius_stats(&snap, INGEST);
@@ -442,6 +472,61 @@ fn merging_more_runs_than_the_fan_in_keeps_every_radius_sum() {
             .unwrap()
             .all(|e| { !e.unwrap().file_name().to_string_lossy().starts_with("merge-") }),
         "merge rounds leave no scratch files"
+    );
+}
+
+/// Maps grouped into runs of 8 (the default), 3 or 1 give fewer run rows the more share a run,
+/// and the same octree, byte for byte: the grouping only decides which maps' cubes are summed
+/// first.
+#[test]
+fn grouping_depth_maps_into_runs_changes_the_runs_not_the_octree() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec = SceneSpec {
+        cameras: 20,
+        ..small_scene()
+    };
+    let manifest = spec.write(&dir.path().join("views")).unwrap();
+    let stores: Vec<(usize, Store)> = [8, 3, 1]
+        .into_iter()
+        .map(|per_run| {
+            let store = build_with_runs_of(
+                &dir.path().join(format!("runs-of-{per_run}")),
+                &[vec![manifest.clone()]],
+                None,
+                8,
+                500,
+                per_run,
+            );
+            (per_run, store)
+        })
+        .collect();
+    let contents = |snap: &octstore::Snapshot<'_>| -> Vec<Vec<u8>> {
+        snap.segments(OCTREE)
+            .iter()
+            .map(|(name, _)| snap.open_segment(name).unwrap().bytes().to_vec())
+            .collect()
+    };
+    let snaps: Vec<(usize, octstore::Snapshot<'_>)> = stores
+        .iter()
+        .map(|(per_run, store)| (*per_run, store.latest().unwrap()))
+        .collect();
+    let (_, one_each) = snaps.last().unwrap();
+    let rows = |snap: &octstore::Snapshot<'_>| snap.rows(INGEST);
+    for (per_run, snap) in &snaps {
+        assert_eq!(
+            snap.segments(INGEST).len(),
+            spec.cameras.div_ceil(*per_run),
+            "runs of {per_run}"
+        );
+        assert_eq!(contents(snap), contents(one_each), "octree from runs of {per_run}");
+        assert_eq!(radius_stats(snap, OCTREE), radius_stats(one_each, OCTREE));
+    }
+    let (_, by_eight) = snaps.first().unwrap();
+    assert!(
+        rows(by_eight) < rows(one_each),
+        "runs of 8 hold {} rows, runs of 1 {}",
+        rows(by_eight),
+        rows(one_each)
     );
 }
 

@@ -39,6 +39,7 @@ pub(super) fn ingest_options(
         max_depth: args.max_depth,
         memory_budget: global.memory_budget,
         sample_sums: args.sample_sums,
+        ..IngestOptions::default()
     };
     (discover, options, run_options(global, args.resume))
 }

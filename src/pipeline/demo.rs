@@ -88,6 +88,7 @@ pub fn demo(options: &DemoOptions, mut on_report: impl FnMut(&RunReport)) -> Res
         max_depth: DEMO_MAX_DEPTH,
         memory_budget: options.memory_budget,
         sample_sums: false,
+        ..IngestOptions::default()
     };
     on_report(&ingest(
         &store,

@@ -144,6 +144,10 @@ pub struct IngestOptions {
     /// ([`META_SAMPLE_SUMS`]). They make ingest about 1.6 times slower and its runs about 6
     /// times larger (RedKitchen), for data the default TGV solver does not use.
     pub sample_sums: bool,
+    /// Depth maps a unit reads into one run ([`MAPS_PER_RUN`] by default; at least 1). The
+    /// octree and every later stage are the same for any value; fewer maps a run mean more
+    /// run rows for the octree merge and the samples stage to read, more mean a larger table.
+    pub maps_per_run: usize,
 }
 
 impl Default for IngestOptions {
@@ -154,6 +158,7 @@ impl Default for IngestOptions {
             max_depth: 24,
             memory_budget: 1 << 30,
             sample_sums: false,
+            maps_per_run: MAPS_PER_RUN,
         }
     }
 }
@@ -205,6 +210,9 @@ pub struct IngestStage {
     maps: Vec<(u64, DepthMapSource)>,
     /// Beside `maps` (or empty): each map's median depth, where a pass before ingest measured it.
     medians: Vec<DepthMedian>,
+    /// The units: indices into `maps`, [`IngestOptions::maps_per_run`] maps a unit that look
+    /// at one region ([`group_maps`]), each group written as one run.
+    groups: Vec<Vec<usize>>,
     /// Memory for one depth map in flight ([`memory_per_map`]).
     map_memory: u64,
     /// Where maps too large for `map_memory` spill their runs (scratch files are unlinked at
@@ -371,7 +379,9 @@ impl IngestStage {
                 growth = Some((old, octants));
             }
         }
+        let groups = group_maps(&scene, &maps, &medians, options.maps_per_run);
         Ok(IngestStage {
+            groups,
             radius_depths: RadiusDepths::new(&scene),
             scene,
             scene_is_new,
@@ -398,24 +408,53 @@ impl IngestStage {
         self.maps.len()
     }
 
-    /// One depth map's cubes, merged by key, as one segment (keys, radius sums, counts, spike
-    /// counts, and the SSD solver's sample moments, `stages::samples`); `None` without cubes.
-    /// Memory stays within the map's share of the budget whatever its size: rows are read a
-    /// few at a time and cube entries spill to sorted runs (`cube_runs.rs`). `median`: the
-    /// map's median depth, where a pass before ingest measured it.
-    pub fn cubes(
+    /// The cubes of a group of depth maps (`group`, indices into the new maps), merged by key,
+    /// as one segment (keys, radius sums, counts, spike counts, and the SSD solver's sample
+    /// moments, `stages::samples`); `None` without cubes; and each map's statistics. Memory
+    /// stays within one map's share of the budget whatever the maps' size: rows are read a few
+    /// at a time and cube entries spill to sorted runs (`cube_runs.rs`).
+    fn group_cubes(&self, group: &[usize]) -> Result<(Option<SegmentContent>, Vec<MapStats>)> {
+        let capacity = (self.map_memory * 3 / 4 / cube_runs::BYTES_PER_CUBE).max(1 << 12) as usize;
+        let mut runs: Option<CubeRuns<'_>> = None;
+        let mut all_stats = Vec::with_capacity(group.len());
+        for &index in group {
+            let (id, source) = self.maps.get(index).ok_or_else(|| StoreError::Stage {
+                stage: INGEST.into(),
+                unit: format!("depth map {index}"),
+                message: "depth map out of range".into(),
+            })?;
+            let median = self.medians.get(index).copied();
+            let stream = map_samples(source, self.map_memory / 4, median)?;
+            // Sized for the first map's cubes and a half more: the maps of a group overlap.
+            let runs = runs.get_or_insert_with(|| {
+                CubeRuns::new(
+                    &self.scratch,
+                    capacity,
+                    stream.valid_pixels() as usize * 3 / 2,
+                    self.sample_sums,
+                )
+            });
+            let stats = self.map_cubes(source, stream, runs)?;
+            all_stats.push((*id, stats));
+        }
+        let Some(runs) = runs else {
+            return Ok((None, all_stats));
+        };
+        let (content, cubes) = runs.finish()?;
+        // The run's cubes count once, on the group's first map (format-spec.md, "Ingest runs").
+        if let Some((_, first)) = all_stats.first_mut() {
+            first.cubes = cubes;
+        }
+        Ok((content, all_stats))
+    }
+
+    /// Adds one depth map's samples (`stream`, of `source`) to `runs`.
+    fn map_cubes(
         &self,
         source: &DepthMapSource,
-        median: Option<DepthMedian>,
-    ) -> Result<(Option<SegmentContent>, SampleStats)> {
-        let stream = map_samples(source, self.map_memory / 4, median)?;
-        let capacity = (self.map_memory * 3 / 4 / cube_runs::BYTES_PER_CUBE).max(1 << 12) as usize;
-        let mut runs = CubeRuns::new(
-            &self.scratch,
-            capacity,
-            stream.valid_pixels() as usize,
-            self.sample_sums,
-        );
+        stream: SampleStream<'_>,
+        runs: &mut CubeRuns<'_>,
+    ) -> Result<SampleStats> {
         // Consistent samples outside the root mean the map sees beyond the scene the store was
         // sized for; spikes outside it are noise.
         let (mut outside, mut consistent_outside) = (0u64, 0u64);
@@ -470,9 +509,72 @@ impl IngestStage {
                 ),
             )));
         }
-        let (content, cubes) = runs.finish()?;
-        stats.cubes = cubes;
-        Ok((content, stats))
+        Ok(stats)
+    }
+}
+
+/// Depth maps a unit of ingest reads into one run. The maps of a capture that look at one
+/// region share most of their cubes (RedKitchen's frames: each cube lies in about 28 of the
+/// 1000 maps), so a run of several maps holds far fewer rows than their runs one by one, and
+/// the octree merge and the samples stage, which read every run row, read fewer.
+pub const MAPS_PER_RUN: usize = 8;
+
+/// The new maps (`maps`, by id, with their `medians` where measured) in groups of `per_run`
+/// (at least 1) that look at one region: ordered by the Morton code, in `scene`'s root, of
+/// the point each camera looks at (its centre moved along its view axis by its median depth,
+/// or by an eighth of the root's side where none was measured; ties by id), and cut into
+/// consecutive groups. The grouping only decides which maps share a run; the octree and every
+/// later stage are the same for any grouping, and it depends on nothing but the maps and the
+/// scene, so not on the order they were named in.
+fn group_maps(
+    scene: &Scene,
+    maps: &[(u64, DepthMapSource)],
+    medians: &[DepthMedian],
+    per_run: usize,
+) -> Vec<Vec<usize>> {
+    let mut order: Vec<(LookAtOrder, usize)> = maps
+        .iter()
+        .enumerate()
+        .map(|(index, (id, source))| {
+            let pose = source.pose();
+            let distance = medians
+                .get(index)
+                .map(|(median, _)| f64::from(*median))
+                .filter(|d| d.is_finite() && *d > 0.0)
+                .unwrap_or(scene.root_side / 8.0);
+            let centre = pose.transform_point3(DVec3::ZERO);
+            let axis = pose.transform_vector3(DVec3::Z).normalize_or_zero();
+            let fraction = scene
+                .root_fraction(centre + axis * distance)
+                .clamp(DVec3::ZERO, DVec3::splat(0.999_999));
+            let fraction = if fraction.is_finite() { fraction } else { DVec3::ZERO };
+            ((Scene::key_at_fraction(fraction, LOOK_AT_DEPTH), *id), index)
+        })
+        .collect();
+    order.sort_unstable();
+    order
+        .chunks(per_run.max(1))
+        .map(|chunk| chunk.iter().map(|(_, index)| *index).collect())
+        .collect()
+}
+
+/// A map's place in [`group_maps`]' order: the cell of the point it looks at, then its id.
+type LookAtOrder = (crate::format::CubeKey, u64);
+
+/// The depth of the cells that order the maps' look-at points (2^10 cells a side).
+const LOOK_AT_DEPTH: u8 = 10;
+
+impl IngestStage {
+    /// A unit's label: its first map's file, and how many more it reads.
+    fn group_label(&self, group: &[usize]) -> String {
+        let first = group
+            .first()
+            .and_then(|index| self.maps.get(*index))
+            .map_or_else(String::new, |(_, source)| source.path.display().to_string());
+        match group.len() {
+            0 | 1 => first,
+            n => format!("{first} and {} more", n - 1),
+        }
     }
 }
 
@@ -493,10 +595,13 @@ fn map_samples(source: &DepthMapSource, memory: u64, median: Option<DepthMedian>
     }
 }
 
+/// A depth map's id and statistics.
+type MapStats = (u64, SampleStats);
+
+/// What a unit records of each of its depth maps, by id.
 #[derive(Serialize, Deserialize)]
 struct IngestUnitExtra {
-    id: u64,
-    stats: SampleStats,
+    maps: Vec<MapStats>,
 }
 
 impl Stage for IngestStage {
@@ -507,18 +612,19 @@ impl Stage for IngestStage {
     fn params(&self) -> Vec<u8> {
         let maps: Vec<(u64, DepthNoise)> = self.maps.iter().map(|(id, source)| (*id, source.noise)).collect();
         // A resumed ingest with the other sample-sums setting starts over, so a store's runs
-        // all carry the moments or none does.
-        catalog::encode(&(maps, self.scene, self.sample_sums))
+        // all carry the moments or none does; so does one whose units group the maps otherwise
+        // (an ingest begun by a build that wrote a run per map).
+        catalog::encode(&(maps, self.scene, self.sample_sums, &self.groups))
     }
 
     fn plan(&self, base: &Snapshot<'_>) -> Result<Plan> {
         let mut units: Vec<UnitSpec> = self
-            .maps
+            .groups
             .iter()
             .enumerate()
-            .map(|(index, (_, source))| UnitSpec {
+            .map(|(index, group)| UnitSpec {
                 id: index as u64,
-                label: source.path.display().to_string(),
+                label: self.group_label(group),
             })
             .collect();
         if self.growth.is_none() {
@@ -530,7 +636,7 @@ impl Stage for IngestStage {
         // Every earlier run is re-keyed into the grown root (units after the new maps').
         let runs = base.segments(INGEST);
         units.extend(runs.iter().enumerate().map(|(index, (name, _))| UnitSpec {
-            id: (self.maps.len() + index) as u64,
+            id: (self.groups.len() + index) as u64,
             label: format!("re-key {name}"),
         }));
         Ok(Plan {
@@ -540,19 +646,18 @@ impl Stage for IngestStage {
     }
 
     fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput> {
-        if let Some(run) = (unit.id as usize).checked_sub(self.maps.len()) {
+        if let Some(run) = (unit.id as usize).checked_sub(self.groups.len()) {
             return self.rekey_unit(base, run, unit);
         }
-        let (id, source) = self.maps.get(unit.id as usize).ok_or_else(|| StoreError::Stage {
+        let group = self.groups.get(unit.id as usize).ok_or_else(|| StoreError::Stage {
             stage: INGEST.into(),
             unit: unit.label.clone(),
             message: "unit out of range".into(),
         })?;
-        let median = self.medians.get(unit.id as usize).copied();
-        let (content, stats) = self.cubes(source, median)?;
+        let (content, maps) = self.group_cubes(group)?;
         Ok(UnitOutput {
             segments: content.into_iter().collect(),
-            extra: catalog::encode(&IngestUnitExtra { id: *id, stats }),
+            extra: catalog::encode(&IngestUnitExtra { maps }),
             block_rows: RUN_BLOCK_ROWS,
         })
     }
@@ -560,32 +665,34 @@ impl Stage for IngestStage {
     fn finish(&self, txn: &WriteTransaction, base: &Snapshot<'_>, units: &[(u64, UnitRecord)]) -> Result<String> {
         let mut table = txn.open_table(DEPTH_MAPS)?;
         let mut total = SampleStats::default();
-        let mut rekeyed = 0usize;
+        let (mut rekeyed, mut maps, mut runs) = (0usize, 0usize, 0usize);
         for (id, record) in units {
-            if *id >= self.maps.len() as u64 {
+            if *id >= self.groups.len() as u64 {
                 rekeyed += 1;
                 continue;
             }
             let extra: IngestUnitExtra = catalog::decode("units_done", &record.extra)?;
-            let source = self
-                .maps
-                .iter()
-                .find(|(id, _)| *id == extra.id)
-                .map(|(_, s)| s.clone())
-                .ok_or_else(|| StoreError::CatalogCorruption {
-                    table: "units_done",
-                    reason: format!("depth map {:016x} is not part of this ingest", extra.id),
-                })?;
-            total.add(&extra.stats);
-            let record = DepthMapRecord {
-                source,
-                stats: extra.stats,
-                added_in: base.version() + 1,
-            };
-            table.insert(
-                extra.id,
-                catalog::seal_encode("depth_maps", &extra.id, &record).as_slice(),
-            )?;
+            runs += usize::from(extra.maps.iter().any(|(_, stats)| stats.cubes > 0));
+            for (map_id, stats) in extra.maps {
+                let source = self
+                    .maps
+                    .binary_search_by_key(&map_id, |(id, _)| *id)
+                    .ok()
+                    .and_then(|at| self.maps.get(at))
+                    .map(|(_, s)| s.clone())
+                    .ok_or_else(|| StoreError::CatalogCorruption {
+                        table: "units_done",
+                        reason: format!("depth map {map_id:016x} is not part of this ingest"),
+                    })?;
+                total.add(&stats);
+                maps += 1;
+                let record = DepthMapRecord {
+                    source,
+                    stats,
+                    added_in: base.version() + 1,
+                };
+                table.insert(map_id, catalog::seal_encode("depth_maps", &map_id, &record).as_slice())?;
+            }
         }
         let mut meta = txn.open_table(META)?;
         if self.scene_is_new {
@@ -625,15 +732,8 @@ impl Stage for IngestStage {
             None => String::new(),
         };
         Ok(format!(
-            "{} depth map(s): {} samples, {} cubes; skipped {} invalid, {} absurd, {} isolated of {} pixels, {} outside the root{grown}",
-            units.len() - rekeyed,
-            total.samples,
-            total.cubes,
-            total.invalid,
-            total.absurd,
-            total.isolated,
-            total.pixels,
-            total.outside
+            "{maps} depth map(s): {} samples, {} cubes in {runs} run(s); skipped {} invalid, {} absurd, {} isolated of {} pixels, {} outside the root{grown}",
+            total.samples, total.cubes, total.invalid, total.absurd, total.isolated, total.pixels, total.outside
         ))
     }
 }
