@@ -172,7 +172,7 @@ fn frames_inside_the_root_leave_it_as_it_was() {
     assert!(!summary.contains("root grown"), "{summary}");
     let opened = octstore::Store::open(&store).unwrap();
     assert_eq!(read_scene(&opened).unwrap(), before);
-    // One run for the first ingest's two maps (a group of up to eight), one for the later map.
+    // One run for the first ingest's two maps (a group of up to 16), one for the later map.
     assert_eq!(opened.latest().unwrap().segments("ingest").len(), 2);
 }
 

@@ -475,7 +475,7 @@ fn merging_more_runs_than_the_fan_in_keeps_every_radius_sum() {
     );
 }
 
-/// Maps grouped into runs of 8 (the default), 3 or 1 give fewer run rows the more share a run,
+/// Maps grouped into runs of 16 (the default), 3 or 1 give fewer run rows the more share a run,
 /// and the same octree, byte for byte: the grouping only decides which maps' cubes are summed
 /// first.
 #[test]
@@ -486,7 +486,7 @@ fn grouping_depth_maps_into_runs_changes_the_runs_not_the_octree() {
         ..small_scene()
     };
     let manifest = spec.write(&dir.path().join("views")).unwrap();
-    let stores: Vec<(usize, Store)> = [8, 3, 1]
+    let stores: Vec<(usize, Store)> = [16, 3, 1]
         .into_iter()
         .map(|per_run| {
             let store = build_with_runs_of(
@@ -521,11 +521,11 @@ fn grouping_depth_maps_into_runs_changes_the_runs_not_the_octree() {
         assert_eq!(contents(snap), contents(one_each), "octree from runs of {per_run}");
         assert_eq!(radius_stats(snap, OCTREE), radius_stats(one_each, OCTREE));
     }
-    let (_, by_eight) = snaps.first().unwrap();
+    let (_, by_sixteen) = snaps.first().unwrap();
     assert!(
-        rows(by_eight) < rows(one_each),
-        "runs of 8 hold {} rows, runs of 1 {}",
-        rows(by_eight),
+        rows(by_sixteen) < rows(one_each),
+        "runs of 16 hold {} rows, runs of 1 {}",
+        rows(by_sixteen),
         rows(one_each)
     );
 }

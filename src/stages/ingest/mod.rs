@@ -517,7 +517,7 @@ impl IngestStage {
 /// region share most of their cubes (RedKitchen's frames: each cube lies in about 28 of the
 /// 1000 maps), so a run of several maps holds far fewer rows than their runs one by one, and
 /// the octree merge and the samples stage, which read every run row, read fewer.
-pub const MAPS_PER_RUN: usize = 8;
+pub const MAPS_PER_RUN: usize = 16;
 
 /// The new maps (`maps`, by id, with their `medians` where measured) in groups of `per_run`
 /// (at least 1) that look at one region: ordered by the Morton code, in `scene`'s root, of
