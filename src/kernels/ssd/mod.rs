@@ -741,15 +741,22 @@ impl<'a> Product<'a> {
 /// diagonal as preconditioner, until |A f - b| <= tolerance |b| or `max_iterations`.
 pub fn solve(problem: &SsdProblem, f: &mut [f64], tolerance: f64, max_iterations: usize) -> Solved {
     let n = problem.n;
-    let energy_before = problem.energy(f);
-    let b = problem.rhs();
+    let start: &[f64] = f;
+    // The diagonal is one sequential pass (its adds keep one order for every bit); the energy,
+    // the right-hand side and the packed operator are built beside it, on a core the unit's
+    // neighbours leave idle (at the end of a level, one unit on two cores). Each is a pure
+    // function of the problem, so the results are the same as one after the other.
+    let (inverse_diagonal, (energy_before, b, mut product)) = rayon::join(
+        || {
+            problem
+                .diagonal()
+                .into_iter()
+                .map(|d| if d > 0.0 { 1.0 / d } else { 0.0 })
+                .collect::<Vec<f64>>()
+        },
+        || (problem.energy(start), problem.rhs(), Product::of(problem)),
+    );
     let b_norm = inner(&b, &b).sqrt();
-    let inverse_diagonal: Vec<f64> = problem
-        .diagonal()
-        .into_iter()
-        .map(|d| if d > 0.0 { 1.0 / d } else { 0.0 })
-        .collect();
-    let mut product = Product::of(problem);
     let mut ap = vec![0.0; n];
     product.apply(f, &mut ap);
     let mut r: Vec<f64> = b.iter().zip(&ap).map(|(b, a)| b - a).collect();
