@@ -10,4 +10,5 @@ pub mod random;
 pub mod ssd;
 pub mod surface_depth;
 pub mod tgv;
+pub mod vote_lanes;
 pub mod votes;

@@ -7,6 +7,7 @@ use glam::{DVec3, Mat4, Vec4};
 use super::halving::{halve, median_of_valid};
 use super::occlusion::FarthestDepths;
 use super::surface_depth::{surface_depth, surface_depth_f32, truncated_surface_distance};
+use super::vote_lanes::{LANES, LevelShapes, vote_block};
 
 use crate::format::{CubeKey, Scene};
 use crate::inputs::{DepthImage, DepthMapSource, Projection};
@@ -457,77 +458,6 @@ pub fn vote_relative(view: &UnitView, cube: Vec4, levels: &impl DepthLevels) -> 
     Some((bin, truncated_surface_distance(surface, distance, band)))
 }
 
-/// [`vote_relative`] for four cubes of a pinhole map at once, cubes as lanes: the projection,
-/// the footprint, the pixel coordinates and the bin are 4-wide operations, only the level's
-/// shape and the depth are read per cube. Every lane sees the same float operations in the
-/// same order as [`vote_relative`] (glam's `Mat4 * Vec4` is x, + y, + z, + w), so the votes are
-/// the same to the bit (tested); without branches on the projection, 4 cubes cost about what
-/// one did.
-#[inline]
-pub fn vote_relative_pinhole_x4(
-    view: &UnitView,
-    cubes: [Vec4; 4],
-    levels: &Pyramid,
-) -> [Option<(usize, Option<f32>)>; 4] {
-    let m = view.unit_to_camera;
-    let t = Mat4::from_cols(cubes[0], cubes[1], cubes[2], cubes[3]).transpose();
-    let (xs, ys, zs, radius) = (t.x_axis, t.y_axis, t.z_axis, t.w_axis);
-    let row = |axis: usize| {
-        let pick = |column: Vec4| Vec4::splat(column[axis]);
-        pick(m.x_axis) * xs + pick(m.y_axis) * ys + pick(m.z_axis) * zs + pick(m.w_axis) * Vec4::ONE
-    };
-    let (lx, ly, lz) = (row(0), row(1), row(2));
-    let k = view.intrinsics;
-    let u = Vec4::splat(k.x) * lx / lz + Vec4::splat(k.z);
-    let v = Vec4::splat(k.y) * ly / lz + Vec4::splat(k.w);
-    let pixels_per_unit = Vec4::splat(k.x.max(k.y)) / lz;
-    let footprint = Vec4::splat(2.0) * radius * pixels_per_unit;
-    let top = levels.levels.len().saturating_sub(1) as u32;
-    let level: [u32; 4] = std::array::from_fn(|lane| {
-        let f = footprint[lane];
-        let level = if f > 1.0 {
-            31 - (f.min(2_147_483_648.0) as u32).leading_zeros()
-        } else {
-            0
-        };
-        level.min(top)
-    });
-    let scale = Vec4::from_array(level.map(|l| (1u32 << l) as f32));
-    let half = Vec4::splat(0.5);
-    // Level-pixel coordinates, pixel centres at integers.
-    let x_level = (u - (scale - Vec4::ONE) * half) / scale;
-    let y_level = (v - (scale - Vec4::ONE) * half) / scale;
-    let x = x_level + half;
-    let y = y_level + half;
-    let depth = Vec4::from_array(std::array::from_fn(|lane| {
-        let (x, y) = (x[lane], y[lane]);
-        match levels.levels.get(level[lane] as usize) {
-            Some(image)
-                if lz[lane] > 0.0 && x >= 0.0 && y >= 0.0 && x < image.width as f32 && y < image.height as f32 =>
-            {
-                image.get(x as u32, y as u32)
-            }
-            _ => f32::NAN,
-        }
-    }));
-    let delta = Vec4::splat(6.0) * radius;
-    let eta = Vec4::splat(3.0) * delta;
-    let a = depth - lz;
-    let bin = ((a / delta).clamp(Vec4::NEG_ONE, Vec4::ONE) + Vec4::ONE) / Vec4::splat(2.0) * Vec4::splat(8.0);
-    let band = (Vec4::splat(view.band_per_delta) * delta).max(Vec4::splat(view.band_floor));
-    std::array::from_fn(|lane| {
-        let (depth, a, eta, band) = (depth[lane], a[lane], eta[lane], band[lane]);
-        // depth > 0 also rejects the NaN of a lane that read no pixel.
-        (depth > 0.0 && a >= -eta).then(|| {
-            let surface = surface_depth_f32(levels, level[lane], x_level[lane], y_level[lane], false, band);
-            (
-                (bin[lane] as usize).min(BINS - 1),
-                truncated_surface_distance(surface, lz[lane], band),
-            )
-        })
-    })
-}
-
 /// Centre and radius of every cube of a unit: r_c (eq. 5) where samples spawned it, else the
 /// cube's natural radius (half its side).
 pub fn cube_geometry(scene: &Scene, keys: &[CubeKey], sums: &[u64], counts: &[u32]) -> (Vec<DVec3>, Vec<f64>) {
@@ -600,7 +530,8 @@ pub struct ChunkedCubes<'a> {
 /// Votes `pyramid`, seen from the unit as `view`, into `hist` (BINS per cube) and `distance`
 /// (two per cube: the weighted sum of the votes' truncated distances, in world units, and
 /// the sum of their weights) for the cubes of the chunks listed in `seen` (ascending), and
-/// returns the number of votes cast. Each vote is [`vote_relative`]. Chunks own disjoint rows
+/// returns the number of votes cast. Each vote is [`vote_relative`] (four at a time in
+/// [`vote_block`]). Chunks own disjoint rows
 /// of the histogram, so they vote in parallel: a group of one large leaf still uses every
 /// core, and each cube still receives the maps in the order they are voted.
 pub fn vote_chunks(
@@ -636,48 +567,83 @@ pub fn vote_chunks(
         rest_distance = tail_distance;
         consumed = chunk.end;
     }
+    let shapes = LevelShapes::of(pyramid);
     work.into_par_iter()
         .map(|(offsets, rows, distances)| {
-            let mut votes = 0u64;
-            let mut add = |row: &mut [f32], sums: &mut [f32], vote: Option<(usize, Option<f32>)>| {
-                if let Some((bin, distance)) = vote
-                    && let Some(h) = row.get_mut(bin)
-                {
-                    *h += weight;
-                    if let (Some(d), [sum, total]) = (distance, sums) {
-                        *sum += weight * d;
-                        *total += weight;
-                    }
-                    votes += 1;
-                }
-            };
-            let (mut rows, mut distances, mut offsets) = (rows, distances, offsets);
-            if !view.spherical {
-                let (groups, rest) = offsets.as_chunks::<4>();
-                let (row_groups, rest_rows) = rows.as_chunks_mut::<{ 4 * BINS }>();
-                let (sum_groups, rest_sums) = distances.as_chunks_mut::<8>();
-                for ((cubes, rows), sums) in groups.iter().zip(row_groups).zip(sum_groups) {
-                    let lanes = vote_relative_pinhole_x4(view, *cubes, pyramid);
-                    for ((vote, row), sums) in lanes
-                        .into_iter()
-                        .zip(rows.chunks_exact_mut(BINS))
-                        .zip(sums.chunks_exact_mut(2))
-                    {
-                        add(row, sums, vote);
-                    }
-                }
-                (rows, distances, offsets) = (rest_rows, rest_sums, rest);
+            VoteRun {
+                offsets,
+                rows,
+                distances,
+                pyramid,
+                shapes: &shapes,
+                view,
+                weight,
             }
-            for ((row, sums), cube) in rows
-                .chunks_exact_mut(BINS)
-                .zip(distances.chunks_exact_mut(2))
-                .zip(offsets)
-            {
-                add(row, sums, vote_relative(view, *cube, pyramid));
-            }
-            votes
+            .run()
         })
         .sum()
+}
+
+/// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes four at a time
+/// ([`vote_block`]); a spherical map, and the chunk's last cubes short of a block, one at a
+/// time ([`vote_relative`]).
+struct VoteRun<'a> {
+    offsets: &'a [Vec4],
+    rows: &'a mut [f32],
+    distances: &'a mut [f32],
+    pyramid: &'a Pyramid,
+    shapes: &'a LevelShapes,
+    view: &'a UnitView,
+    weight: f32,
+}
+
+impl VoteRun<'_> {
+    fn run(self) -> u64 {
+        let VoteRun {
+            mut offsets,
+            mut rows,
+            mut distances,
+            pyramid,
+            shapes,
+            view,
+            weight,
+        } = self;
+        let mut votes = 0u64;
+        if !view.spherical {
+            let (blocks, rest) = offsets.as_chunks::<LANES>();
+            let (row_blocks, rest_rows) = rows.as_chunks_mut::<{ LANES * BINS }>();
+            let (sum_blocks, rest_sums) = distances.as_chunks_mut::<{ LANES * 2 }>();
+            for ((cubes, block_rows), block_sums) in blocks.iter().zip(row_blocks).zip(sum_blocks) {
+                let lanes = vote_block(view, cubes, pyramid, shapes, weight);
+                let (block_rows, _) = block_rows.as_chunks_mut::<BINS>();
+                let (block_sums, _) = block_sums.as_chunks_mut::<2>();
+                if let (Ok(block_rows), Ok(block_sums)) = (
+                    <&mut [[f32; BINS]; LANES]>::try_from(block_rows),
+                    <&mut [[f32; 2]; LANES]>::try_from(block_sums),
+                ) {
+                    votes += lanes.add_to(block_rows, block_sums);
+                }
+            }
+            (rows, distances, offsets) = (rest_rows, rest_sums, rest);
+        }
+        for ((row, sums), cube) in rows
+            .chunks_exact_mut(BINS)
+            .zip(distances.chunks_exact_mut(2))
+            .zip(offsets)
+        {
+            if let Some((bin, distance)) = vote_relative(view, *cube, pyramid)
+                && let Some(h) = row.get_mut(bin)
+            {
+                *h += weight;
+                if let (Some(d), [sum, total]) = (distance, sums) {
+                    *sum += weight * d;
+                    *total += weight;
+                }
+                votes += 1;
+            }
+        }
+        votes
+    }
 }
 
 #[cfg(test)]
@@ -773,56 +739,6 @@ mod tests {
         }
         // The draw covers both sides of the border.
         assert!(voted > 10_000 && culled > 10_000, "{voted} voted, {culled} culled");
-    }
-
-    #[test]
-    fn four_cubes_as_lanes_vote_as_one_cube_does_to_the_bit() {
-        // A slanted wall with holes, cubes in front, behind, beside the view and behind the
-        // camera, of radii from a fraction of a pixel's footprint to many pixels.
-        let (width, height) = (53u32, 41u32);
-        let source = pinhole_source(
-            "wall.pfm",
-            (width, height),
-            [45.0, 40.0, 26.0, 20.5],
-            glam::DMat4::from_translation(DVec3::new(3.0, -1.0, 2.0)) * glam::DMat4::from_rotation_y(0.3),
-        );
-        let depth = (0..width * height)
-            .map(|p| {
-                if p % 17 == 0 {
-                    f32::NAN
-                } else {
-                    2.0 + 0.01 * (p % width) as f32
-                }
-            })
-            .collect();
-        let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
-        let world_to_camera = source.pose().inverse();
-        let origin = DVec3::new(3.5, -0.8, 4.0);
-        let view = UnitView::new(&source, &world_to_camera, origin, 0.05);
-        let mut seed = 5u64;
-        let mut uniform = move || crate::kernels::random::uniform(&mut seed) as f32;
-        let (mut voted, mut refused) = (0, 0);
-        for _ in 0..20_000 {
-            let cubes: [Vec4; 4] = std::array::from_fn(|_| {
-                Vec4::new(
-                    uniform() * 6.0 - 3.0,
-                    uniform() * 4.0 - 2.0,
-                    uniform() * 6.0 - 3.5,
-                    0.002 * 200f32.powf(uniform()),
-                )
-            });
-            let lanes = vote_relative_pinhole_x4(&view, cubes, &pyramid);
-            for (cube, lane) in cubes.iter().zip(lanes) {
-                let one = vote_relative(&view, *cube, &pyramid);
-                assert_eq!(
-                    lane.map(|(bin, d)| (bin, d.map(f32::to_bits))),
-                    one.map(|(bin, d)| (bin, d.map(f32::to_bits))),
-                    "cube {cube}"
-                );
-                if one.is_some() { voted += 1 } else { refused += 1 }
-            }
-        }
-        assert!(voted > 5_000 && refused > 5_000, "{voted} voted, {refused} refused");
     }
 
     #[test]
