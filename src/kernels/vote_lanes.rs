@@ -45,23 +45,18 @@ impl LevelShapes {
             stride: [0; MAX_LEVELS],
             top: 0,
         };
-        for (index, level) in pyramid.levels.iter().take(MAX_LEVELS).enumerate() {
-            if let (Some(w), Some(h), Some(s)) = (
-                shapes.width.get_mut(index),
-                shapes.height.get_mut(index),
-                shapes.stride.get_mut(index),
-            ) {
-                (*w, *h, *s) = (level.width as f32, level.height as f32, level.width);
-                shapes.top = index as u32;
-            }
+        let slots = shapes.width.iter_mut().zip(&mut shapes.height).zip(&mut shapes.stride);
+        for (level, ((width, height), stride)) in pyramid.levels.iter().zip(slots) {
+            (*width, *height, *stride) = (level.width as f32, level.height as f32, level.width);
         }
+        shapes.top = pyramid.levels.len().clamp(1, MAX_LEVELS) as u32 - 1;
         shapes
     }
 }
 
 /// What [`vote_block`] found for each lane.
 pub struct BlockVotes {
-    /// The bin of each lane (meaningful where `weight` is not zero), below [`BINS`].
+    /// The bin of each lane (meaningful where it votes), below [`BINS`].
     pub bin: [usize; LANES],
     /// Whether the lane votes.
     pub voting: [bool; LANES],

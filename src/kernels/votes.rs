@@ -569,81 +569,48 @@ pub fn vote_chunks(
     }
     let shapes = LevelShapes::of(pyramid);
     work.into_par_iter()
-        .map(|(offsets, rows, distances)| {
-            VoteRun {
-                offsets,
-                rows,
-                distances,
-                pyramid,
-                shapes: &shapes,
-                view,
-                weight,
-            }
-            .run()
-        })
+        .map(|(offsets, rows, distances)| vote_chunk(view, pyramid, &shapes, weight, offsets, rows, distances))
         .sum()
 }
 
 /// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes four at a time
 /// ([`vote_block`]); a spherical map, and the chunk's last cubes short of a block, one at a
 /// time ([`vote_relative`]).
-struct VoteRun<'a> {
-    offsets: &'a [Vec4],
-    rows: &'a mut [f32],
-    distances: &'a mut [f32],
-    pyramid: &'a Pyramid,
-    shapes: &'a LevelShapes,
-    view: &'a UnitView,
+fn vote_chunk(
+    view: &UnitView,
+    pyramid: &Pyramid,
+    shapes: &LevelShapes,
     weight: f32,
-}
-
-impl VoteRun<'_> {
-    fn run(self) -> u64 {
-        let VoteRun {
-            mut offsets,
-            mut rows,
-            mut distances,
-            pyramid,
-            shapes,
-            view,
-            weight,
-        } = self;
-        let mut votes = 0u64;
-        if !view.spherical {
-            let (blocks, rest) = offsets.as_chunks::<LANES>();
-            let (row_blocks, rest_rows) = rows.as_chunks_mut::<{ LANES * BINS }>();
-            let (sum_blocks, rest_sums) = distances.as_chunks_mut::<{ LANES * 2 }>();
-            for ((cubes, block_rows), block_sums) in blocks.iter().zip(row_blocks).zip(sum_blocks) {
-                let lanes = vote_block(view, cubes, pyramid, shapes, weight);
-                let (block_rows, _) = block_rows.as_chunks_mut::<BINS>();
-                let (block_sums, _) = block_sums.as_chunks_mut::<2>();
-                if let (Ok(block_rows), Ok(block_sums)) = (
-                    <&mut [[f32; BINS]; LANES]>::try_from(block_rows),
-                    <&mut [[f32; 2]; LANES]>::try_from(block_sums),
-                ) {
-                    votes += lanes.add_to(block_rows, block_sums);
-                }
-            }
-            (rows, distances, offsets) = (rest_rows, rest_sums, rest);
+    offsets: &[Vec4],
+    rows: &mut [f32],
+    distances: &mut [f32],
+) -> u64 {
+    let (rows, _) = rows.as_chunks_mut::<BINS>();
+    let (sums, _) = distances.as_chunks_mut::<2>();
+    let mut votes = 0u64;
+    let mut in_blocks = 0;
+    if !view.spherical {
+        let (blocks, _) = offsets.as_chunks::<LANES>();
+        let (row_blocks, _) = rows.as_chunks_mut::<LANES>();
+        let (sum_blocks, _) = sums.as_chunks_mut::<LANES>();
+        for ((cubes, block_rows), block_sums) in blocks.iter().zip(row_blocks).zip(sum_blocks) {
+            votes += vote_block(view, cubes, pyramid, shapes, weight).add_to(block_rows, block_sums);
         }
-        for ((row, sums), cube) in rows
-            .chunks_exact_mut(BINS)
-            .zip(distances.chunks_exact_mut(2))
-            .zip(offsets)
-        {
-            if let Some((bin, distance)) = vote_relative(view, *cube, pyramid)
-                && let Some(h) = row.get_mut(bin)
-            {
-                *h += weight;
-                if let (Some(d), [sum, total]) = (distance, sums) {
-                    *sum += weight * d;
-                    *total += weight;
-                }
-                votes += 1;
-            }
-        }
-        votes
+        in_blocks = blocks.len() * LANES;
     }
+    for ((row, [sum, total]), cube) in rows.iter_mut().zip(sums.iter_mut()).zip(offsets).skip(in_blocks) {
+        if let Some((bin, distance)) = vote_relative(view, *cube, pyramid)
+            && let Some(h) = row.get_mut(bin)
+        {
+            *h += weight;
+            if let Some(d) = distance {
+                *sum += weight * d;
+                *total += weight;
+            }
+            votes += 1;
+        }
+    }
+    votes
 }
 
 #[cfg(test)]
