@@ -30,7 +30,62 @@ struct Corner {
     measured: f32,
     /// Whether samples reached the cell.
     sampled: bool,
-    depth: u8,
+}
+
+/// The leaf (or mirrored virtual cell) a dual cell's octant holds, as the probes find it:
+/// enough to decide whether the cube generates the cell and whether u changes sign in it,
+/// before any centre is computed.
+#[derive(Clone, Copy)]
+struct Incident {
+    leaf: CubeKey,
+    value: CutValue,
+    /// Per axis (bit 0 = x), whether the octant lies past the root's faces: a virtual cell,
+    /// the mirror image of `leaf`.
+    mirrored: u8,
+    /// Per axis, whether it lies past the root's low face (else its high one), where mirrored.
+    below_root: u8,
+}
+
+impl Incident {
+    fn u(&self) -> f32 {
+        if self.mirrored != 0 { 1.0 } else { self.value.u }
+    }
+
+    fn corner(&self, scene: &Scene) -> Corner {
+        // A virtual cell's centre is the mirror image of its leaf's across the root's faces it
+        // lies past.
+        let mut center = scene.cube_center(self.leaf);
+        if self.mirrored != 0 {
+            let (lo, hi) = (scene.min(), scene.min() + DVec3::splat(scene.root_side));
+            for axis in 0..3 {
+                if self.mirrored & (1 << axis) != 0 {
+                    center[axis] = if self.below_root & (1 << axis) != 0 {
+                        2.0 * lo[axis] - center[axis]
+                    } else {
+                        2.0 * hi[axis] - center[axis]
+                    };
+                }
+            }
+            return Corner {
+                id: VIRTUAL | (u128::from(self.mirrored) << 124) | self.leaf.raw(),
+                center,
+                u: 1.0,
+                offset: f64::NAN,
+                votes: 0.0,
+                measured: 0.0,
+                sampled: false,
+            };
+        }
+        Corner {
+            id: self.leaf.raw(),
+            center,
+            u: self.value.u,
+            offset: f64::from(self.value.offset),
+            votes: self.value.votes,
+            measured: self.value.measured,
+            sampled: self.value.sampled,
+        }
+    }
 }
 
 /// Where on the edge from `lo` to `hi` (as a fraction) the surface crosses. u decides that it
@@ -101,6 +156,44 @@ const KUHN: [[usize; 4]; 6] = [
     [0, 4, 6, 7],
 ];
 
+/// Per child index of a cube in its parent (octant bits x = 1, y = 2, z = 4), the corners
+/// (bit `c` for corner `c`) whose dual cell the cube cannot generate, known without a probe:
+/// an octant that comes before the cube's own around the corner holds a cell of the parent,
+/// so a sibling or a sibling's descendant, at least as deep as the cube (the cut tiles the
+/// root, and the parent is not in it), comes first. Along an axis, a corner on the cube's
+/// low face looks back one cell (into the parent only if the cube is the high child), and one
+/// on its high face looks ahead one cell (only if it is the low child); the other octant of
+/// that axis is the cube itself. About 4.6 of a cube's 8 corners go without a probe this way.
+const CORNERS_LOST_TO_A_SIBLING: [u8; 8] = {
+    let mut table = [0u8; 8];
+    let mut child = 0;
+    while child < 8 {
+        let mut corner = 0;
+        while corner < 8 {
+            let own = 7 - corner;
+            let mut octant = 0;
+            while octant < own {
+                let mut in_parent = true;
+                let mut axis = 0;
+                while axis < 3 {
+                    let (c, o, i) = ((corner >> axis) & 1, (octant >> axis) & 1, (child >> axis) & 1);
+                    if (c == 0 && o == 0 && i == 0) || (c == 1 && o == 1 && i == 1) {
+                        in_parent = false;
+                    }
+                    axis += 1;
+                }
+                if in_parent {
+                    table[child] |= 1 << corner;
+                }
+                octant += 1;
+            }
+            corner += 1;
+        }
+        child += 1;
+    }
+    table
+};
+
 pub(super) fn full_side(depth: u8) -> u64 {
     1u64 << (u32::from(MAX_DEPTH) - u32::from(depth))
 }
@@ -168,12 +261,12 @@ fn partition_point_near(keys: &[CubeKey], near: usize, probe: CubeKey) -> usize 
 /// on every virtual cell.
 #[derive(Clone, Copy)]
 struct ProbeCell {
-    /// The coordinate in full-resolution cells, outside `[0, 2^32)` past the root's faces.
-    cell: i64,
-    /// The coordinate probed: `cell`, or its mirror image inside the root.
-    probe: u32,
+    /// Whether the cell lies past one of the root's faces (the probe reads its mirror image).
     mirrored: bool,
-    /// `probe`'s share of the probe key's Morton code ([`axis_bits`]).
+    /// Whether that face is the root's low one.
+    below_root: bool,
+    /// The probed coordinate's share of the probe key's Morton code ([`axis_bits`]): the
+    /// cell's, or its mirror image's inside the root.
     axis_bits: u128,
 }
 
@@ -188,10 +281,9 @@ impl ProbeCell {
         // The side is a power of two: one bit of the dilated form (past its 96 bits for the
         // root, whose cells past its faces are encoded anew below).
         let side_bits = 1u128 << (3 * side.trailing_zeros());
-        let inside = |cell: u64, axis_bits: u128| ProbeCell {
-            cell: cell as i64,
-            probe: cell as u32,
+        let inside = |axis_bits: u128| ProbeCell {
             mirrored: false,
+            below_root: false,
             axis_bits,
         };
         let last = corner + side - 1;
@@ -199,15 +291,15 @@ impl ProbeCell {
             if corner == 0 {
                 ProbeCell::at(-1)
             } else {
-                inside(corner - 1, sub_axis_bits(own, one))
+                inside(sub_axis_bits(own, one))
             },
-            inside(corner, own),
+            inside(own),
             // The cube's corner is a multiple of its side: its last cell only sets low bits.
-            inside(last, own | sub_axis_bits(side_bits, one)),
+            inside(own | sub_axis_bits(side_bits, one)),
             if last + 1 >= 1 << 32 {
                 ProbeCell::at((last + 1) as i64)
             } else {
-                inside(last + 1, add_axis_bits(own, side_bits))
+                inside(add_axis_bits(own, side_bits))
             },
         ]
     }
@@ -223,9 +315,8 @@ impl ProbeCell {
         };
         let probe = inside.clamp(0, limit - 1) as u32;
         ProbeCell {
-            cell,
-            probe,
             mirrored,
+            below_root: cell < 0,
             axis_bits: axis_bits(probe),
         }
     }
@@ -346,37 +437,47 @@ pub(super) fn dual_cells_of_unit(
     values: &[CutValue],
     closed: bool,
 ) -> Result<(UnitMesh, VertexGuides)> {
-    let mut piece = Piece::default();
+    // RedKitchen's pieces have about 0.4 vertices a cube: room for half as many as cubes
+    // saves most of the index's growth.
+    let mut piece = Piece {
+        vertex_index: NameIndex::with_capacity(keys.len() / 2),
+        ..Piece::default()
+    };
     for (index, (key, own)) in keys.iter().zip(values).enumerate() {
         let d = key.depth();
         let side = full_side(d);
         let [x, y, z] = key.corner_full_resolution().map(u64::from);
-        let own_center = scene.cube_center(*key);
         // The cells the corners' octants probe lie at one of four coordinates per axis (a
         // face's coordinate less one, or itself, at the cube's low or high face): their Morton
         // bits once per cube, not three encodings per probe.
         let probe_cells: [[ProbeCell; 4]; 3] =
             std::array::from_fn(|axis| ProbeCell::around(*key, axis, [x, y, z][axis], side));
+        // The root (depth 0) has no parent and no siblings.
+        let child = if d == 0 {
+            0
+        } else {
+            let at = side.trailing_zeros();
+            ((x >> at) & 1) | ((y >> at) & 1) << 1 | ((z >> at) & 1) << 2
+        };
+        let lost = CORNERS_LOST_TO_A_SIBLING.get(child as usize).copied().unwrap_or(0);
         for corner in 0..8u64 {
+            if lost & (1 << corner) != 0 {
+                continue;
+            }
             // The 8 octants around V, with the leaf (or virtual exterior cell) in each. This cube
             // fills the octant opposite the corner; it generates V's cell only if no real leaf
             // is deeper and none as deep comes first in octant order, so the probes stop at the
             // first leaf that rules it out (most corners of a uniform region end at octant 0).
             let own_octant = (7 - corner) as usize;
-            let mut corners: [Option<Corner>; 8] = [None; 8];
+            let mut incident = [Incident {
+                leaf: *key,
+                value: *own,
+                mirrored: 0,
+                below_root: 0,
+            }; 8];
             let mut generator_ok = true;
-            for (octant, slot) in corners.iter_mut().enumerate() {
+            for (octant, slot) in incident.iter_mut().enumerate() {
                 if octant == own_octant {
-                    *slot = Some(Corner {
-                        id: key.raw(),
-                        center: own_center,
-                        u: own.u,
-                        offset: f64::from(own.offset),
-                        votes: own.votes,
-                        measured: own.measured,
-                        sampled: own.sampled,
-                        depth: d,
-                    });
                     continue;
                 }
                 let o = octant as u64;
@@ -386,8 +487,8 @@ pub(super) fn dual_cells_of_unit(
                     let at = 2 * ((corner >> axis) & 1) + ((o >> axis) & 1);
                     probe_cells[axis][at as usize]
                 });
-                let mirrored = (0..3).fold(0u128, |m, axis| m | (u128::from(cells[axis].mirrored) << axis));
-                let inside = cells.map(|c| c.cell);
+                let mirrored = (0..3).fold(0u8, |m, axis| m | (u8::from(cells[axis].mirrored) << axis));
+                let below_root = (0..3).fold(0u8, |m, axis| m | (u8::from(cells[axis].below_root) << axis));
                 let probe = CubeKey::from_morton(
                     cells[0].axis_bits | cells[1].axis_bits << 1 | cells[2].axis_bits << 2,
                     MAX_DEPTH,
@@ -400,76 +501,33 @@ pub(super) fn dual_cells_of_unit(
                     generator_ok = false;
                     break;
                 }
-                // The leaf holds the probed cell, so its corner is the cell's, rounded down to
-                // the leaf's size.
-                let leaf_cells = full_side(leaf.depth()) - 1;
-                let leaf_corner = cells.map(|c| (u64::from(c.probe) & !leaf_cells) as u32);
-                let mut center = scene.cube_center_at(leaf_corner, leaf.depth());
-                if mirrored != 0 {
-                    let (lo, hi) = (scene.min(), scene.min() + DVec3::splat(scene.root_side));
-                    for axis in 0..3 {
-                        if mirrored & (1 << axis) != 0 {
-                            center[axis] = if inside[axis] < 0 {
-                                2.0 * lo[axis] - center[axis]
-                            } else {
-                                2.0 * hi[axis] - center[axis]
-                            };
-                        }
-                    }
-                }
-                let c = Corner {
-                    id: if mirrored != 0 {
-                        VIRTUAL | (mirrored << 124) | leaf.raw()
-                    } else {
-                        leaf.raw()
-                    },
-                    center,
-                    u: if mirrored != 0 { 1.0 } else { value.u },
-                    offset: if mirrored != 0 {
-                        f64::NAN
-                    } else {
-                        f64::from(value.offset)
-                    },
-                    votes: if mirrored == 0 { value.votes } else { 0.0 },
-                    measured: if mirrored == 0 { value.measured } else { 0.0 },
-                    sampled: mirrored == 0 && value.sampled,
-                    depth: leaf.depth(),
+                *slot = Incident {
+                    leaf,
+                    value,
+                    mirrored,
+                    below_root,
                 };
-                *slot = Some(c);
             }
-            // Most corners fail at their first probe (another leaf generates them): they are
-            // done before their eight slots are copied out (15 % of extraction's CPU).
+            // Most corners fail at their first probe (another leaf generates them), and most
+            // that this cube generates have no sign change: their corners' centres are never
+            // computed.
             if !generator_ok {
                 continue;
             }
-            let corners: [Corner; 8] = corners.map(|c| {
-                c.unwrap_or(Corner {
-                    id: VIRTUAL,
-                    center: DVec3::ZERO,
-                    u: 1.0,
-                    offset: f64::NAN,
-                    votes: 0.0,
-                    measured: 0.0,
-                    sampled: false,
-                    depth: 0,
-                })
-            });
             // Generated by the deepest real leaf, first in octant order.
-            let deepest = corners.iter().filter(|c| c.id & VIRTUAL == 0).map(|c| c.depth).max();
-            let first = corners
+            let real = |c: &&Incident| c.mirrored == 0;
+            let deepest = incident.iter().filter(real).map(|c| c.leaf.depth()).max();
+            let first = incident
                 .iter()
-                .position(|c| c.id & VIRTUAL == 0 && Some(c.depth) == deepest);
-            match first.and_then(|i| corners.get(i)) {
-                Some(c) if c.id == key.raw() => {}
-                _ => generator_ok = false,
-            }
-            if !generator_ok {
+                .position(|c| c.mirrored == 0 && Some(c.leaf.depth()) == deepest);
+            if first.and_then(|i| incident.get(i)).is_none_or(|c| c.leaf != *key) {
                 continue;
             }
-            let positive = corners.iter().filter(|c| c.u > 0.0).count();
+            let positive = incident.iter().filter(|c| c.u() > 0.0).count();
             if positive == 0 || positive == 8 {
                 continue;
             }
+            let corners = incident.map(|c| c.corner(scene));
             let gradient = cell_gradient(&corners);
             mesh_cell(&corners, gradient, closed, &mut piece);
         }
@@ -506,15 +564,46 @@ fn cell_gradient(corners: &[Corner; 8]) -> DVec3 {
 
 /// The vertices of a cut tetrahedron's surface polygon, in order around it, as pairs of
 /// corner indices (inside, outside) into the tetrahedron.
-fn polygon_edges(t: &[Corner; 4]) -> Vec<(usize, usize)> {
-    let inside: Vec<usize> = (0..4).filter(|&i| t[i].u <= 0.0).collect();
-    let outside: Vec<usize> = (0..4).filter(|&i| t[i].u > 0.0).collect();
-    match (inside.as_slice(), outside.as_slice()) {
-        ([apex], others) | (others, [apex]) => others.iter().map(|&o| (*apex, o)).collect(),
-        ([i0, i1], [o0, o1]) => vec![(*i0, *o0), (*i0, *o1), (*i1, *o1), (*i1, *o0)],
-        _ => Vec::new(),
+fn polygon_edges(t: &[Corner; 4]) -> PolygonEdges {
+    // Without allocating (a list per cut tetrahedron): the corners on each side, in order.
+    let (mut inside, mut outside) = ([0usize; 4], [0usize; 4]);
+    let (mut ins, mut outs) = (0, 0);
+    for (i, c) in t.iter().enumerate() {
+        // A NaN u is on neither side.
+        let (list, n) = if c.u <= 0.0 {
+            (&mut inside, &mut ins)
+        } else if c.u > 0.0 {
+            (&mut outside, &mut outs)
+        } else {
+            continue;
+        };
+        if let Some(slot) = list.get_mut(*n) {
+            *slot = i;
+        }
+        *n += 1;
     }
+    let mut edges = [(0, 0); 4];
+    let mut from_apex = |apex: usize, others: [usize; 4], count: usize| {
+        for (edge, other) in edges.iter_mut().zip(others).take(count) {
+            *edge = (apex, other);
+        }
+        count
+    };
+    let count = match (ins, outs) {
+        (1, others) => from_apex(inside[0], outside, others),
+        (others, 1) => from_apex(outside[0], inside, others),
+        (2, 2) => {
+            let ([i0, i1, ..], [o0, o1, ..]) = (inside, outside);
+            edges = [(i0, o0), (i0, o1), (i1, o1), (i1, o0)];
+            4
+        }
+        _ => 0,
+    };
+    edges.into_iter().take(count)
 }
+
+/// The edges [`polygon_edges`] finds, at most four.
+type PolygonEdges = std::iter::Take<std::array::IntoIter<(usize, usize), 4>>;
 
 /// The name of the surface vertex on the edge between two corners.
 fn vertex_name(a: &Corner, b: &Corner) -> VertexId {
@@ -530,7 +619,9 @@ fn vertex_name(a: &Corner, b: &Corner) -> VertexId {
 /// `stages::extract`, "Observed surface only").
 fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut Piece) {
     let plane = OffsetPlane::fit(corners);
-    let mut cell_vertices: Vec<u32> = Vec::new();
+    // Each of the 6 tetrahedra adds at most 4 vertices.
+    let mut cell_vertices = [0u32; 24];
+    let mut cell_vertex_count = 0;
     let votes: f32 = corners.iter().map(|c| c.votes).sum();
     let measured: f32 = corners.iter().map(|c| c.measured).sum();
     let cell_observed = corners.iter().any(|c| c.sampled) && measured >= MEASURED_SHARE * votes;
@@ -548,13 +639,24 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut P
             piece.held.push(pinholes::HeldTetrahedron { corners: t, gradient });
             continue;
         }
-        cell_vertices.extend(mesh_tetrahedron(&t, gradient, piece));
+        let (vertices, len) = mesh_tetrahedron(&t, gradient, piece);
+        for &vertex in vertices.get(..len).unwrap_or_default() {
+            if let Some(slot) = cell_vertices.get_mut(cell_vertex_count) {
+                *slot = vertex;
+                cell_vertex_count += 1;
+            }
+        }
     }
     let Some(plane) = plane else { return };
     let (normal, distance) = plane.normal_form();
+    let cell_vertices = cell_vertices.get_mut(..cell_vertex_count).unwrap_or_default();
     cell_vertices.sort_unstable();
-    cell_vertices.dedup();
-    for vi in cell_vertices {
+    let mut last = None;
+    for &vi in cell_vertices.iter() {
+        if last == Some(vi) {
+            continue;
+        }
+        last = Some(vi);
         if let Some(share) = piece.guides.moves.get_mut(vi as usize) {
             share.add_plane(normal, distance);
         }
@@ -562,15 +664,16 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut P
 }
 
 /// Adds the surface polygon of a cut tetrahedron to the piece (triangles oriented towards
-/// positive u, vertices found or added by name) and returns its vertices.
-fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> Vec<u32> {
+/// positive u, vertices found or added by name) and returns its vertices: the first `len` of
+/// the array.
+fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> ([u32; 4], usize) {
     let Piece {
         mesh,
         guides,
         vertex_index,
         ..
     } = piece;
-    let mut polygon: Vec<u32> = Vec::with_capacity(4);
+    let (mut polygon_vertices, mut polygon_len) = ([0u32; 4], 0);
     for (a, b) in polygon_edges(t) {
         let (ca, cb) = (t[a], t[b]);
         let edge = vertex_name(&ca, &cb);
@@ -589,9 +692,13 @@ fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> Vec<
                 *slot.insert(index).get()
             }
         };
-        polygon.push(index);
+        if let Some(slot) = polygon_vertices.get_mut(polygon_len) {
+            *slot = index;
+            polygon_len += 1;
+        }
     }
-    for &vi in &polygon {
+    let polygon = polygon_vertices.get(..polygon_len).unwrap_or_default();
+    for &vi in polygon {
         if let Some(v) = mesh.vertices.get_mut(vi as usize) {
             v.2 += gradient;
         }
@@ -620,7 +727,7 @@ fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> Vec<
         }
         mesh.triangles.push(tri);
     }
-    polygon
+    (polygon_vertices, polygon_len)
 }
 
 #[cfg(test)]
@@ -665,6 +772,45 @@ mod tests {
         }
     }
 
+    #[test]
+    fn corners_lost_to_a_sibling_are_those_an_earlier_octant_probes_in_the_parent() {
+        // Every child of a parent inside the root: the cells the probes of each corner's
+        // earlier octants read, as extraction computes them, against the table.
+        let parent = CubeKey::new(5, 9, 20, 13);
+        let [px, py, pz] = parent.coords();
+        let mut lost_corners = 0;
+        for child in 0..8u32 {
+            let key = CubeKey::new(
+                6,
+                2 * px + (child & 1),
+                2 * py + (child >> 1 & 1),
+                2 * pz + (child >> 2),
+            );
+            let side = full_side(key.depth());
+            let corner_cells = key.corner_full_resolution().map(u64::from);
+            let probe_cells: [[ProbeCell; 4]; 3] =
+                std::array::from_fn(|axis| ProbeCell::around(key, axis, corner_cells[axis], side));
+            for corner in 0..8u64 {
+                let in_parent = (0..7 - corner).any(|octant| {
+                    let cells: [ProbeCell; 3] = std::array::from_fn(|axis| {
+                        probe_cells[axis][(2 * ((corner >> axis) & 1) + ((octant >> axis) & 1)) as usize]
+                    });
+                    let probe = CubeKey::from_morton(
+                        cells[0].axis_bits | cells[1].axis_bits << 1 | cells[2].axis_bits << 2,
+                        MAX_DEPTH,
+                    );
+                    parent.is_ancestor_or_self_of(probe)
+                });
+                let table = CORNERS_LOST_TO_A_SIBLING[child as usize] & (1 << corner) != 0;
+                assert_eq!(table, in_parent, "child {child}, corner {corner}");
+                lost_corners += u32::from(table);
+            }
+        }
+        // 37 of the 64 (child, corner) pairs; the generating corner of the first child is not.
+        assert_eq!(lost_corners, 37);
+        assert_eq!(CORNERS_LOST_TO_A_SIBLING[0] & (1 << 7), 0);
+    }
+
     fn cell(offset_at: impl Fn(DVec3) -> f64, side: f64) -> [Corner; 8] {
         std::array::from_fn(|i| {
             let center = DVec3::new((i & 1) as f64, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64) * side;
@@ -678,7 +824,6 @@ mod tests {
                 votes: 1.0,
                 measured: 1.0,
                 sampled: true,
-                depth: 10,
             }
         })
     }

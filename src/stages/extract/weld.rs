@@ -112,6 +112,15 @@ pub(super) struct NameIndex {
 }
 
 impl NameIndex {
+    /// An index with room for `names` names before it grows: growing rehashes every name,
+    /// each found through `name_of` in its record, a read from memory far away.
+    pub(super) fn with_capacity(names: usize) -> NameIndex {
+        NameIndex {
+            table: hashbrown::HashTable::with_capacity(names),
+            hasher: foldhash::fast::FixedState::default(),
+        }
+    }
+
     fn len(&self) -> usize {
         self.table.len()
     }

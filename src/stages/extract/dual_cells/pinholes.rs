@@ -36,7 +36,6 @@ pub(super) fn fill_pinholes(piece: &mut Piece) {
         .iter()
         .map(|h| {
             polygon_edges(&h.corners)
-                .into_iter()
                 .map(|(a, b)| vertex_name(&h.corners[a], &h.corners[b]))
                 .collect()
         })
@@ -134,7 +133,6 @@ mod tests {
                 votes: 1.0,
                 measured: if measured { 1.0 } else { 0.0 },
                 sampled: true,
-                depth: 10,
             }
         };
         let mut piece = Piece::default();
