@@ -2,6 +2,7 @@
 //! centres of its incident leaves, split into Kuhn tetrahedra and cut at u = 0 (module docs of
 //! `stages::extract` give the construction).
 
+use arrayvec::ArrayVec;
 use glam::DVec3;
 
 use super::weld::NameIndex;
@@ -563,47 +564,27 @@ fn cell_gradient(corners: &[Corner; 8]) -> DVec3 {
 }
 
 /// The vertices of a cut tetrahedron's surface polygon, in order around it, as pairs of
-/// corner indices (inside, outside) into the tetrahedron.
-fn polygon_edges(t: &[Corner; 4]) -> PolygonEdges {
-    // Without allocating (a list per cut tetrahedron): the corners on each side, in order.
-    let (mut inside, mut outside) = ([0usize; 4], [0usize; 4]);
-    let (mut ins, mut outs) = (0, 0);
+/// corner indices (inside, outside) into the tetrahedron: at most four, in a fixed array (a
+/// list per cut tetrahedron allocated).
+fn polygon_edges(t: &[Corner; 4]) -> ArrayVec<(usize, usize), 4> {
+    // The corners on each side, in order.
+    let (mut inside, mut outside) = (ArrayVec::<usize, 4>::new(), ArrayVec::<usize, 4>::new());
     for (i, c) in t.iter().enumerate() {
-        // A NaN u is on neither side.
-        let (list, n) = if c.u <= 0.0 {
-            (&mut inside, &mut ins)
+        // A NaN u is on neither side. Four corners fill either side at most.
+        let _ = if c.u <= 0.0 {
+            inside.try_push(i)
         } else if c.u > 0.0 {
-            (&mut outside, &mut outs)
+            outside.try_push(i)
         } else {
             continue;
         };
-        if let Some(slot) = list.get_mut(*n) {
-            *slot = i;
-        }
-        *n += 1;
     }
-    let mut edges = [(0, 0); 4];
-    let mut from_apex = |apex: usize, others: [usize; 4], count: usize| {
-        for (edge, other) in edges.iter_mut().zip(others).take(count) {
-            *edge = (apex, other);
-        }
-        count
-    };
-    let count = match (ins, outs) {
-        (1, others) => from_apex(inside[0], outside, others),
-        (others, 1) => from_apex(outside[0], inside, others),
-        (2, 2) => {
-            let ([i0, i1, ..], [o0, o1, ..]) = (inside, outside);
-            edges = [(i0, o0), (i0, o1), (i1, o1), (i1, o0)];
-            4
-        }
-        _ => 0,
-    };
-    edges.into_iter().take(count)
+    match (inside.as_slice(), outside.as_slice()) {
+        (&[apex], others) | (others, &[apex]) => others.iter().map(|&other| (apex, other)).collect(),
+        (&[i0, i1], &[o0, o1]) => ArrayVec::from([(i0, o0), (i0, o1), (i1, o1), (i1, o0)]),
+        _ => ArrayVec::new(),
+    }
 }
-
-/// The edges [`polygon_edges`] finds, at most four.
-type PolygonEdges = std::iter::Take<std::array::IntoIter<(usize, usize), 4>>;
 
 /// The name of the surface vertex on the edge between two corners.
 fn vertex_name(a: &Corner, b: &Corner) -> VertexId {
@@ -620,8 +601,7 @@ fn vertex_name(a: &Corner, b: &Corner) -> VertexId {
 fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut Piece) {
     let plane = OffsetPlane::fit(corners);
     // Each of the 6 tetrahedra adds at most 4 vertices.
-    let mut cell_vertices = [0u32; 24];
-    let mut cell_vertex_count = 0;
+    let mut cell_vertices = ArrayVec::<u32, 24>::new();
     let votes: f32 = corners.iter().map(|c| c.votes).sum();
     let measured: f32 = corners.iter().map(|c| c.measured).sum();
     let cell_observed = corners.iter().any(|c| c.sampled) && measured >= MEASURED_SHARE * votes;
@@ -639,17 +619,12 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut P
             piece.held.push(pinholes::HeldTetrahedron { corners: t, gradient });
             continue;
         }
-        let (vertices, len) = mesh_tetrahedron(&t, gradient, piece);
-        for &vertex in vertices.get(..len).unwrap_or_default() {
-            if let Some(slot) = cell_vertices.get_mut(cell_vertex_count) {
-                *slot = vertex;
-                cell_vertex_count += 1;
-            }
-        }
+        let polygon = mesh_tetrahedron(&t, gradient, piece);
+        // 6 tetrahedra of at most 4 vertices each fit.
+        let _ = cell_vertices.try_extend_from_slice(&polygon);
     }
     let Some(plane) = plane else { return };
     let (normal, distance) = plane.normal_form();
-    let cell_vertices = cell_vertices.get_mut(..cell_vertex_count).unwrap_or_default();
     cell_vertices.sort_unstable();
     let mut last = None;
     for &vi in cell_vertices.iter() {
@@ -664,16 +639,15 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut P
 }
 
 /// Adds the surface polygon of a cut tetrahedron to the piece (triangles oriented towards
-/// positive u, vertices found or added by name) and returns its vertices: the first `len` of
-/// the array.
-fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> ([u32; 4], usize) {
+/// positive u, vertices found or added by name) and returns its vertices.
+fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> ArrayVec<u32, 4> {
     let Piece {
         mesh,
         guides,
         vertex_index,
         ..
     } = piece;
-    let (mut polygon_vertices, mut polygon_len) = ([0u32; 4], 0);
+    let mut polygon = ArrayVec::<u32, 4>::new();
     for (a, b) in polygon_edges(t) {
         let (ca, cb) = (t[a], t[b]);
         let edge = vertex_name(&ca, &cb);
@@ -692,13 +666,10 @@ fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> ([u3
                 *slot.insert(index).get()
             }
         };
-        if let Some(slot) = polygon_vertices.get_mut(polygon_len) {
-            *slot = index;
-            polygon_len += 1;
-        }
+        // At most four edges.
+        let _ = polygon.try_push(index);
     }
-    let polygon = polygon_vertices.get(..polygon_len).unwrap_or_default();
-    for &vi in polygon {
+    for &vi in &polygon {
         if let Some(v) = mesh.vertices.get_mut(vi as usize) {
             v.2 += gradient;
         }
@@ -727,7 +698,7 @@ fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> ([u3
         }
         mesh.triangles.push(tri);
     }
-    (polygon_vertices, polygon_len)
+    polygon
 }
 
 #[cfg(test)]

@@ -36,6 +36,7 @@ pub(super) fn fill_pinholes(piece: &mut Piece) {
         .iter()
         .map(|h| {
             polygon_edges(&h.corners)
+                .into_iter()
                 .map(|(a, b)| vertex_name(&h.corners[a], &h.corners[b]))
                 .collect()
         })
