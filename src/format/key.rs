@@ -216,6 +216,14 @@ impl CubeKey {
         self.0 >> 8
     }
 
+    /// The Morton code at the cube's own depth: [`CubeKey::morton`] with the finer bits
+    /// shifted out, so that the 8 children of a parent, and the 64 cubes of a 4 x 4 x 4
+    /// brick, have consecutive codes.
+    pub fn morton_at_own_depth(self) -> u128 {
+        let finer = 3 * u32::from(MAX_DEPTH.saturating_sub(self.depth()));
+        self.morton().checked_shr(finer).unwrap_or(0)
+    }
+
     /// Full-resolution minimum corner.
     pub fn corner_full_resolution(self) -> [u32; 3] {
         let m = self.morton();
@@ -393,6 +401,17 @@ impl redb::Key for CubeKeyColumn {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_parents_children_have_consecutive_codes_at_their_depth() {
+        let parent = super::CubeKey::new(7, 5, 9, 2);
+        let codes: Vec<u128> = (0..8u32)
+            .map(|i| super::CubeKey::new(8, 10 + (i & 1), 18 + (i >> 1 & 1), 4 + (i >> 2)).morton_at_own_depth())
+            .collect();
+        let first = parent.morton_at_own_depth() * 8;
+        assert_eq!(codes, (first..first + 8).collect::<Vec<_>>());
+        assert_eq!(super::CubeKey::new(0, 0, 0, 0).morton_at_own_depth(), 0);
+    }
+
     use super::*;
     use proptest::prelude::*;
 
