@@ -264,7 +264,9 @@ impl Snapshot {
             .detach(move || -> Result<octstore::Mesh, String> {
                 let scratch = tempfile::tempdir().map_err(|e| format!("temporary folder: {e}"))?;
                 let output = path.unwrap_or_else(|| scratch.path().join("mesh.ply"));
-                octstore::pipeline::extract(&store, &output, &options, Some(version)).map_err(|e| e.to_string())?;
+                // The CLI's default --memory-budget (1 GiB) bounds the pieces computed ahead.
+                octstore::pipeline::extract(&store, &output, &options, Some(version), 1 << 30)
+                    .map_err(|e| e.to_string())?;
                 octstore::mesh::read_mesh(&output).map_err(|e| e.to_string())
             })
             .map_err(error)?;

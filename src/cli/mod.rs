@@ -95,7 +95,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
         Command::Commit(args) => cluster::commit(&global, args)?,
         Command::Slurm(args) => cluster::slurm(&global, args)?,
         Command::Demo(args) => verbs::demo(&global, args)?,
-        Command::Extract(args) => verbs::extract(args)?,
+        Command::Extract(args) => verbs::extract(&global, args)?,
         Command::Query(args) => verbs::query(args)?,
         Command::Render(args) => verbs::render(args)?,
         Command::Info(args) => verbs::info_verb(args)?,

@@ -100,7 +100,7 @@ pub(super) fn demo(global: &GlobalOptions, args: DemoArgs) -> Result<()> {
     Ok(())
 }
 
-pub(super) fn extract(args: ExtractArgs) -> Result<()> {
+pub(super) fn extract(global: &GlobalOptions, args: ExtractArgs) -> Result<()> {
     let started = Instant::now();
     let store = Store::open_for_reading(&args.store)?;
     let options = ExtractOptions {
@@ -108,7 +108,7 @@ pub(super) fn extract(args: ExtractArgs) -> Result<()> {
         decimate: args.decimate,
         closed: args.closed,
     };
-    let summary = pipeline::extract(&store, &args.output, &options, args.version)?;
+    let summary = pipeline::extract(&store, &args.output, &options, args.version, global.memory_budget)?;
     print_extract_summary(&summary, &args.output, started);
     Ok(())
 }

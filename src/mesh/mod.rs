@@ -40,6 +40,18 @@ pub struct UnitMesh {
     pub seam_moves: Vec<VertexMove>,
 }
 
+impl UnitMesh {
+    /// Bytes the piece's lists hold on the heap (their capacities).
+    pub fn heap_bytes(&self) -> u64 {
+        let bytes = |capacity: usize, each: usize| (capacity * each) as u64;
+        bytes(
+            self.vertices.capacity(),
+            std::mem::size_of::<(VertexId, DVec3, DVec3)>(),
+        ) + bytes(self.triangles.capacity(), std::mem::size_of::<[u32; 3]>())
+            + bytes(self.seam_moves.capacity(), std::mem::size_of::<VertexMove>())
+    }
+}
+
 /// A piece's share in placing a vertex: the planes that the piece's cells around the vertex
 /// measured the surface on, summed so that the mean of a point's projections onto them can be
 /// computed (the projection onto the plane `n . x = d`, n a unit normal, is `x - n n^T x + d n`,

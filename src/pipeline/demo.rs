@@ -112,7 +112,7 @@ pub fn demo(options: &DemoOptions, mut on_report: impl FnMut(&RunReport)) -> Res
     solve(&store, &solve_options, &mut on_report)?;
     let mesh = out.join("demo.ply");
     let extract_started = std::time::Instant::now();
-    let summary = extract(&store, &mesh, &Default::default(), None)?;
+    let summary = extract(&store, &mesh, &Default::default(), None, options.memory_budget)?;
     let preview = out.join("demo.png");
     save_preview(&mesh, &preview)?;
     Ok(DemoOutput {

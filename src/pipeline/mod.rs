@@ -237,7 +237,14 @@ pub fn open_gpu(choice: DeviceChoice) -> Result<Option<Arc<Gpu>>> {
 
 /// Extracts the surface of the latest solved version (or of `version`) into `output`: PLY, or
 /// OBJ by extension; streamed leaf by leaf unless a region or decimation asks for the whole.
-pub fn extract(store: &Store, output: &Path, options: &ExtractOptions, version: Option<u64>) -> Result<MeshSummary> {
+/// A quarter of `memory_budget` holds leaves' pieces computed ahead of the weld.
+pub fn extract(
+    store: &Store,
+    output: &Path,
+    options: &ExtractOptions,
+    version: Option<u64>,
+    memory_budget: u64,
+) -> Result<MeshSummary> {
     let snapshot = match version {
         Some(v) => store.snapshot(v)?,
         None => store.latest()?,
@@ -247,5 +254,12 @@ pub fn extract(store: &Store, output: &Path, options: &ExtractOptions, version: 
     let scene =
         scene_at(store, snapshot.version())?.ok_or_else(|| PipelineError::NotIngested { step: "extract".into() })?;
     let finest = crate::query::IndicatorField::finest_level(&snapshot).map_or_else(|| octree_max_depth(store), Ok)?;
-    Ok(extract_to_file(&snapshot, &scene, finest, options, output)?)
+    Ok(extract_to_file(
+        &snapshot,
+        &scene,
+        finest,
+        options,
+        output,
+        memory_budget,
+    )?)
 }

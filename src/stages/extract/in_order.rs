@@ -3,23 +3,38 @@
 
 use crate::store::{Result, StoreError};
 
+/// How far workers may run ahead of the consumer: at most `pieces` results exist at once (the
+/// one being consumed included), and a worker claims a new item only while the finished
+/// results that wait hold less than `bytes`. So at most `bytes` plus one result per worker
+/// wait, whatever the pieces' sizes.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Window {
+    pub pieces: usize,
+    pub bytes: u64,
+}
+
 /// Hands `consume` the results of `compute(item)` for every item, as an iterator in item
-/// order, while `threads` workers compute the next ones: at most `window` results exist at
-/// once (the one being consumed included), so memory stays bounded, and consuming overlaps
-/// computing. The order does not depend on the workers' timing.
+/// order, while `threads` workers compute the next ones within `window` (each result's size as
+/// `weigh` gives it), so memory stays bounded, and consuming overlaps computing. The order
+/// does not depend on the workers' timing.
 pub(super) fn in_order_while_computing<I: Copy + Send + Sync, T: Send, R>(
     items: &[I],
     threads: usize,
-    window: usize,
+    window: Window,
+    weigh: impl Fn(&T) -> u64 + Sync,
     compute: impl Fn(I) -> Result<T> + Sync,
     consume: impl FnOnce(&mut dyn Iterator<Item = Result<T>>) -> R,
 ) -> R {
-    let window = window.max(2);
+    let window = Window {
+        pieces: window.pieces.max(2),
+        ..window
+    };
     let shared = InOrder {
         state: std::sync::Mutex::new(InOrderState {
             next_item: 0,
             taken: 0,
             done: std::collections::BTreeMap::new(),
+            waiting_bytes: 0,
             stop: false,
             worker_panicked: false,
         }),
@@ -34,7 +49,11 @@ pub(super) fn in_order_while_computing<I: Copy + Send + Sync, T: Send, R>(
                         break;
                     };
                     let result = compute(item);
-                    shared.lock().done.insert(index, result);
+                    let bytes = result.as_ref().map_or(0, &weigh);
+                    let mut state = shared.lock();
+                    state.waiting_bytes += bytes;
+                    state.done.insert(index, (result, bytes));
+                    drop(state);
                     shared.changed.notify_all();
                 }
             });
@@ -57,7 +76,10 @@ struct InOrderState<T> {
     next_item: usize,
     /// Pieces handed to the consumer so far; piece `taken - 1` may still be in use.
     taken: usize,
-    done: std::collections::BTreeMap<usize, Result<T>>,
+    /// Finished results not yet taken, with their sizes.
+    done: std::collections::BTreeMap<usize, (Result<T>, u64)>,
+    /// The sum of `done`'s sizes.
+    waiting_bytes: u64,
     stop: bool,
     worker_panicked: bool,
 }
@@ -70,15 +92,18 @@ impl<T> InOrder<T> {
     }
 
     /// The next item for a worker, once it is within `window` of the consumer; `None` when
-    /// all are claimed or the consumer has stopped.
-    fn claim(&self, count: usize, window: usize) -> Option<usize> {
+    /// all are claimed or the consumer has stopped. The item the consumer waits for is always
+    /// claimable (no result after it can be waiting then), so the stream cannot stall.
+    fn claim(&self, count: usize, window: Window) -> Option<usize> {
         let mut state = self.lock();
         loop {
             if state.stop || state.next_item >= count {
                 return None;
             }
-            // Pieces taken - 1 (in use) up to next_item must number at most `window`.
-            if state.next_item + 1 < state.taken + window {
+            // Pieces taken - 1 (in use) up to next_item must number at most `window.pieces`.
+            let within_count = state.next_item + 1 < state.taken + window.pieces;
+            let within_bytes = state.waiting_bytes < window.bytes || state.next_item <= state.taken;
+            if within_count && within_bytes {
                 state.next_item += 1;
                 return Some(state.next_item - 1);
             }
@@ -118,8 +143,9 @@ impl<T> Iterator for InOrderPieces<'_, T> {
         let mut state = self.shared.lock();
         loop {
             let taken = state.taken;
-            if let Some(piece) = state.done.remove(&taken) {
+            if let Some((piece, bytes)) = state.done.remove(&taken) {
                 state.taken += 1;
+                state.waiting_bytes -= bytes;
                 drop(state);
                 self.shared.changed.notify_all();
                 return Some(piece);
@@ -172,7 +198,10 @@ mod tests {
     fn pieces_come_in_item_order_and_at_most_a_window_exist_at_once() {
         let items: Vec<usize> = (0..300).collect();
         let (alive, most) = (AtomicUsize::new(0), AtomicUsize::new(0));
-        let window = 4;
+        let window = Window {
+            pieces: 4,
+            bytes: u64::MAX,
+        };
         let compute = |item: usize| -> Result<Piece<'_>> {
             let now = alive.fetch_add(1, Ordering::SeqCst) + 1;
             most.fetch_max(now, Ordering::SeqCst);
@@ -180,14 +209,67 @@ mod tests {
             std::thread::sleep(std::time::Duration::from_micros((item * 7919 % 13) as u64 * 50));
             Ok(Piece { item, alive: &alive })
         };
-        let seen = in_order_while_computing(&items, 3, window, compute, |pieces| {
-            pieces.map(|piece| piece.map(|p| p.item)).collect::<Result<Vec<_>>>()
-        })
+        let seen = in_order_while_computing(
+            &items,
+            3,
+            window,
+            |_| 1,
+            compute,
+            |pieces| pieces.map(|piece| piece.map(|p| p.item)).collect::<Result<Vec<_>>>(),
+        )
         .expect("no piece fails");
         assert_eq!(seen, items);
         let most = most.load(Ordering::SeqCst);
-        assert!(most <= window, "{most} pieces existed at once, window {window}");
+        assert!(
+            most <= window.pieces,
+            "{most} pieces existed at once, window {window:?}"
+        );
         assert_eq!(alive.load(Ordering::SeqCst), 0);
+    }
+
+    #[test]
+    fn waiting_pieces_stay_within_the_byte_window() {
+        // Pieces of uneven sizes (0 to 90 bytes), the largest the slowest, against a window
+        // of 100 bytes and room for 50 pieces by count: the bytes bind.
+        let items: Vec<usize> = (0..400).collect();
+        let weight = |item: usize| (item * 37 % 10) as u64 * 10;
+        let (held, most) = (AtomicUsize::new(0), AtomicUsize::new(0));
+        let window = Window { pieces: 50, bytes: 100 };
+        let threads = 3;
+        let compute = |item: usize| -> Result<usize> {
+            std::thread::sleep(std::time::Duration::from_micros(weight(item) * 5));
+            let bytes = weight(item) as usize;
+            most.fetch_max(held.fetch_add(bytes, Ordering::SeqCst) + bytes, Ordering::SeqCst);
+            Ok(item)
+        };
+        let seen = in_order_while_computing(
+            &items,
+            threads,
+            window,
+            |&item| weight(item),
+            compute,
+            |pieces| {
+                pieces
+                    .map(|piece| {
+                        // The consumer is done with a piece when it takes the next one.
+                        piece.inspect(|&item| {
+                            held.fetch_sub(weight(item) as usize, Ordering::SeqCst);
+                        })
+                    })
+                    .collect::<Result<Vec<_>>>()
+            },
+        )
+        .expect("no piece fails");
+        assert_eq!(seen, items);
+        // Less than 100 bytes waited when the last claim was made, then at most one 90-byte
+        // piece per worker finished, and the one the consumer is taking.
+        let bound = 100 + (threads + 1) * 90;
+        let most = most.load(Ordering::SeqCst);
+        assert!(most < bound, "{most} bytes of pieces existed at once, bound {bound}");
+        assert!(
+            most >= 100,
+            "the window never filled ({most} bytes): the test proves nothing"
+        );
     }
 
     #[test]
@@ -203,16 +285,24 @@ mod tests {
             }
             Ok(item)
         };
-        let (before, error) = in_order_while_computing(&items, 2, 4, compute, |pieces| {
-            let mut before = Vec::new();
-            for piece in pieces {
-                match piece {
-                    Ok(item) => before.push(item),
-                    Err(error) => return (before, Some(error.to_string())),
+        let window = Window { pieces: 4, bytes: 1 };
+        let (before, error) = in_order_while_computing(
+            &items,
+            2,
+            window,
+            |_| 1,
+            compute,
+            |pieces| {
+                let mut before = Vec::new();
+                for piece in pieces {
+                    match piece {
+                        Ok(item) => before.push(item),
+                        Err(error) => return (before, Some(error.to_string())),
+                    }
                 }
-            }
-            (before, None)
-        });
+                (before, None)
+            },
+        );
         assert_eq!(before, (0..37).collect::<Vec<_>>());
         assert!(error.is_some_and(|e| e.contains("bad unit")));
     }
