@@ -1,7 +1,7 @@
 //! `histograms`: votes of every depth map into per-cube histograms (paper 3.4, 4.4, Algorithm 1).
 //!
-//! Per treetop unit, only depth maps whose frustum meets the unit's cube are read, one at a time
-//! with its mipmap pyramid. Votes are additive and exact (weights are multiples of 1/16 and sums
+//! Per treetop unit, only depth maps whose frustum meets the unit's cube are read, a batch at a
+//! time with their mipmap pyramids (`kernels::votes::vote_maps`). Votes are additive and exact (weights are multiples of 1/16 and sums
 //! stay far below 2^24 / 16 in f32), so after an incremental ingest a unit whose octree part is
 //! unchanged only receives the new depth maps' votes, and the result equals a from-scratch run.
 
@@ -19,8 +19,8 @@ use super::{HISTOGRAMS, OCTREE};
 use crate::format::{Column, ColumnValues, CubeKey, Scene};
 use crate::inputs::DepthMapSource;
 use crate::kernels::votes::{
-    BINS, Chunk, ChunkedCubes, Pyramid, UnitView, band_floor, chunks, cube_geometry, cube_offsets, quantized_weight,
-    vote_chunks,
+    BINS, Chunk, ChunkedCubes, MAPS_AT_ONCE, MapVote, Pyramid, UnitView, band_floor, chunks, cube_geometry,
+    cube_offsets, quantized_weight, vote_maps,
 };
 use crate::store::catalog::{self, META, UNIT_STATE, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
@@ -440,18 +440,12 @@ impl Stage for HistogramsStage {
             gpu.count(on_gpu);
         }
         if !on_gpu {
-            self.pass_over_maps(
-                &mut voters,
-                unit,
-                |voters, pyramid, _, world_to_camera, weight, needed| {
-                    for (index, seen) in needed {
-                        if let Some(voter) = voters.get_mut(index) {
-                            voter.vote(pyramid, world_to_camera, weight, &seen);
-                        }
-                    }
-                    Ok(true)
-                },
-            )?;
+            self.pass_over_maps(&mut voters, unit, |voters, batch| {
+                for (index, voter) in voters.iter_mut().enumerate() {
+                    voter.vote_batch(index, batch);
+                }
+                Ok(true)
+            })?;
         }
         let mut segments = Vec::with_capacity(voters.len());
         let mut extra = UnitExtra {
@@ -585,15 +579,25 @@ struct Voter {
 }
 
 impl Voter {
-    /// Votes `pyramid` into the cubes of the chunks listed in `seen` (ascending); see
-    /// [`vote_chunks`].
-    fn vote(&mut self, pyramid: &Pyramid, world_to_camera: &glam::DMat4, weight: f32, seen: &[usize]) {
+    /// Votes the maps of `batch` that member `index` may see into its cubes, in the batch's
+    /// order ([`vote_maps`]).
+    fn vote_batch(&mut self, index: usize, batch: &[ReadyMap<'_>]) {
+        let maps: Vec<MapVote<'_>> = batch
+            .iter()
+            .filter_map(|map| {
+                let (_, seen) = map.needed.iter().find(|(member, _)| *member == index)?;
+                let view = UnitView::new(&map.pyramid.source, &map.world_to_camera, self.center, self.band_floor);
+                Some(MapVote::new(&map.pyramid, view, map.weight, seen))
+            })
+            .collect();
+        if maps.is_empty() {
+            return;
+        }
         let cubes = ChunkedCubes {
             offsets: &self.offsets,
             chunks: &self.chunks,
         };
-        let view = UnitView::new(&pyramid.source, world_to_camera, self.center, self.band_floor);
-        self.votes += vote_chunks(&cubes, &mut self.hist, &mut self.distance, pyramid, &view, weight, seen);
+        self.votes += vote_maps(&cubes, &mut self.hist, &mut self.distance, &maps);
     }
 }
 
@@ -601,100 +605,137 @@ impl Voter {
 /// that may see it, each with the chunks that may.
 type Needed = Vec<(usize, Vec<usize>)>;
 
+/// A decoded map that votes next, with what it needs.
+struct ReadyMap<'s> {
+    pyramid: Arc<Pyramid>,
+    source: &'s DepthMapSource,
+    world_to_camera: glam::DMat4,
+    weight: f32,
+    needed: Needed,
+}
+
 impl HistogramsStage {
     /// One pass over the depth maps for the whole group, in id order. Every member a map has
-    /// not voted into yet records it; a map that may see some member's chunks is decoded (once
-    /// per group, or taken from the cache) and handed to `vote` with those members. `vote`
+    /// not voted into yet records it; the maps that may see some member's chunks are decoded
+    /// (once per group, or taken from the cache) a batch at a time ([`Self::maps_per_batch`])
+    /// and handed to `vote` in order, each with the members and chunks it may see. `vote`
     /// returns false to end the pass early.
     ///
-    /// The next map is decoded while the last one votes (`rayon::join`): a group that runs
-    /// alone (the last of a stage with more groups than threads) kept one core idle for each
-    /// decode, about 3 ms a RedKitchen frame. The maps still vote in id order.
+    /// The next batch is decoded, its maps in parallel, while the last one votes
+    /// (`rayon::join`): a group that runs alone (the last of a stage with more groups than
+    /// threads) kept one core idle for each decode, about 3 ms a RedKitchen frame. The maps
+    /// still vote in id order.
     fn pass_over_maps(
         &self,
         voters: &mut [Voter],
         unit: &UnitSpec,
-        mut vote: impl FnMut(&mut [Voter], &Pyramid, &DepthMapSource, &glam::DMat4, f32, Needed) -> Result<bool> + Send,
+        mut vote: impl FnMut(&mut [Voter], &[ReadyMap<'_>]) -> Result<bool> + Send,
     ) -> Result<()> {
-        // The decoded map that votes next, with what it needs.
-        let mut ready: Option<(Arc<Pyramid>, &DepthMapSource, glam::DMat4, Needed)> = None;
-        let mut cast =
-            |voters: &mut [Voter], ready: Option<(Arc<Pyramid>, &DepthMapSource, glam::DMat4, Needed)>| match ready {
-                Some((pyramid, source, world_to_camera, needed)) => vote(
-                    voters,
-                    &pyramid,
-                    source,
-                    &world_to_camera,
-                    quantized_weight(source.weight),
-                    needed,
-                ),
-                None => Ok(true),
-            };
-        for (id, record) in &self.depth_maps {
-            let source = &record.source;
-            let world_to_camera = source.pose().inverse();
-            let mut needed = Vec::new();
-            for (index, voter) in voters.iter_mut().enumerate() {
-                if voter.already.contains(id) {
-                    continue;
-                }
-                voter.voted.insert(*id);
-                if !Pyramid::may_see(source, &world_to_camera, voter.center, voter.radius) {
-                    continue;
-                }
-                let seen: Vec<usize> = voter
-                    .chunks
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, chunk)| Pyramid::may_see(source, &world_to_camera, chunk.center, chunk.radius))
-                    .map(|(chunk, _)| chunk)
-                    .collect();
-                if !seen.is_empty() {
-                    needed.push((index, seen));
+        use rayon::prelude::*;
+        let per_batch = self.maps_per_batch();
+        let mut maps = self.depth_maps.iter();
+        let mut ready: Vec<ReadyMap<'_>> = Vec::new();
+        loop {
+            // The next maps that may see some member's chunks.
+            let mut pending: Vec<(u64, &DepthMapSource, glam::DMat4, Needed)> = Vec::with_capacity(per_batch);
+            for (id, record) in maps.by_ref() {
+                let source = &record.source;
+                let world_to_camera = source.pose().inverse();
+                let needed = may_see(voters, *id, source, &world_to_camera);
+                if !needed.is_empty() {
+                    pending.push((*id, source, world_to_camera, needed));
+                    if pending.len() == per_batch {
+                        break;
+                    }
                 }
             }
-            if needed.is_empty() {
-                continue;
+            if pending.is_empty() {
+                break;
             }
+            let previous = std::mem::take(&mut ready);
             let load = || {
-                self.cache.get_or_load(*id, || {
-                    self.check_unchanged(*id, source, &unit.label)?;
-                    let image = source.load().map_err(|e| StoreError::Stage {
-                        stage: HISTOGRAMS.into(),
-                        unit: unit.label.clone(),
-                        message: e.to_string(),
-                    })?;
-                    Ok(Pyramid::new(source.clone(), image))
-                })
+                pending
+                    .par_iter()
+                    .map(|(id, source, _, _)| self.load_pyramid(*id, source, &unit.label))
+                    .collect::<Vec<_>>()
             };
-            let previous = ready.take();
-            let (pyramid, went_on) = rayon::join(load, || cast(voters, previous));
+            let cast = || {
+                if previous.is_empty() {
+                    Ok(true)
+                } else {
+                    vote(voters, &previous)
+                }
+            };
+            let (pyramids, went_on) = rayon::join(load, cast);
             if !went_on? {
                 return Ok(());
             }
-            let pyramid = pyramid?;
-            // Chunks the map sees only from far behind its surfaces cast no vote.
-            let needed: Needed = needed
-                .into_iter()
-                .filter_map(|(index, seen)| {
-                    let chunks = &voters.get(index)?.chunks;
-                    let seen: Vec<usize> = seen
-                        .into_iter()
-                        .filter(|&c| {
-                            chunks
-                                .get(c)
-                                .is_some_and(|chunk| !pyramid.farthest.hides(source, &world_to_camera, chunk))
-                        })
-                        .collect();
-                    (!seen.is_empty()).then_some((index, seen))
-                })
-                .collect();
-            if !needed.is_empty() {
-                ready = Some((pyramid, source, world_to_camera, needed));
+            for ((_, source, world_to_camera, needed), pyramid) in pending.into_iter().zip(pyramids) {
+                let pyramid = pyramid?;
+                // Chunks the map sees only from far behind its surfaces cast no vote.
+                let needed: Needed = needed
+                    .into_iter()
+                    .filter_map(|(index, seen)| {
+                        let chunks = &voters.get(index)?.chunks;
+                        let seen: Vec<usize> = seen
+                            .into_iter()
+                            .filter(|&c| {
+                                chunks
+                                    .get(c)
+                                    .is_some_and(|chunk| !pyramid.farthest.hides(source, &world_to_camera, chunk))
+                            })
+                            .collect();
+                        (!seen.is_empty()).then_some((index, seen))
+                    })
+                    .collect();
+                if !needed.is_empty() {
+                    ready.push(ReadyMap {
+                        weight: quantized_weight(source.weight),
+                        pyramid,
+                        source,
+                        world_to_camera,
+                        needed,
+                    });
+                }
             }
         }
-        cast(voters, ready)?;
+        if !ready.is_empty() {
+            vote(voters, &ready)?;
+        }
         Ok(())
+    }
+
+    /// Maps decoded and voted together: as many as keep two batches of each worker's group
+    /// (the one voting and the one decoding) within the pyramid cache's bytes, where the
+    /// batches' maps stay as the most recently used (so batches add no memory to the cache's),
+    /// and at most [`MAPS_AT_ONCE`]. RedKitchen at 512 MiB: 64 MiB of cache, 1.6 MB maps and
+    /// 2 workers, 9 maps a batch. One map a batch without a cache.
+    fn maps_per_batch(&self) -> usize {
+        let largest = self
+            .depth_maps
+            .iter()
+            .map(|(_, record)| u64::from(record.source.width) * u64::from(record.source.height))
+            .max()
+            .unwrap_or(1);
+        // A pyramid's levels take 4/3 of the full level's 4 bytes a pixel, its farthest-depth
+        // blocks a little more: 6 bytes a pixel bounds both.
+        let pyramid_bytes = largest.max(1) * 6;
+        let workers = rayon::current_num_threads().max(1) as u64;
+        let maps = self.cache.capacity / (2 * workers * pyramid_bytes);
+        usize::try_from(maps).unwrap_or(MAPS_AT_ONCE).clamp(1, MAPS_AT_ONCE)
+    }
+
+    /// Map `id`'s pyramid, from the cache or decoded (checking the file is the one ingested).
+    fn load_pyramid(&self, id: u64, source: &DepthMapSource, unit: &str) -> Result<Arc<Pyramid>> {
+        self.cache.get_or_load(id, || {
+            self.check_unchanged(id, source, unit)?;
+            let image = source.load().map_err(|e| StoreError::Stage {
+                stage: HISTOGRAMS.into(),
+                unit: unit.to_string(),
+                message: e.to_string(),
+            })?;
+            Ok(Pyramid::new(source.clone(), image))
+        })
     }
 
     /// The group's votes on `gpu` (`shaders/votes.wgsl`): the members' cubes and rows stay on
@@ -728,38 +769,36 @@ impl HistogramsStage {
                 })
                 .collect::<std::result::Result<Vec<_>, _>>()?;
             let mut failure = None;
-            let pass = self.pass_over_maps(
-                voters,
-                unit,
-                |voters, pyramid, source, world_to_camera, weight, needed| {
-                    let attempt = gpu.upload_pyramid(pyramid).and_then(|map| {
-                        for (index, seen) in &needed {
-                            let (Some(batches), Some(voter)) = (units.get(*index), voters.get(*index)) else {
-                                continue;
-                            };
-                            for (start, end, on_gpu) in batches {
-                                // Only batches holding a chunk that may see the map: the others
-                                // cannot vote, as on the CPU.
-                                let seen_here = seen
-                                    .iter()
-                                    .filter_map(|&c| voter.chunks.get(c))
-                                    .any(|chunk| chunk.start < *end && chunk.end > *start);
-                                if seen_here {
-                                    gpu.vote(on_gpu, &map, source, world_to_camera, weight)?;
-                                }
+            let pass = self.pass_over_maps(voters, unit, |voters, batch| {
+                let attempt = batch.iter().try_for_each(|ready| {
+                    let (source, world_to_camera, weight) = (ready.source, &ready.world_to_camera, ready.weight);
+                    let map = gpu.upload_pyramid(&ready.pyramid)?;
+                    for (index, seen) in &ready.needed {
+                        let (Some(batches), Some(voter)) = (units.get(*index), voters.get(*index)) else {
+                            continue;
+                        };
+                        for (start, end, on_gpu) in batches {
+                            // Only batches holding a chunk that may see the map: the others
+                            // cannot vote, as on the CPU.
+                            let seen_here = seen
+                                .iter()
+                                .filter_map(|&c| voter.chunks.get(c))
+                                .any(|chunk| chunk.start < *end && chunk.end > *start);
+                            if seen_here {
+                                gpu.vote(on_gpu, &map, source, world_to_camera, weight)?;
                             }
                         }
-                        Ok(())
-                    });
-                    match attempt {
-                        Ok(()) => Ok(true),
-                        Err(error) => {
-                            failure = Some(error);
-                            Ok(false)
-                        }
                     }
-                },
-            );
+                    Ok(())
+                });
+                match attempt {
+                    Ok(()) => Ok(true),
+                    Err(error) => {
+                        failure = Some(error);
+                        Ok(false)
+                    }
+                }
+            });
             if let Err(error) = pass {
                 store_error = Some(error);
                 return Ok(Vec::new());
@@ -846,6 +885,32 @@ impl HistogramsStage {
             radius,
         })
     }
+}
+
+/// The members map `id` has not voted into yet, each with the chunks the map's frustum may see
+/// (none when it sees none of them); every such member records the map as voted.
+fn may_see(voters: &mut [Voter], id: u64, source: &DepthMapSource, world_to_camera: &glam::DMat4) -> Needed {
+    let mut needed = Vec::new();
+    for (index, voter) in voters.iter_mut().enumerate() {
+        if voter.already.contains(&id) {
+            continue;
+        }
+        voter.voted.insert(id);
+        if !Pyramid::may_see(source, world_to_camera, voter.center, voter.radius) {
+            continue;
+        }
+        let seen: Vec<usize> = voter
+            .chunks
+            .iter()
+            .enumerate()
+            .filter(|(_, chunk)| Pyramid::may_see(source, world_to_camera, chunk.center, chunk.radius))
+            .map(|(chunk, _)| chunk)
+            .collect();
+        if !seen.is_empty() {
+            needed.push((index, seen));
+        }
+    }
+    needed
 }
 
 fn file_digest(base: &Snapshot<'_>, segment: &str) -> u64 {
