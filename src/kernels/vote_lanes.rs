@@ -213,7 +213,6 @@ mod tests {
     use glam::DVec3;
 
     use super::*;
-    use crate::inputs::DepthImage;
     use crate::kernels::votes::{Pyramid, vote_relative};
 
     #[test]
@@ -227,16 +226,8 @@ mod tests {
             [45.0, 40.0, 26.0, 20.5],
             glam::DMat4::from_translation(DVec3::new(3.0, -1.0, 2.0)) * glam::DMat4::from_rotation_y(0.3),
         );
-        let depth = (0..width * height)
-            .map(|p| {
-                if p % 17 == 0 {
-                    f32::NAN
-                } else {
-                    2.0 + 0.01 * (p % width) as f32
-                }
-            })
-            .collect();
-        let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
+        let wall = crate::kernels::votes::tests::slanted_wall((width, height), 17, 2.0, 0.01);
+        let pyramid = Pyramid::new(source.clone(), wall);
         let shapes = LevelShapes::of(&pyramid);
         let world_to_camera = source.pose().inverse();
         let origin = DVec3::new(3.5, -0.8, 4.0);

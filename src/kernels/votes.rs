@@ -682,7 +682,7 @@ fn vote_chunk(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     fn pinhole_source(
@@ -692,6 +692,21 @@ mod tests {
         camera_to_world: glam::DMat4,
     ) -> crate::inputs::DepthMapSource {
         crate::inputs::DepthMapSource::test_pinhole(path, size, k, camera_to_world)
+    }
+
+    /// A wall whose depth grows by `slope` a column from `near`, with a hole (NaN) every
+    /// `hole_every` pixels.
+    pub(crate) fn slanted_wall((width, height): (u32, u32), hole_every: u32, near: f32, slope: f32) -> DepthImage {
+        let depth = (0..width * height)
+            .map(|p| {
+                if p % hole_every == 0 {
+                    f32::NAN
+                } else {
+                    near + slope * (p % width) as f32
+                }
+            })
+            .collect();
+        DepthImage { width, height, depth }
     }
 
     #[test]
@@ -796,18 +811,7 @@ mod tests {
             .collect();
         let pyramids: Vec<Pyramid> = sources
             .iter()
-            .map(|source| {
-                let depth = (0..width * height)
-                    .map(|p| {
-                        if p % 23 == 0 {
-                            f32::NAN
-                        } else {
-                            1.0 + 0.002 * (p % width) as f32
-                        }
-                    })
-                    .collect();
-                Pyramid::new(source.clone(), DepthImage { width, height, depth })
-            })
+            .map(|source| Pyramid::new(source.clone(), slanted_wall((width, height), 23, 1.0, 0.002)))
             .collect();
         let origin = DVec3::new(0.0, 0.0, 0.0);
         let cubes = 3000;

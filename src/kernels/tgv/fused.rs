@@ -192,6 +192,60 @@ impl Kernel {
         })
     }
 
+    /// [`energy`] of the iterate in `state`, to the bit, read in the kernel's layout: each
+    /// cube's differences gathered once as packed `(u, v0, v1, v2)` where the reference walks
+    /// its rows four times through closures, and no copy back into a [`State`] per check (the
+    /// stopping rule's checks took a tenth of RedKitchen's finest level). Every lane is the
+    /// reference's sum in the reference's order; starting from +0 where the reference's sums
+    /// start from -0 changes at most the sign of a zero, which the squares drop.
+    pub fn energy(&self, problem: &Problem, state: &Packed) -> f64 {
+        let n = self.n;
+        let value = |index: u32| {
+            let index = index as usize;
+            if index < n {
+                state.uv.get(index).copied()
+            } else {
+                self.frozen.get(index - n).copied()
+            }
+        };
+        let per_cube: Vec<f64> = (0..n)
+            .into_par_iter()
+            .map(|c| {
+                let centre = state.uv.get(c).copied().unwrap_or(Vec4::ZERO);
+                // acc[axis] = (D_axis u, D_axis v0, D_axis v1, D_axis v2)
+                let acc: [Vec4; 3] = std::array::from_fn(|axis| {
+                    let row = 3 * c + axis;
+                    let from = self.row_start.get(row).copied().unwrap_or(0) as usize;
+                    let to = self.row_start.get(row + 1).copied().unwrap_or(0) as usize;
+                    self.row_terms
+                        .get(from..to)
+                        .unwrap_or(&[])
+                        .iter()
+                        .fold(Vec4::ZERO, |acc, term| {
+                            acc + term.weight * (value(term.index).unwrap_or(centre) - centre)
+                        })
+                });
+                let (w1, w0) = (
+                    problem.alpha1.get(c).copied().unwrap_or(0.0),
+                    problem.alpha0.get(c).copied().unwrap_or(0.0),
+                );
+                let v = [centre.y, centre.z, centre.w];
+                let g: [f32; 3] = std::array::from_fn(|axis| w1 * (acc[axis].x - v[axis]));
+                // dv[i][j] = D_j v_i
+                let dv: [[f32; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| acc[j][1 + i]));
+                let e = Operator::sym(dv).map(|e| w0 * e);
+                let tv = g.iter().map(|x| x * x).sum::<f32>().sqrt();
+                let tgv = e.iter().map(|x| x * x).sum::<f32>().sqrt();
+                let hist = problem.hist.get(c).copied().unwrap_or_default();
+                let data: f32 = (0..BINS)
+                    .map(|b| hist.get(b).copied().unwrap_or(0.0) * (centre.x - bin_center(b)).abs())
+                    .sum();
+                f64::from(tv) + f64::from(tgv) + f64::from(problem.lambda * data)
+            })
+            .collect();
+        per_cube.iter().sum()
+    }
+
     /// The gather terms from row (or column) `first` on; a chunk walks them with a cursor.
     fn terms_from<'k>(&self, start: &[u32], terms: &'k [Gather], first: usize) -> &'k [Gather] {
         let from = start.get(first).copied().unwrap_or(0) as usize;

@@ -166,7 +166,7 @@ impl<'a> Operator<'a> {
     }
 
     /// E'(v)_c from the differences of each component.
-    fn sym(dv: [[f32; 3]; 3]) -> [f32; 6] {
+    pub(super) fn sym(dv: [[f32; 3]; 3]) -> [f32; 6] {
         // dv[i][j] = D_j v_i
         [
             dv[0][0],
@@ -612,8 +612,7 @@ pub fn solve_accelerated(
         done += batch;
         checked = None;
         if stopping.tolerance > 0.0 {
-            packed.unpack_into(state);
-            let energy = energy(&op, state);
+            let energy = kernel.energy(problem, &packed);
             checked = Some(energy);
             if stopping.converged(previous, energy) {
                 break;
@@ -621,9 +620,7 @@ pub fn solve_accelerated(
             previous = energy;
         }
     }
-    if checked.is_none() {
-        packed.unpack_into(state);
-    }
+    packed.unpack_into(state);
     Solved {
         energy_before,
         energy_after: checked.unwrap_or_else(|| energy(&op, state)),

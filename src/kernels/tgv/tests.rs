@@ -381,3 +381,31 @@ fn reference_steps_in_batches_stay_close_to_one_batch() {
         .fold(0f32, f32::max);
     assert!(worst < 0.05, "a restart moved u by {worst}");
 }
+
+#[test]
+fn the_kernel_energy_is_the_reference_energy_to_the_bit() {
+    // Iterates of an irregular problem (frozen neighbours, rows of zero to four terms) after
+    // a few batches, active projections and signed zeros among them.
+    let n = CHUNK + 77;
+    let problem = irregular_problem(n);
+    let op = Operator::new(&problem);
+    let mut kernel = Kernel::new(&op).expect("short gather lists");
+    let mut state = State::zeros(n);
+    state
+        .u
+        .iter_mut()
+        .enumerate()
+        .for_each(|(i, u)| *u = if i % 9 == 0 { -0.0 } else { (i as f32 * 0.23).sin() });
+    let mut packed = Packed::of(&state);
+    for batch in [0, 1, 5, 20] {
+        kernel.iterate(&mut packed, batch);
+        packed.unpack_into(&mut state);
+        let (fused, reference) = (kernel.energy(&problem, &packed), energy(&op, &state));
+        assert_eq!(
+            fused.to_bits(),
+            reference.to_bits(),
+            "after {batch} more: {fused} vs {reference}"
+        );
+        assert!(reference > 0.0);
+    }
+}
