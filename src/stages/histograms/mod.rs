@@ -1,9 +1,10 @@
 //! `histograms`: votes of every depth map into per-cube histograms (paper 3.4, 4.4, Algorithm 1).
 //!
 //! Per treetop unit, only depth maps whose frustum meets the unit's cube are read, a batch at a
-//! time with their mipmap pyramids (`kernels::votes::vote_maps`). Votes are additive and exact (weights are multiples of 1/16 and sums
-//! stay far below 2^24 / 16 in f32), so after an incremental ingest a unit whose octree part is
-//! unchanged only receives the new depth maps' votes, and the result equals a from-scratch run.
+//! time with their mipmap pyramids (`kernels::votes::vote_maps`). Votes are additive and exact
+//! (weights are multiples of 1/16 and sums stay far below 2^24 / 16 in f32), so after an
+//! incremental ingest a unit whose octree part is unchanged only receives the new depth maps'
+//! votes, and the result equals a from-scratch run.
 
 use redb::ReadableTable;
 use std::collections::{BTreeMap, BTreeSet};
