@@ -237,7 +237,7 @@ pub fn open_gpu(choice: DeviceChoice) -> Result<Option<Arc<Gpu>>> {
 
 /// Extracts the surface of the latest solved version (or of `version`) into `output`: PLY, or
 /// OBJ by extension; streamed leaf by leaf unless a region or decimation asks for the whole.
-/// A quarter of `memory_budget` holds leaves' pieces computed ahead of the weld.
+/// An eighth of `memory_budget` holds leaves' pieces computed ahead of the weld.
 pub fn extract(
     store: &Store,
     output: &Path,

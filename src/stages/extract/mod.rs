@@ -180,10 +180,6 @@ pub fn unit_mesh(
         }
     }
     smooth_private_vertices(&mut mesh, &guides.ends, &movable);
-    // The piece may wait for the weld: the room `dual_cells_of_unit` reserved and did not use
-    // goes back now.
-    mesh.vertices.shrink_to_fit();
-    mesh.triangles.shrink_to_fit();
     Ok(mesh)
 }
 
@@ -295,9 +291,11 @@ pub fn write_assembled(path: &Path, mesh: &Mesh) -> Result<MeshSummary> {
 /// Pieces differ by orders of magnitude (RedKitchen's treetop leaves give 0 to 210,000
 /// triangles, about 9 MB at most), so a window counted in pieces either idled the workers
 /// behind a large piece (4 pieces on 2 cores: extract 2.31 to 2.71 s) or risked memory on
-/// scenes of larger pieces; one counted in bytes lets small pieces run far ahead (1.93 to
-/// 2.04 s with 16 pieces).
-pub const PIECES_AHEAD_SHARE: u64 = 4;
+/// scenes of larger pieces; one counted in bytes lets small pieces run far ahead (1.96 to
+/// 2.04 s against 2.35 to 2.64 s). An eighth: about what 4 large pieces held at 256 MiB, where
+/// the 53 M-cube city's extraction peaked just within the budget with them (README, "Status
+/// and limits"); RedKitchen's peak at 256 MiB went from 227-245 MB to 248-250 MB.
+pub const PIECES_AHEAD_SHARE: u64 = 8;
 
 /// Pieces computed ahead of the weld, at most, whatever their sizes: the weld's state per
 /// piece is a map entry.
