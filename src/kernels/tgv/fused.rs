@@ -225,22 +225,10 @@ impl Kernel {
                             acc + term.weight * (value(term.index).unwrap_or(centre) - centre)
                         })
                 });
-                let (w1, w0) = (
-                    problem.alpha1.get(c).copied().unwrap_or(0.0),
-                    problem.alpha0.get(c).copied().unwrap_or(0.0),
-                );
-                let v = [centre.y, centre.z, centre.w];
-                let g: [f32; 3] = std::array::from_fn(|axis| w1 * (acc[axis].x - v[axis]));
+                let du = [acc[0].x, acc[1].x, acc[2].x];
                 // dv[i][j] = D_j v_i
                 let dv: [[f32; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| acc[j][1 + i]));
-                let e = Operator::sym(dv).map(|e| w0 * e);
-                let tv = g.iter().map(|x| x * x).sum::<f32>().sqrt();
-                let tgv = e.iter().map(|x| x * x).sum::<f32>().sqrt();
-                let hist = problem.hist.get(c).copied().unwrap_or_default();
-                let data: f32 = (0..BINS)
-                    .map(|b| hist.get(b).copied().unwrap_or(0.0) * (centre.x - bin_center(b)).abs())
-                    .sum();
-                f64::from(tv) + f64::from(tgv) + f64::from(problem.lambda * data)
+                cube_energy(problem, c, centre.x, [centre.y, centre.z, centre.w], du, dv)
             })
             .collect();
         per_cube.iter().sum()

@@ -166,7 +166,7 @@ impl<'a> Operator<'a> {
     }
 
     /// E'(v)_c from the differences of each component.
-    pub(super) fn sym(dv: [[f32; 3]; 3]) -> [f32; 6] {
+    fn sym(dv: [[f32; 3]; 3]) -> [f32; 6] {
         // dv[i][j] = D_j v_i
         [
             dv[0][0],
@@ -402,21 +402,34 @@ pub fn energy(op: &Operator<'_>, state: &State) -> f64 {
     let per_cube: Vec<f64> = (0..p.n)
         .into_par_iter()
         .map(|c| {
-            let g = p.diff(c, &state.u, |k| p.frozen_u[k]);
+            let du = p.diff(c, &state.u, |k| p.frozen_u[k]);
             let dv: [[f32; 3]; 3] = std::array::from_fn(|i| p.diff_by(c, |t| state.v[t][i], |k| p.frozen_v[k][i]));
-            let (w1, w0) = (p.alpha1[c], p.alpha0[c]);
-            let v = state.v[c];
-            let g = [w1 * (g[0] - v[0]), w1 * (g[1] - v[1]), w1 * (g[2] - v[2])];
-            let e = Operator::sym(dv).map(|e| w0 * e);
-            let tv = g.iter().map(|x| x * x).sum::<f32>().sqrt();
-            let tgv = e.iter().map(|x| x * x).sum::<f32>().sqrt();
-            let data: f32 = (0..BINS)
-                .map(|b| p.hist[c][b] * (state.u[c] - bin_center(b)).abs())
-                .sum();
-            f64::from(tv) + f64::from(tgv) + f64::from(p.lambda * data)
+            cube_energy(p, c, state.u[c], state.v[c], du, dv)
         })
         .collect();
     per_cube.iter().sum()
+}
+
+/// Cube `c`'s share of the energy from its u, v and their differences `du` (D u) and `dv`
+/// (`dv[i][j]` = D_j v_i): alpha1 |D u - v| + alpha0 |E'(v)| + lambda times the histogram's
+/// data term. [`energy`] and the kernel's `Kernel::energy` both end here, so they agree to
+/// the bit wherever their differences do.
+pub(super) fn cube_energy(p: &Problem, c: usize, u: f32, v: [f32; 3], du: [f32; 3], dv: [[f32; 3]; 3]) -> f64 {
+    let (w1, w0) = (
+        p.alpha1.get(c).copied().unwrap_or(0.0),
+        p.alpha0.get(c).copied().unwrap_or(0.0),
+    );
+    let g = [w1 * (du[0] - v[0]), w1 * (du[1] - v[1]), w1 * (du[2] - v[2])];
+    let e = Operator::sym(dv).map(|e| w0 * e);
+    let tv = g.iter().map(|x| x * x).sum::<f32>().sqrt();
+    let tgv = e.iter().map(|x| x * x).sum::<f32>().sqrt();
+    let hist = p.hist.get(c).copied().unwrap_or_default();
+    let data: f32 = hist
+        .iter()
+        .enumerate()
+        .map(|(b, h)| h * (u - bin_center(b)).abs())
+        .sum();
+    f64::from(tv) + f64::from(tgv) + f64::from(p.lambda * data)
 }
 
 /// Puts the duals inside their (unit) balls; returns the starting energy.
