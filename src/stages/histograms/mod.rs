@@ -472,7 +472,7 @@ struct Voter {
 impl Voter {
     /// Votes the maps of `batch` that member `index` may see into its cubes, in the batch's
     /// order ([`vote_maps`]).
-    fn vote_batch(&mut self, index: usize, batch: &[ReadyMap<'_>]) {
+    fn vote_batch(&mut self, index: usize, batch: &[ReadyMap]) {
         let maps: Vec<MapVote<'_>> = batch
             .iter()
             .filter_map(|map| {
@@ -496,10 +496,9 @@ impl Voter {
 /// that may see it, each with the chunks that may.
 type Needed = Vec<(usize, Vec<usize>)>;
 
-/// A decoded map that votes next, with what it needs.
-struct ReadyMap<'s> {
+/// A decoded map that votes next (its source is `pyramid.source`), with what it needs.
+struct ReadyMap {
     pyramid: Arc<Pyramid>,
-    source: &'s DepthMapSource,
     world_to_camera: glam::DMat4,
     weight: f32,
     needed: Needed,
@@ -520,12 +519,12 @@ impl HistogramsStage {
         &self,
         voters: &mut [Voter],
         unit: &UnitSpec,
-        mut vote: impl FnMut(&mut [Voter], &[ReadyMap<'_>]) -> Result<bool> + Send,
+        mut vote: impl FnMut(&mut [Voter], &[ReadyMap]) -> Result<bool> + Send,
     ) -> Result<()> {
         use rayon::prelude::*;
         let per_batch = self.maps_per_batch();
         let mut maps = self.depth_maps.iter();
-        let mut ready: Vec<ReadyMap<'_>> = Vec::new();
+        let mut ready: Vec<ReadyMap> = Vec::new();
         loop {
             // The next maps that may see some member's chunks.
             let mut pending: Vec<(u64, &DepthMapSource, glam::DMat4, Needed)> = Vec::with_capacity(per_batch);
@@ -583,7 +582,6 @@ impl HistogramsStage {
                     ready.push(ReadyMap {
                         weight: quantized_weight(source.weight),
                         pyramid,
-                        source,
                         world_to_camera,
                         needed,
                     });
@@ -662,7 +660,8 @@ impl HistogramsStage {
             let mut failure = None;
             let pass = self.pass_over_maps(voters, unit, |voters, batch| {
                 let attempt = batch.iter().try_for_each(|ready| {
-                    let (source, world_to_camera, weight) = (ready.source, &ready.world_to_camera, ready.weight);
+                    let (source, world_to_camera, weight) =
+                        (&ready.pyramid.source, &ready.world_to_camera, ready.weight);
                     let map = gpu.upload_pyramid(&ready.pyramid)?;
                     for (index, seen) in &ready.needed {
                         let (Some(batches), Some(voter)) = (units.get(*index), voters.get(*index)) else {
