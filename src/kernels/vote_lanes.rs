@@ -19,6 +19,7 @@
 use glam::{Mat4, Vec4};
 
 use super::votes::{BINS, Pyramid, UnitView};
+use crate::sys::truncate_lanes as truncate;
 
 /// Cubes voted at once.
 pub const LANES: usize = 4;
@@ -26,28 +27,43 @@ pub const LANES: usize = 4;
 /// Pyramid levels a block can address: a level of 2^31 pixels would be wider than any image.
 const MAX_LEVELS: usize = 32;
 
-/// Each pyramid level's width and height, as the lanes read them: f32 for the bounds tests,
-/// u32 for the pixel index.
-pub struct LevelShapes {
-    width: [f32; MAX_LEVELS],
-    height: [f32; MAX_LEVELS],
-    stride: [u32; MAX_LEVELS],
+/// Each pyramid level as the lanes read it: its pixels, its width and height as f32 for the
+/// bounds tests, and its row stride.
+pub struct LevelShapes<'a> {
+    levels: [Level<'a>; MAX_LEVELS],
     /// The last level (`levels - 1`, at most `MAX_LEVELS - 1`).
     top: u32,
 }
 
-impl LevelShapes {
+/// One level of [`LevelShapes`], together in one cache line.
+#[derive(Clone, Copy)]
+struct Level<'a> {
+    pixels: &'a [f32],
+    width: f32,
+    height: f32,
+    stride: u32,
+}
+
+impl<'a> LevelShapes<'a> {
     /// The shapes of `pyramid`'s levels (made once per map and unit, not per block).
-    pub fn of(pyramid: &Pyramid) -> LevelShapes {
+    pub fn of(pyramid: &'a Pyramid) -> LevelShapes<'a> {
+        let empty = Level {
+            pixels: &[],
+            width: 0.0,
+            height: 0.0,
+            stride: 0,
+        };
         let mut shapes = LevelShapes {
-            width: [0.0; MAX_LEVELS],
-            height: [0.0; MAX_LEVELS],
-            stride: [0; MAX_LEVELS],
+            levels: [empty; MAX_LEVELS],
             top: 0,
         };
-        let slots = shapes.width.iter_mut().zip(&mut shapes.height).zip(&mut shapes.stride);
-        for (level, ((width, height), stride)) in pyramid.levels.iter().zip(slots) {
-            (*width, *height, *stride) = (level.width as f32, level.height as f32, level.width);
+        for (image, level) in pyramid.levels.iter().zip(&mut shapes.levels) {
+            *level = Level {
+                pixels: &image.depth,
+                width: image.width as f32,
+                height: image.height as f32,
+                stride: image.width,
+            };
         }
         shapes.top = pyramid.levels.len().clamp(1, MAX_LEVELS) as u32 - 1;
         shapes
@@ -58,8 +74,8 @@ impl LevelShapes {
 pub struct BlockVotes {
     /// The bin of each lane (meaningful where it votes), below [`BINS`].
     pub bin: [usize; LANES],
-    /// Whether the lane votes.
-    pub voting: [bool; LANES],
+    /// Bit `lane` is set where the lane votes.
+    pub voting: u32,
     /// The map's weight where the lane votes, else 0.
     pub weight: [f32; LANES],
     /// The map's weight where the vote measured a distance, else 0.
@@ -69,44 +85,47 @@ pub struct BlockVotes {
 }
 
 impl BlockVotes {
+    /// No lane votes.
+    const NONE: BlockVotes = BlockVotes {
+        bin: [0; LANES],
+        voting: 0,
+        weight: [0.0; LANES],
+        distance_weight: [0.0; LANES],
+        distance: [0.0; LANES],
+    };
+
     /// Adds the block's votes to its cubes' histogram rows and distance sums, and returns
     /// how many lanes voted. Adding a zero weight leaves a row as it was (rows and sums start
     /// at +0, and a sum of roundings to nearest is -0 only when both terms are), so a lane
     /// that does not vote changes nothing, without a branch on it.
     #[inline(always)]
     pub fn add_to(&self, rows: &mut [[f32; BINS]; LANES], sums: &mut [[f32; 2]; LANES]) -> u64 {
-        let mut cast = 0u64;
         for lane in 0..LANES {
             let weight = self.weight[lane];
             rows[lane][self.bin[lane] & (BINS - 1)] += weight;
             let [sum, total] = &mut sums[lane];
             *sum += self.distance_weight[lane] * self.distance[lane];
             *total += self.distance_weight[lane];
-            cast += u64::from(self.voting[lane]);
         }
-        cast
+        u64::from(self.voting.count_ones())
     }
 }
 
 /// Algorithm 1 for four cubes of a pinhole map (offsets from the unit's origin and voting
 /// radii, as [`super::votes::cube_offsets`] makes them), with vote weight `weight`.
 ///
-/// The operations per lane are [`super::votes::vote_relative`]'s in its order but three,
+/// The operations per lane are [`super::votes::vote_relative`]'s in its order but these,
 /// which give the same values: a division by the level's scale 2^l is a multiplication by
 /// 2^-l (both exact); the level is the footprint's binary exponent where the reference counts
 /// the leading zeros of its integer part (the same for footprints of 1 to 2^31, and both are
-/// capped at the top level); and a pixel coordinate's truncation stays a float (exact, and
-/// where the reference's u32 cast saturates, at 2^32, both fail the bounds tests). Minima and
-/// maxima take vector semantics, which differ from `f32::min` only on NaN, and a lane whose
-/// values are NaN does not vote or measure either way.
+/// capped at the top level); the bilinear square lies inside the level where its corner's
+/// coordinates lie in `[0, size - 1)` (for an integer size, `trunc(x) + 1 < size` exactly
+/// when `x < size - 1`); and the nearest pixel of a lane inside its square is the square's
+/// corner that `x + 0.5 >= x0 + 1` picks, the floor's own comparison. Minima and maxima take
+/// vector semantics, which differ from `f32::min` only on NaN, and a lane whose values are
+/// NaN does not vote or measure either way.
 #[inline(always)]
-pub fn vote_block(
-    view: &UnitView,
-    cubes: &[Vec4; LANES],
-    pyramid: &Pyramid,
-    shapes: &LevelShapes,
-    weight: f32,
-) -> BlockVotes {
+pub fn vote_block(view: &UnitView, cubes: &[Vec4; LANES], shapes: &LevelShapes<'_>, weight: f32) -> BlockVotes {
     let m = view.unit_to_camera;
     let k = view.intrinsics;
     let t = Mat4::from_cols(cubes[0], cubes[1], cubes[2], cubes[3]).transpose();
@@ -119,23 +138,21 @@ pub fn vote_block(
     let u = Vec4::splat(k.x) * lx / lz + Vec4::splat(k.z);
     let v = Vec4::splat(k.y) * ly / lz + Vec4::splat(k.w);
     let footprint = Vec4::splat(2.0) * radius * (Vec4::splat(k.x.max(k.y)) / lz);
-    // The level and its shape: integer work per lane, on the footprint's bits.
-    let (mut scale, mut inverse_scale, mut width, mut height) =
-        ([1f32; LANES], [1f32; LANES], [0f32; LANES], [0f32; LANES]);
-    let mut level = [0u32; LANES];
-    let mut stride = [0u32; LANES];
-    for lane in 0..LANES {
+    // The level: the footprint's binary exponent, on its bits (a footprint over 1 is
+    // positive, its exponent field at least 127).
+    let level: [u32; LANES] = std::array::from_fn(|lane| {
         let f = footprint[lane];
-        let exponent = ((f.to_bits() >> 23) & 0xff).saturating_sub(127).min(31);
-        let l = if f > 1.0 { exponent } else { 0 }.min(shapes.top);
-        scale[lane] = f32::from_bits((l + 127) << 23);
-        inverse_scale[lane] = f32::from_bits((127 - l) << 23);
-        let index = l as usize & (MAX_LEVELS - 1);
-        (width[lane], height[lane], stride[lane]) = (shapes.width[index], shapes.height[index], shapes.stride[index]);
-        level[lane] = l;
-    }
-    let (scale, inverse_scale) = (Vec4::from_array(scale), Vec4::from_array(inverse_scale));
-    let (width, height) = (Vec4::from_array(width), Vec4::from_array(height));
+        if f > 1.0 {
+            ((f.to_bits() >> 23) - 127).min(shapes.top)
+        } else {
+            0
+        }
+    });
+    let scale = Vec4::from_array(level.map(|l| f32::from_bits((l + 127) << 23)));
+    let inverse_scale = Vec4::from_array(level.map(|l| f32::from_bits((127 - l) << 23)));
+    let lanes = level.map(|l| shapes.levels[l as usize & (MAX_LEVELS - 1)]);
+    let width = Vec4::from_array(lanes.map(|level| level.width));
+    let height = Vec4::from_array(lanes.map(|level| level.height));
     let half = Vec4::splat(0.5);
     // Level-pixel coordinates, pixel centres at integers.
     let x_level = (u - (scale - Vec4::ONE) * half) * inverse_scale;
@@ -144,50 +161,61 @@ pub fn vote_block(
     let (x, y) = (x_level + half, y_level + half);
     let zero = Vec4::ZERO;
     let inside = lz.cmpgt(zero) & x.cmpge(zero) & y.cmpge(zero) & x.cmplt(width) & y.cmplt(height);
-    // The bilinear square's corner.
-    let (x0, y0) = (x_level.trunc(), y_level.trunc());
-    let in_square = x_level.cmpge(zero)
+    let inside_bits = inside.bitmask();
+    if inside_bits == 0 {
+        // Along a chunk that a frustum's side crosses, whole blocks fall outside the image
+        // (a quarter of RedKitchen's cube-map tests): nothing to read, nothing votes.
+        return BlockVotes::NONE;
+    }
+    // A lane reads its bilinear square where the square lies inside the level, and its
+    // nearest pixel is then one of the square's corners (x0 <= floor(x_level + 0.5) <= x0 +
+    // 1); elsewhere it reads the nearest pixel alone. A lane outside the image reads nothing
+    // (it neither votes nor measures).
+    let in_square = inside
+        & x_level.cmpge(zero)
         & y_level.cmpge(zero)
-        & x0.cmplt(width)
-        & (x0 + Vec4::ONE).cmplt(width)
-        & (y0 + Vec4::ONE).cmplt(height);
-    let (inside_bits, square_bits) = (inside.bitmask(), in_square.bitmask());
-    let (nx, ny, cx, cy) = (x.to_array(), y.to_array(), x0.to_array(), y0.to_array());
-    let (mut depth, mut d00, mut d10, mut d01, mut d11) = (
-        [f32::NAN; LANES],
-        [f32::NAN; LANES],
-        [f32::NAN; LANES],
-        [f32::NAN; LANES],
-        [f32::NAN; LANES],
-    );
-    for lane in 0..LANES {
-        let pixels = pyramid
-            .levels
-            .get(level[lane] as usize)
-            .map_or(&[][..], |l| l.depth.as_slice());
-        let read = |index: usize| pixels.get(index).copied().unwrap_or(f32::NAN);
-        let s = stride[lane] as usize;
-        if inside_bits & (1 << lane) != 0 {
-            depth[lane] = read(ny[lane] as usize * s + nx[lane] as usize);
-        }
+        & x_level.cmplt(width - Vec4::ONE)
+        & y_level.cmplt(height - Vec4::ONE);
+    let square_bits = in_square.bitmask();
+    let ((cx, x0), (cy, y0)) = (truncate(x_level), truncate(y_level));
+    let ((nx, _), (ny, _)) = (truncate(x), truncate(y));
+    let mut corners = [[f32::NAN; LANES]; 4];
+    let mut nearest = [f32::NAN; LANES];
+    for (lane, level) in lanes.iter().enumerate() {
+        let s = level.stride as usize;
+        // Lanes inside the image have non-negative coordinates below the level's size.
+        let (column, row) = if square_bits & (1 << lane) != 0 {
+            (cx[lane] as u32 as usize, cy[lane] as u32 as usize)
+        } else if inside_bits & (1 << lane) != 0 {
+            (nx[lane] as u32 as usize, ny[lane] as u32 as usize)
+        } else {
+            continue;
+        };
+        let at = row * s + column;
         if square_bits & (1 << lane) != 0 {
-            let c = cy[lane] as usize * s + cx[lane] as usize;
-            (d00[lane], d10[lane], d01[lane], d11[lane]) = (read(c), read(c + 1), read(c + s), read(c + s + 1));
+            if let Some(&[d00, d10]) = level.pixels.get(at..at + 2) {
+                (corners[0][lane], corners[1][lane]) = (d00, d10);
+            }
+            if let Some(&[d01, d11]) = level.pixels.get(at + s..at + s + 2) {
+                (corners[2][lane], corners[3][lane]) = (d01, d11);
+            }
+        } else if let Some(d) = level.pixels.get(at) {
+            nearest[lane] = *d;
         }
     }
-    let depth = Vec4::from_array(depth);
-    let (a00, a10, a01, a11) = (
-        Vec4::from_array(d00),
-        Vec4::from_array(d10),
-        Vec4::from_array(d01),
-        Vec4::from_array(d11),
-    );
+    let [a00, a10, a01, a11] = corners.map(Vec4::from_array);
+    let (right, below) = (x.cmpge(x0 + Vec4::ONE), y.cmpge(y0 + Vec4::ONE));
+    let from_square = Vec4::select(below, Vec4::select(right, a11, a01), Vec4::select(right, a10, a00));
+    let depth = Vec4::select(in_square, from_square, Vec4::from_array(nearest));
     let delta = Vec4::splat(6.0) * radius;
     let eta = Vec4::splat(3.0) * delta;
     let a = depth - lz;
     // depth > 0 also rejects the NaN of a lane that read no pixel.
     let voting = inside & depth.cmpgt(zero) & !a.cmplt(-eta);
+    // The bin: (a / delta) clamped to [-1, 1] and mapped to [0, 8], whose truncation is capped
+    // at the last bin (the cap taken before truncating, the same for values in [0, 8]).
     let bin = ((a / delta).clamp(Vec4::NEG_ONE, Vec4::ONE) + Vec4::ONE) / Vec4::splat(2.0) * Vec4::splat(8.0);
+    let (bin, _) = truncate(bin.min(Vec4::splat((BINS - 1) as f32)));
     let band = (Vec4::splat(view.band_per_delta) * delta).max(Vec4::splat(view.band_floor));
     let valid = a00.cmpgt(zero) & a10.cmpgt(zero) & a01.cmpgt(zero) & a11.cmpgt(zero);
     let low = a00.min(a10).min(a01.min(a11));
@@ -198,10 +226,9 @@ pub fn vote_block(
     let measured = surface - lz;
     let measures = voting & in_square & valid & (high - low).cmple(band) & measured.cmpge(-band);
     let weights = Vec4::splat(weight);
-    let voting_bits = voting.bitmask();
     BlockVotes {
-        bin: bin.to_array().map(|b| (b as usize).min(BINS - 1)),
-        voting: std::array::from_fn(|lane| voting_bits & (1 << lane) != 0),
+        bin: bin.map(|b| b as u32 as usize & (BINS - 1)),
+        voting: voting.bitmask(),
         weight: Vec4::select(voting, weights, zero).to_array(),
         distance_weight: Vec4::select(measures, weights, zero).to_array(),
         distance: Vec4::select(measures, measured.min(band), zero).to_array(),
@@ -245,11 +272,12 @@ mod tests {
                 )
             });
             let weight = 0.75;
-            let lanes = vote_block(&view, &cubes, &pyramid, &shapes, weight);
+            let lanes = vote_block(&view, &cubes, &shapes, weight);
             for (lane, cube) in cubes.iter().enumerate() {
                 let one = vote_relative(&view, *cube, &pyramid);
-                assert_eq!(lanes.weight[lane] != 0.0, lanes.voting[lane]);
-                let got = lanes.voting[lane].then(|| {
+                let voting = lanes.voting & (1 << lane) != 0;
+                assert_eq!(lanes.weight[lane] != 0.0, voting);
+                let got = voting.then(|| {
                     let distance = (lanes.distance_weight[lane] != 0.0).then_some(lanes.distance[lane]);
                     (lanes.bin[lane], distance.map(f32::to_bits))
                 });
@@ -271,7 +299,7 @@ mod tests {
     fn lanes_that_do_not_vote_leave_the_rows_as_they_were() {
         let votes = BlockVotes {
             bin: [3, 0, 7, 7],
-            voting: [true, false, true, true],
+            voting: 0b1101,
             weight: [1.0, 0.0, 0.5, 2.0],
             distance_weight: [1.0, 0.0, 0.0, 2.0],
             distance: [-0.25, 0.0, 0.0, 0.125],

@@ -552,7 +552,7 @@ pub const MAPS_AT_ONCE: usize = 64;
 pub struct MapVote<'a> {
     pub pyramid: &'a Pyramid,
     pub view: UnitView,
-    pub shapes: LevelShapes,
+    pub shapes: LevelShapes<'a>,
     pub weight: f32,
     pub seen: &'a [usize],
 }
@@ -647,7 +647,7 @@ pub fn vote_maps(cubes: &ChunkedCubes<'_>, hist: &mut [f32], distance: &mut [f32
 fn vote_chunk(
     view: &UnitView,
     pyramid: &Pyramid,
-    shapes: &LevelShapes,
+    shapes: &LevelShapes<'_>,
     weight: f32,
     offsets: &[Vec4],
     rows: &mut [f32],
@@ -662,7 +662,7 @@ fn vote_chunk(
         let (row_blocks, _) = rows.as_chunks_mut::<LANES>();
         let (sum_blocks, _) = sums.as_chunks_mut::<LANES>();
         for ((cubes, block_rows), block_sums) in blocks.iter().zip(row_blocks).zip(sum_blocks) {
-            votes += vote_block(view, cubes, pyramid, shapes, weight).add_to(block_rows, block_sums);
+            votes += vote_block(view, cubes, shapes, weight).add_to(block_rows, block_sums);
         }
         in_blocks = blocks.len() * LANES;
     }
