@@ -41,7 +41,7 @@ pub mod stages;
 pub mod store;
 #[allow(
     unsafe_code,
-    reason = "memory maps of immutable segment files, malloc_trim and AVX2 code: see sys.rs"
+    reason = "memory maps of immutable segment files, malloc_trim, AVX2 code and SSE2 conversions: see sys.rs"
 )]
 mod sys;
 

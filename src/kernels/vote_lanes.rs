@@ -31,8 +31,8 @@ const MAX_LEVELS: usize = 32;
 /// bounds tests, and its row stride.
 pub struct LevelShapes<'a> {
     levels: [Level<'a>; MAX_LEVELS],
-    /// The last level (`levels - 1`, at most `MAX_LEVELS - 1`).
-    top: u32,
+    /// The last level's scale, 2^(levels - 1) (at most 2^(`MAX_LEVELS` - 1)).
+    top_scale: Vec4,
 }
 
 /// One level of [`LevelShapes`], together in one cache line.
@@ -55,7 +55,7 @@ impl<'a> LevelShapes<'a> {
         };
         let mut shapes = LevelShapes {
             levels: [empty; MAX_LEVELS],
-            top: 0,
+            top_scale: Vec4::ONE,
         };
         for (image, level) in pyramid.levels.iter().zip(&mut shapes.levels) {
             *level = Level {
@@ -65,7 +65,8 @@ impl<'a> LevelShapes<'a> {
                 stride: image.width,
             };
         }
-        shapes.top = pyramid.levels.len().clamp(1, MAX_LEVELS) as u32 - 1;
+        let top = pyramid.levels.len().clamp(1, MAX_LEVELS) as u32 - 1;
+        shapes.top_scale = Vec4::splat(f32::from_bits((top + 127) << 23));
         shapes
     }
 }
@@ -138,18 +139,13 @@ pub fn vote_block(view: &UnitView, cubes: &[Vec4; LANES], shapes: &LevelShapes<'
     let u = Vec4::splat(k.x) * lx / lz + Vec4::splat(k.z);
     let v = Vec4::splat(k.y) * ly / lz + Vec4::splat(k.w);
     let footprint = Vec4::splat(2.0) * radius * (Vec4::splat(k.x.max(k.y)) / lz);
-    // The level: the footprint's binary exponent, on its bits (a footprint over 1 is
-    // positive, its exponent field at least 127).
-    let level: [u32; LANES] = std::array::from_fn(|lane| {
-        let f = footprint[lane];
-        if f > 1.0 {
-            ((f.to_bits() >> 23) - 127).min(shapes.top)
-        } else {
-            0
-        }
-    });
-    let scale = Vec4::from_array(level.map(|l| f32::from_bits((l + 127) << 23)));
-    let inverse_scale = Vec4::from_array(level.map(|l| f32::from_bits((127 - l) << 23)));
+    // The level's scale 2^l: the footprint with its mantissa cleared (2 to the footprint's
+    // binary exponent), capped at the top level's; 1 where the footprint is at most 1 or NaN.
+    let exponent = Vec4::from_array(footprint.to_array().map(|f| f32::from_bits(f.to_bits() & 0x7f80_0000)));
+    let scale = Vec4::select(footprint.cmpgt(Vec4::ONE), exponent.min(shapes.top_scale), Vec4::ONE);
+    // 2^-l and l, on the scale's exponent field.
+    let inverse_scale = Vec4::from_array(scale.to_array().map(|s| f32::from_bits((254 << 23) - s.to_bits())));
+    let level = scale.to_array().map(|s| (s.to_bits() >> 23).wrapping_sub(127));
     let lanes = level.map(|l| shapes.levels[l as usize & (MAX_LEVELS - 1)]);
     let width = Vec4::from_array(lanes.map(|level| level.width));
     let height = Vec4::from_array(lanes.map(|level| level.height));
@@ -262,13 +258,14 @@ mod tests {
         let mut seed = 5u64;
         let mut uniform = move || crate::kernels::random::uniform(&mut seed) as f32;
         let (mut voted, mut refused, mut measured) = (0, 0, 0);
-        for _ in 0..20_000 {
+        for _ in 0..40_000 {
             let cubes: [Vec4; LANES] = std::array::from_fn(|_| {
                 Vec4::new(
                     uniform() * 6.0 - 3.0,
                     uniform() * 4.0 - 2.0,
                     uniform() * 6.0 - 3.5,
-                    0.002 * 200f32.powf(uniform()),
+                    // Up to footprints past the top level's 64 pixels.
+                    0.002 * 5000f32.powf(uniform()),
                 )
             });
             let weight = 0.75;
