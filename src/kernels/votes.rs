@@ -581,6 +581,12 @@ impl<'a> MapVote<'a> {
 /// million over 20,000. Each cube still receives the maps in the batch's order, so the sums
 /// are those of voting the maps one at a time, to the bit. Chunks own disjoint rows of the
 /// histogram, so they vote in parallel: a group of one large leaf still uses every core.
+///
+/// A chunk's loop runs compiled for AVX2 where the processor has it
+/// ([`crate::sys::with_wide_vectors`]): the lanes stay four wide, but the three-operand forms
+/// of the instructions drop most of the register copies that SSE2's two-operand forms need
+/// (RedKitchen's histogram step on a 2-core AMD EPYC VM: 16.2-16.4 s for the baseline, 14.6-15.7
+/// s), with the same results, bit for bit (no fused multiply-adds).
 pub fn vote_maps(cubes: &ChunkedCubes<'_>, hist: &mut [f32], distance: &mut [f32], maps: &[MapVote<'_>]) -> u64 {
     use rayon::prelude::*;
     let maps = maps.get(..MAPS_AT_ONCE.min(maps.len())).unwrap_or(&[]);
@@ -619,31 +625,57 @@ pub fn vote_maps(cubes: &ChunkedCubes<'_>, hist: &mut [f32], distance: &mut [f32
     }
     work.into_par_iter()
         .map(|(offsets, rows, distances, maps_seeing)| {
-            let mut votes = 0;
-            let mut bits = maps_seeing;
-            while bits != 0 {
-                let m = bits.trailing_zeros() as usize;
-                bits &= bits - 1;
-                if let Some(map) = maps.get(m) {
-                    votes += vote_chunk(
-                        &map.view,
-                        map.pyramid,
-                        &map.shapes,
-                        map.weight,
-                        offsets,
-                        rows,
-                        distances,
-                    );
-                }
-            }
-            votes
+            crate::sys::with_wide_vectors(ChunkVotes {
+                maps,
+                maps_seeing,
+                offsets,
+                rows,
+                distances,
+            })
         })
         .sum()
+}
+
+/// One chunk's votes of the maps that see it, as [`vote_maps`] hands them to
+/// [`crate::sys::with_wide_vectors`].
+struct ChunkVotes<'a, 'b> {
+    maps: &'a [MapVote<'b>],
+    maps_seeing: u64,
+    offsets: &'a [Vec4],
+    rows: &'a mut [f32],
+    distances: &'a mut [f32],
+}
+
+impl crate::sys::WideWork for ChunkVotes<'_, '_> {
+    type Output = u64;
+
+    #[inline(always)]
+    fn run(self) -> u64 {
+        let mut votes = 0;
+        let mut bits = self.maps_seeing;
+        while bits != 0 {
+            let m = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            if let Some(map) = self.maps.get(m) {
+                votes += vote_chunk(
+                    &map.view,
+                    map.pyramid,
+                    &map.shapes,
+                    map.weight,
+                    self.offsets,
+                    self.rows,
+                    self.distances,
+                );
+            }
+        }
+        votes
+    }
 }
 
 /// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes four at a time
 /// ([`vote_block`]); a spherical map, and the chunk's last cubes short of a block, one at a
 /// time ([`vote_relative`]).
+#[inline(always)]
 fn vote_chunk(
     view: &UnitView,
     pyramid: &Pyramid,
@@ -856,6 +888,24 @@ pub(crate) mod tests {
         let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&batch_hist), bits(&hist));
         assert_eq!(bits(&batch_distance), bits(&distance));
+        // And both are the one-cube vote's, cube by cube: the loops run compiled for AVX2 where
+        // the processor has it (`sys::with_wide_vectors`), the one-cube vote for the baseline.
+        let (mut reference_hist, mut reference_distance) = (vec![0f32; cubes * BINS], vec![0f32; cubes * 2]);
+        for m in 0..sources.len() {
+            for &c in &seen[m] {
+                for cube in chunk_list[c].start..chunk_list[c].end {
+                    if let Some((bin, d)) = vote_relative(&views[m], offsets[cube], &pyramids[m]) {
+                        reference_hist[cube * BINS + bin] += weights[m];
+                        if let Some(d) = d {
+                            reference_distance[cube * 2] += weights[m] * d;
+                            reference_distance[cube * 2 + 1] += weights[m];
+                        }
+                    }
+                }
+            }
+        }
+        assert_eq!(bits(&reference_hist), bits(&hist));
+        assert_eq!(bits(&reference_distance), bits(&distance));
         // Some cubes took votes from several maps, with distances, so the order mattered.
         let several = (0..cubes)
             .filter(|&c| hist[c * BINS..(c + 1) * BINS].iter().filter(|&&h| h > 0.0).count() >= 2)
