@@ -6,6 +6,21 @@ use crate::inputs::DepthImage;
 /// The next coarser level of `last`: each block of 2 x 2 pixels (fewer at an odd edge, the
 /// missing ones NaN) reduced to one by `reduce`.
 pub fn halve(last: &DepthImage, reduce: impl Fn([f32; 4]) -> f32) -> DepthImage {
+    halve_finite_first(last, &reduce, &reduce)
+}
+
+/// [`halve`], with `fast` a branch-free form of `reduce` for blocks of four finite pixels.
+/// Along whole rows, `fast` reduces every block first, a loop the compiler vectorizes; then
+/// each block with a pixel that is not finite, or whose fast value is not a normal number,
+/// is reduced again by `reduce`. So the level is `halve`'s wherever `fast` agrees with
+/// `reduce` on four finite pixels and a normal result (each caller's pair is tested so).
+/// RedKitchen's histogram step spent a tenth of its time halving (pyramids and occlusion
+/// maxima, every map once per group of leaves), branching per block on its pixels.
+pub fn halve_finite_first(
+    last: &DepthImage,
+    fast: impl Fn([f32; 4]) -> f32,
+    reduce: impl Fn([f32; 4]) -> f32,
+) -> DepthImage {
     let (w, h) = (last.width.div_ceil(2), last.height.div_ceil(2));
     let width = last.width as usize;
     let mut depth = Vec::with_capacity((w * h) as usize);
@@ -17,8 +32,19 @@ pub fn halve(last: &DepthImage, reduce: impl Fn([f32; 4]) -> f32) -> DepthImage 
             (Some(Some(top)), Some(Some(bottom))) => {
                 let ((top_pairs, top_odd), (bottom_pairs, bottom_odd)) =
                     (top.as_chunks::<2>(), bottom.as_chunks::<2>());
-                for (t, b) in top_pairs.iter().zip(bottom_pairs) {
-                    depth.push(reduce([t[0], t[1], b[0], b[1]]));
+                let blocks = || {
+                    top_pairs
+                        .iter()
+                        .zip(bottom_pairs)
+                        .map(|(t, b)| [t[0], t[1], b[0], b[1]])
+                };
+                let start = depth.len();
+                depth.extend(blocks().map(&fast));
+                let row = depth.get_mut(start..).unwrap_or_default();
+                for (value, block) in row.iter_mut().zip(blocks()) {
+                    if !(value.is_normal() && block.iter().all(|v| v.is_finite())) {
+                        *value = reduce(block);
+                    }
                 }
                 if let (Some(t), Some(b)) = (top_odd.first(), bottom_odd.first()) {
                     depth.push(reduce([*t, f32::NAN, *b, f32::NAN]));
@@ -41,6 +67,17 @@ pub fn halve(last: &DepthImage, reduce: impl Fn([f32; 4]) -> f32) -> DepthImage 
         height: h,
         depth,
     }
+}
+
+/// [`median_of_valid`] of four finite values whose median is a normal number, without
+/// branches: the middle two are the larger of the pairs' minima and the smaller of their
+/// maxima, averaged in f32. The f64 average rounds once to f32, and so does this one: the
+/// f32 sum of the middle two rounds once, and halving a normal number is exact. (A sum that
+/// f64 holds only rounded has addends 2^29 apart, too far for that rounding to meet an f32
+/// midpoint.)
+pub fn median_of_finite([a, b, c, d]: [f32; 4]) -> f32 {
+    let (low, high) = (a.min(b).max(c.min(d)), a.max(b).min(c.max(d)));
+    (low + high) * 0.5
 }
 
 /// The median of the finite values among four, NaN when none is finite.
@@ -77,6 +114,48 @@ pub fn median_of_valid(values: [f32; 4]) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_fast_median_is_the_exact_one_wherever_halving_keeps_it() {
+        // Depths of every scale and sign, ties, zeros, invalid pixels and infinities, and
+        // pairs far apart in exponent: the pyramid's fast path against the exact median.
+        let mut seed = 11u64;
+        let mut uniform = move || crate::kernels::random::uniform(&mut seed);
+        let (width, height) = (61u32, 40u32);
+        for round in 0..40 {
+            let depth = (0..width * height)
+                .map(|_| {
+                    let pick = uniform();
+                    let magnitude = (2f64.powf(uniform() * 80.0 - 40.0)) as f32;
+                    match round % 4 {
+                        0 if pick < 0.05 => f32::NAN,
+                        1 if pick < 0.02 => f32::INFINITY,
+                        2 if pick < 0.3 => 1.5,
+                        3 if pick < 0.05 => 0.0,
+                        3 if pick < 0.1 => 1e-39,
+                        _ if pick < 0.1 => -magnitude,
+                        _ => magnitude,
+                    }
+                })
+                .collect();
+            let image = DepthImage { width, height, depth };
+            let exact = halve(&image, median_of_valid);
+            let fast = halve_finite_first(&image, median_of_finite, median_of_valid);
+            let bits = |level: &DepthImage| level.depth.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&fast), bits(&exact), "round {round}");
+        }
+        // Where the f32 sum overflows, the fast value is infinite and the exact median is kept.
+        let image = DepthImage {
+            width: 2,
+            height: 2,
+            depth: vec![3e38, 3e38, 3e38, 3e38],
+        };
+        assert_eq!(median_of_finite([3e38; 4]), f32::INFINITY);
+        assert_eq!(
+            halve_finite_first(&image, median_of_finite, median_of_valid).depth,
+            vec![3e38]
+        );
+    }
 
     #[test]
     fn halving_by_rows_reads_the_pixels_a_lookup_per_pixel_reads() {

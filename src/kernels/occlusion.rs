@@ -11,7 +11,7 @@
 //! takes a few reads; a chunk is culled only when its nearest point is farther than the
 //! largest depth under its whole footprint plus its largest cube's eta.
 
-use super::halving::halve;
+use super::halving::halve_finite_first;
 use super::votes::Chunk;
 use crate::inputs::{DepthImage, DepthMapSource, Projection};
 
@@ -29,6 +29,12 @@ pub struct FarthestDepths {
     levels: Vec<DepthImage>,
 }
 
+/// [`largest_valid`] of four finite values whose largest is a normal number, without
+/// branches.
+fn largest_finite([a, b, c, d]: [f32; 4]) -> f32 {
+    a.max(b).max(c.max(d))
+}
+
 /// The larger of the finite values, NaN when there is none.
 fn largest_valid(values: [f32; 4]) -> f32 {
     values
@@ -40,16 +46,16 @@ fn largest_valid(values: [f32; 4]) -> f32 {
 impl FarthestDepths {
     /// The maxima of `image`'s blocks.
     pub fn new(image: &DepthImage) -> Self {
-        let mut first = halve(image, largest_valid);
+        let mut first = halve_finite_first(image, largest_finite, largest_valid);
         for _ in 1..FIRST_LEVEL {
-            first = halve(&first, largest_valid);
+            first = halve_finite_first(&first, largest_finite, largest_valid);
         }
         let mut levels = vec![first];
         while let Some(last) = levels.last() {
             if last.width <= 1 && last.height <= 1 {
                 break;
             }
-            let next = halve(last, largest_valid);
+            let next = halve_finite_first(last, largest_finite, largest_valid);
             levels.push(next);
         }
         FarthestDepths { levels }
@@ -136,6 +142,35 @@ mod tests {
     use glam::DVec3;
 
     use super::*;
+    use crate::kernels::halving::halve;
+
+    #[test]
+    fn the_fast_largest_is_the_exact_one_wherever_halving_keeps_it() {
+        let mut seed = 13u64;
+        let mut uniform = move || crate::kernels::random::uniform(&mut seed);
+        let (width, height) = (37u32, 22u32);
+        for round in 0..40 {
+            let depth = (0..width * height)
+                .map(|_| {
+                    let pick = uniform();
+                    match round % 3 {
+                        0 if pick < 0.1 => f32::NAN,
+                        1 if pick < 0.05 => f32::INFINITY,
+                        1 if pick < 0.1 => f32::NEG_INFINITY,
+                        2 if pick < 0.2 => 0.0,
+                        2 if pick < 0.3 => -0.0,
+                        _ if pick < 0.5 => -(uniform() as f32) * 4.0,
+                        _ => uniform() as f32 * 4.0,
+                    }
+                })
+                .collect();
+            let image = DepthImage { width, height, depth };
+            let exact = halve(&image, largest_valid);
+            let fast = halve_finite_first(&image, largest_finite, largest_valid);
+            let bits = |level: &DepthImage| level.depth.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&fast), bits(&exact), "round {round}");
+        }
+    }
 
     #[test]
     fn block_maxima_bound_every_pixel_under_them() {

@@ -4,7 +4,7 @@
 
 use glam::{DVec3, Mat4, Vec4};
 
-use super::halving::{halve, median_of_valid};
+use super::halving::{halve_finite_first, median_of_finite, median_of_valid};
 use super::occlusion::FarthestDepths;
 use super::surface_depth::{surface_depth, surface_depth_f32, truncated_surface_distance};
 use super::vote_lanes::{LANES, LevelShapes, vote_block};
@@ -120,7 +120,7 @@ impl Pyramid {
             if last.width <= 1 && last.height <= 1 {
                 break;
             }
-            let next = halve(last, median_of_valid);
+            let next = halve_finite_first(last, median_of_finite, median_of_valid);
             levels.push(next);
         }
         Pyramid {
