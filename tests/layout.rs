@@ -109,7 +109,7 @@ fn folders_import_each_other_without_cycles() {
         ("format", &[]),
         ("store", &["format", "sys"]),
         ("inputs", &["format"]),
-        ("kernels", &["format", "inputs"]),
+        ("kernels", &["format", "inputs", "sys"]),
         ("gpu", &["format", "inputs", "kernels"]),
         ("mesh", &["format"]),
     ];

@@ -10,5 +10,6 @@ pub mod random;
 pub mod ssd;
 pub mod surface_depth;
 pub mod tgv;
+pub mod vote_batches;
 pub mod vote_lanes;
 pub mod votes;

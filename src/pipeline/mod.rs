@@ -202,7 +202,8 @@ pub fn solve_with_gpu(
     }
     if options.until >= SolveUntil::Histograms {
         // Stages run one at a time: an eighth of the budget for decoded depth maps, beside the
-        // workers' groups of leaves, keeps the histogram stage within the budget.
+        // group of leaves being voted (sized for the leaves in flight), keeps the histogram
+        // stage within the budget.
         let stage = HistogramsStage::new(scene, registered_depth_maps(store)?)
             .with_cache_bytes(options.memory_budget / 8)
             .with_gpu(gpu.clone());

@@ -86,6 +86,13 @@ pub trait Stage: Sync {
     /// The units of this run, in a deterministic order, from the committed state.
     fn plan(&self, base: &Snapshot<'_>) -> Result<Plan>;
 
+    /// The most units the runner computes at once, whatever its thread count: a stage whose
+    /// units each use every thread, and whose plan sizes them for the memory of several units,
+    /// asks for one.
+    fn units_in_flight(&self) -> usize {
+        usize::MAX
+    }
+
     /// Computes one unit. Must depend only on `base` and `unit` so that a re-run gives the same
     /// bytes.
     fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput>;
@@ -263,7 +270,8 @@ impl Store {
         }
         let bar = progress_bar(options.progress, name, plan.units.len() as u64, resumed_units as u64);
 
-        let outcome = self.run_pending(name, producer, &base, target, &pending, options.threads.max(1), &bar);
+        let threads = options.threads.min(stage.units_in_flight()).max(1);
+        let outcome = self.run_pending(name, producer, &base, target, &pending, threads, &bar);
         bar.finish_and_clear();
         if let Err(error) = outcome {
             // Bad input cannot be fixed by resuming: abandon the run so the catalog is exactly

@@ -19,6 +19,7 @@ mod pyramid_cache;
 pub use self::pyramid_cache::DEFAULT_PYRAMID_CACHE_BYTES;
 use self::pyramid_cache::PyramidCache;
 use super::ingest::DepthMapRecord;
+use super::octree::LEAVES_IN_FLIGHT;
 use super::treetop::Treetop;
 use super::{HISTOGRAMS, OCTREE};
 use crate::format::{Column, ColumnValues, CubeKey, Scene};
@@ -70,12 +71,16 @@ pub struct HistogramsStage {
     gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
 }
 
-/// A histogram group holds at most this many times the largest treetop leaf's cubes. A cube
-/// costs the vote loop 72 bytes (key 16, f32 offset and radius 16, 8 bins 32, distance sums
-/// 8), so 7 leaves' cubes take under the 512 bytes the solver budgets per leaf cube
-/// (`stages::octree::BYTES_PER_LEAF_CUBE`): a group fits where one solver leaf does. Larger
-/// groups decode each depth map fewer times (RedKitchen, 1000 frames at 512 MiB: 14 groups at
-/// 4 leaves, each decoding nearly every map).
+/// A histogram group holds at most this many times [`LEAVES_IN_FLIGHT`] times the largest
+/// treetop leaf's cubes, and the stage votes one group at a time, its maps decoded and its
+/// chunks voted on every thread. A cube costs the vote loop 72 bytes (key 16, f32 offset and
+/// radius 16, 8 bins 32, distance sums 8), so 7 leaves' cubes take under the 512 bytes the
+/// solver budgets per leaf cube (`stages::octree::BYTES_PER_LEAF_CUBE`): a group fits where
+/// the solver's leaves in flight do. The cap does not follow the thread count, so neither do
+/// the groups nor the catalog's records of them. Larger groups decode each depth map fewer
+/// times: RedKitchen, 1000 frames at 512 MiB, voted 14 groups of 4 leaves, then 3 groups of
+/// 7 leaves two at a time (2,946 decodes, as the two groups drifted apart in the maps), and
+/// now 2 groups of 14 (2,000 decodes).
 pub const GROUP_LEAVES: u64 = 7;
 
 impl HistogramsStage {
@@ -241,7 +246,8 @@ impl Stage for HistogramsStage {
         }
         // Consecutive pending units share one pass over the depth maps: each map is decoded
         // once per group, not once per unit.
-        let cap = treetop.units.iter().map(|u| u.record.rows).max().unwrap_or(0).max(64) * GROUP_LEAVES;
+        let cap =
+            treetop.units.iter().map(|u| u.record.rows).max().unwrap_or(0).max(64) * GROUP_LEAVES * LEAVES_IN_FLIGHT;
         let mut groups: Vec<Vec<usize>> = Vec::new();
         let mut load = 0u64;
         for index in pending {
@@ -296,6 +302,12 @@ impl Stage for HistogramsStage {
         })
     }
 
+    /// One group at a time ([`GROUP_LEAVES`]): a group is sized for the memory of the leaves in
+    /// flight, and votes on every thread.
+    fn units_in_flight(&self) -> usize {
+        1
+    }
+
     fn run_unit(&self, base: &Snapshot<'_>, unit: &UnitSpec) -> Result<UnitOutput> {
         let plans = self.units.get().ok_or_else(|| StoreError::Stage {
             stage: HISTOGRAMS.into(),
@@ -308,15 +320,22 @@ impl Stage for HistogramsStage {
             .and_then(|groups| groups.get(&unit.id))
             .cloned()
             .unwrap_or_else(|| vec![unit.id as usize]);
-        let mut voters = Vec::with_capacity(members.len());
-        for member in members {
-            let plan = plans.get(member).ok_or_else(|| StoreError::Stage {
-                stage: HISTOGRAMS.into(),
-                unit: unit.label.clone(),
-                message: "unit out of range".into(),
-            })?;
-            voters.push(self.voter(base, plan)?);
-        }
+        // The members' cubes are read and placed in parallel: a group runs alone (one unit in
+        // flight, see `GROUP_LEAVES`), and this is most of its setup.
+        let mut voters = {
+            use rayon::prelude::*;
+            members
+                .par_iter()
+                .map(|&member| {
+                    let plan = plans.get(member).ok_or_else(|| StoreError::Stage {
+                        stage: HISTOGRAMS.into(),
+                        unit: unit.label.clone(),
+                        message: "unit out of range".into(),
+                    })?;
+                    self.voter(base, plan)
+                })
+                .collect::<Result<Vec<_>>>()?
+        };
         let on_gpu = match self.gpu.as_deref() {
             Some(gpu) if !gpu.is_lost() => match self.vote_on_gpu(gpu, &mut voters, unit)? {
                 Ok(()) => true,
@@ -525,6 +544,9 @@ impl HistogramsStage {
         let per_batch = self.maps_per_batch();
         let mut maps = self.depth_maps.iter();
         let mut ready: Vec<ReadyMap> = Vec::new();
+        // The members' chunks, for the occlusion tests made beside the votes (which hold the
+        // voters mutably).
+        let chunk_lists: Vec<Vec<Chunk>> = voters.iter().map(|voter| voter.chunks.clone()).collect();
         loop {
             // The next maps that may see some member's chunks.
             let mut pending: Vec<(u64, &DepthMapSource, glam::DMat4, Needed)> = Vec::with_capacity(per_batch);
@@ -543,11 +565,32 @@ impl HistogramsStage {
                 break;
             }
             let previous = std::mem::take(&mut ready);
+            // Each map is decoded, and the chunks it sees only from far behind its surfaces
+            // (which cast no vote) are dropped, in parallel.
             let load = || {
                 pending
                     .par_iter()
-                    .map(|(id, source, _, _)| self.load_pyramid(*id, source, &unit.label))
-                    .collect::<Vec<_>>()
+                    .map(|(id, source, world_to_camera, needed)| {
+                        let pyramid = self.load_pyramid(*id, source, &unit.label)?;
+                        let needed: Needed = needed
+                            .iter()
+                            .filter_map(|(index, seen)| {
+                                let chunks = chunk_lists.get(*index)?;
+                                let seen: Vec<usize> = seen
+                                    .iter()
+                                    .copied()
+                                    .filter(|&c| {
+                                        chunks.get(c).is_some_and(|chunk| {
+                                            !pyramid.farthest.hides(source, world_to_camera, chunk)
+                                        })
+                                    })
+                                    .collect();
+                                (!seen.is_empty()).then_some((*index, seen))
+                            })
+                            .collect();
+                        Ok((pyramid, needed))
+                    })
+                    .collect::<Vec<Result<_>>>()
             };
             let cast = || {
                 if previous.is_empty() {
@@ -560,24 +603,8 @@ impl HistogramsStage {
             if !went_on? {
                 return Ok(());
             }
-            for ((_, source, world_to_camera, needed), pyramid) in pending.into_iter().zip(pyramids) {
-                let pyramid = pyramid?;
-                // Chunks the map sees only from far behind its surfaces cast no vote.
-                let needed: Needed = needed
-                    .into_iter()
-                    .filter_map(|(index, seen)| {
-                        let chunks = &voters.get(index)?.chunks;
-                        let seen: Vec<usize> = seen
-                            .into_iter()
-                            .filter(|&c| {
-                                chunks
-                                    .get(c)
-                                    .is_some_and(|chunk| !pyramid.farthest.hides(source, &world_to_camera, chunk))
-                            })
-                            .collect();
-                        (!seen.is_empty()).then_some((index, seen))
-                    })
-                    .collect();
+            for ((_, source, world_to_camera, _), loaded) in pending.into_iter().zip(pyramids) {
+                let (pyramid, needed) = loaded?;
                 if !needed.is_empty() {
                     ready.push(ReadyMap {
                         weight: quantized_weight(source.weight),
@@ -594,11 +621,11 @@ impl HistogramsStage {
         Ok(())
     }
 
-    /// Maps decoded and voted together: as many as keep two batches of each worker's group
-    /// (the one voting and the one decoding) within the pyramid cache's bytes, where the
-    /// batches' maps stay as the most recently used (so batches add no memory to the cache's),
-    /// and at most [`MAPS_AT_ONCE`]. RedKitchen at 512 MiB: 64 MiB of cache, 1.6 MB maps and
-    /// 2 workers, 9 maps a batch. One map a batch without a cache.
+    /// Maps decoded and voted together: as many as keep two batches of the group (the one
+    /// voting and the one decoding) within the pyramid cache's bytes, where the batches' maps
+    /// stay as the most recently used (so batches add no memory to the cache's), and at most
+    /// [`MAPS_AT_ONCE`]. RedKitchen at 512 MiB: 64 MiB of cache and 1.6 MB maps, 20 maps a
+    /// batch. One map a batch without a cache.
     fn maps_per_batch(&self) -> usize {
         let largest = self
             .depth_maps
@@ -609,8 +636,7 @@ impl HistogramsStage {
         // A pyramid's levels take 4/3 of the full level's 4 bytes a pixel, its farthest-depth
         // blocks a little more: 6 bytes a pixel bounds both.
         let pyramid_bytes = largest.max(1) * 6;
-        let workers = rayon::current_num_threads().max(1) as u64;
-        let maps = self.cache.capacity / (2 * workers * pyramid_bytes);
+        let maps = self.cache.capacity / (2 * pyramid_bytes);
         usize::try_from(maps).unwrap_or(MAPS_AT_ONCE).clamp(1, MAPS_AT_ONCE)
     }
 
