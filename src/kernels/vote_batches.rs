@@ -109,7 +109,7 @@ impl<'a> MapVote<'a> {
 /// Chunk by chunk: a chunk's cubes meet every map of the batch that may see them, in the
 /// batch's order, while their rows are in cache, where voting one map at a time streamed every
 /// seen chunk's cubes and rows (56 bytes a cube) from memory once per map. A group of leaves
-/// holds far more than the caches (RedKitchen's three groups: about 70 MB each), and `cargo
+/// holds far more than the caches (RedKitchen's two groups: about 140 MB each), and `cargo
 /// bench --bench votes` ran 66 to 68 million tests/s over a million cubes against 112 to 118
 /// million over 20,000. Each cube still receives the maps in the batch's order, so the sums
 /// are those of voting the maps one at a time, to the bit. Chunks own disjoint rows of the
@@ -190,15 +190,7 @@ impl crate::sys::WideWork for ChunkVotes<'_, '_> {
             let m = bits.trailing_zeros() as usize;
             bits &= bits - 1;
             if let Some(map) = self.maps.get(m) {
-                votes += vote_chunk(
-                    &map.view,
-                    map.pyramid,
-                    &map.shapes,
-                    map.weight,
-                    self.offsets,
-                    self.rows,
-                    self.distances,
-                );
+                votes += vote_chunk(map, self.offsets, self.rows, self.distances);
             }
         }
         votes
@@ -209,15 +201,8 @@ impl crate::sys::WideWork for ChunkVotes<'_, '_> {
 /// ([`vote_block`]); a spherical map, and the chunk's last cubes short of a block, one at a
 /// time ([`vote_relative`]).
 #[inline(always)]
-fn vote_chunk(
-    view: &UnitView,
-    pyramid: &Pyramid,
-    shapes: &LevelShapes<'_>,
-    weight: f32,
-    offsets: &[Vec4],
-    rows: &mut [f32],
-    distances: &mut [f32],
-) -> u64 {
+fn vote_chunk(map: &MapVote<'_>, offsets: &[Vec4], rows: &mut [f32], distances: &mut [f32]) -> u64 {
+    let (view, weight) = (&map.view, map.weight);
     let (rows, _) = rows.as_chunks_mut::<BINS>();
     let (sums, _) = distances.as_chunks_mut::<2>();
     let mut votes = 0u64;
@@ -227,12 +212,12 @@ fn vote_chunk(
         let (row_blocks, _) = rows.as_chunks_mut::<LANES>();
         let (sum_blocks, _) = sums.as_chunks_mut::<LANES>();
         for ((cubes, block_rows), block_sums) in blocks.iter().zip(row_blocks).zip(sum_blocks) {
-            votes += vote_block(view, cubes, shapes, weight).add_to(block_rows, block_sums);
+            votes += vote_block(view, cubes, &map.shapes, weight).add_to(block_rows, block_sums);
         }
         in_blocks = blocks.len() * LANES;
     }
     for ((row, [sum, total]), cube) in rows.iter_mut().zip(sums.iter_mut()).zip(offsets).skip(in_blocks) {
-        if let Some((bin, distance)) = vote_relative(view, *cube, pyramid)
+        if let Some((bin, distance)) = vote_relative(view, *cube, map.pyramid)
             && let Some(h) = row.get_mut(bin)
         {
             *h += weight;

@@ -180,22 +180,19 @@ pub fn vote_block(view: &UnitView, cubes: &[Vec4; LANES], shapes: &LevelShapes<'
     for (lane, level) in lanes.iter().enumerate() {
         let s = level.stride as usize;
         // Lanes inside the image have non-negative coordinates below the level's size.
-        let (column, row) = if square_bits & (1 << lane) != 0 {
-            (cx[lane] as u32 as usize, cy[lane] as u32 as usize)
-        } else if inside_bits & (1 << lane) != 0 {
-            (nx[lane] as u32 as usize, ny[lane] as u32 as usize)
-        } else {
-            continue;
-        };
-        let at = row * s + column;
         if square_bits & (1 << lane) != 0 {
+            let at = cy[lane] as u32 as usize * s + cx[lane] as u32 as usize;
             if let Some(&[d00, d10]) = level.pixels.get(at..at + 2) {
                 (corners[0][lane], corners[1][lane]) = (d00, d10);
             }
             if let Some(&[d01, d11]) = level.pixels.get(at + s..at + s + 2) {
                 (corners[2][lane], corners[3][lane]) = (d01, d11);
             }
-        } else if let Some(d) = level.pixels.get(at) {
+        } else if inside_bits & (1 << lane) != 0
+            && let Some(d) = level
+                .pixels
+                .get(ny[lane] as u32 as usize * s + nx[lane] as u32 as usize)
+        {
             nearest[lane] = *d;
         }
     }
