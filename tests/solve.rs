@@ -422,6 +422,35 @@ fn incremental_histograms_equal_a_from_scratch_run() {
     );
 }
 
+/// The groups of units voted together (`HistogramsStage::with_group_leaves`) change how often
+/// each depth map is decoded, never a vote: one unit per group and every unit in one group
+/// give the same segments.
+#[test]
+fn histogram_groups_of_any_size_give_the_same_segments() {
+    let root = tempfile::tempdir().unwrap();
+    let (all, fixed) = sphere_maps(root.path(), 6);
+    let mut digests = Vec::new();
+    for group_leaves in [0, 1000] {
+        let store = Store::create(root.path().join(format!("groups-{group_leaves}"))).unwrap();
+        let stage = IngestStage::prepare(&store, all.clone(), &fixed).unwrap();
+        store.run_stage(&stage, &options()).unwrap();
+        let scene = octstore::stages::ingest::read_scene(&store).unwrap().unwrap();
+        let octree = OctreeStage::new(scene, 400, 1 << 20, store.scratch_dir(OCTREE).unwrap());
+        let octree_units = store.run_stage(&octree, &options()).unwrap().units;
+        let histograms =
+            HistogramsStage::new(scene, registered_depth_maps(&store).unwrap()).with_group_leaves(group_leaves);
+        let groups = store.run_stage(&histograms, &options()).unwrap().units;
+        // A group holds at least one unit; a thousand leaves' cubes hold all of them.
+        let expected = if group_leaves == 0 { octree_units } else { 1 };
+        assert!(
+            octree_units > 1 && groups == expected,
+            "{groups} groups of {octree_units} units"
+        );
+        digests.push(store.latest().unwrap().digest(octstore::stages::HISTOGRAMS));
+    }
+    assert_eq!(digests[0], digests[1]);
+}
+
 type RawStates = std::collections::BTreeMap<octstore::CubeKey, Vec<u8>>;
 type MapSets = std::collections::BTreeMap<u64, Vec<u64>>;
 

@@ -197,16 +197,32 @@ impl Pyramid {
     }
 
     /// Whether any cube whose centre lies in the ball, and whose voting radius is at most the
-    /// ball's radius, may vote: a frustum test that is conservative by construction (LIDAR sees
-    /// all around).
+    /// ball's radius, may vote: [`Self::may_see_ball`] with the ball's radius for the voting
+    /// radii.
+    pub fn may_see(source: &DepthMapSource, world_to_camera: &glam::DMat4, center: DVec3, radius: f64) -> bool {
+        Self::may_see_ball(source, world_to_camera, center, radius, radius)
+    }
+
+    /// Whether any cube whose centre lies in the ball (`center`, `radius`), and whose voting
+    /// radius is at most `voting_radius`, may vote: a frustum test that is conservative by
+    /// construction (LIDAR sees all around).
     ///
     /// `vote` reads the pixel nearest the projected centre at a level whose pixel spans at most
     /// the cube's footprint `2 r f / z`, and a level's last pixel may reach one level pixel past
     /// the image edge. So a voting centre satisfies `-0.5 <= u < width + 2 r f / z`, that is,
     /// it lies at most `2 r f / n` beyond the side plane `u = width` (n the plane normal's
     /// length), and never beyond `u = -0.5`. A ball is culled only when it lies wholly beyond
-    /// such a widened plane (one pixel of slack on every side).
-    pub fn may_see(source: &DepthMapSource, world_to_camera: &glam::DMat4, center: DVec3, radius: f64) -> bool {
+    /// such a widened plane (one pixel of slack on every side). The widening follows the
+    /// voting radius, not the ball's: a chunk of 256 cubes on a wall spans a ball ten times
+    /// its cubes' radius, and widening every side by the ball's footprint kept chunks that
+    /// lie wholly outside the image.
+    pub fn may_see_ball(
+        source: &DepthMapSource,
+        world_to_camera: &glam::DMat4,
+        center: DVec3,
+        radius: f64,
+        voting_radius: f64,
+    ) -> bool {
         match source.projection {
             Projection::Spherical => true,
             Projection::Pinhole { fx, fy, cx, cy } => {
@@ -226,7 +242,7 @@ impl Pyramid {
                 ];
                 sides.iter().all(|(normal, widening)| {
                     let length = normal.length();
-                    normal.dot(p) / length <= radius + widening * radius / length
+                    normal.dot(p) / length <= radius + widening * voting_radius / length
                 })
             }
         }
@@ -573,10 +589,12 @@ pub(crate) mod tests {
             let direction = DVec3::new(uniform() - 0.5, uniform() - 0.5, uniform() - 0.5).normalize_or_zero();
             let ball = (center + direction * slack, radius + slack);
             let sees = Pyramid::may_see(&source, &world_to_camera, ball.0, ball.1);
+            // The same ball, widened by the cube's own voting radius rather than the ball's.
+            let tight = Pyramid::may_see_ball(&source, &world_to_camera, ball.0, ball.1, radius);
             if pyramid.vote(&world_to_camera, center, radius).is_some() {
                 voted += 1;
                 assert!(
-                    sees,
+                    sees && tight,
                     "a voting cube at {center} (r {radius}) was culled by the ball {ball:?}"
                 );
             } else if !sees {

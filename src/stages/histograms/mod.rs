@@ -65,6 +65,8 @@ pub struct HistogramsStage {
     /// Treetop units voted together, by group id (the first member's index).
     groups: std::sync::OnceLock<BTreeMap<u64, Vec<usize>>>,
     cache: PyramidCache,
+    /// A group's cubes, in largest leaves in flight ([`GROUP_LEAVES`]).
+    group_leaves: u64,
     /// Depth maps whose file this run has found to be the one ingested (content hash = id).
     verified: std::sync::Mutex<std::collections::BTreeSet<u64>>,
     /// Where the votes are cast; `None` is the CPU.
@@ -73,15 +75,17 @@ pub struct HistogramsStage {
 
 /// A histogram group holds at most this many times [`LEAVES_IN_FLIGHT`] times the largest
 /// treetop leaf's cubes, and the stage votes one group at a time, its maps decoded and its
-/// chunks voted on every thread. A cube costs the vote loop 72 bytes (key 16, f32 offset and
-/// radius 16, 8 bins 32, distance sums 8), so 7 leaves' cubes take under the 512 bytes the
-/// solver budgets per leaf cube (`stages::octree::BYTES_PER_LEAF_CUBE`): a group fits where
-/// the solver's leaves in flight do. The cap does not follow the thread count, so neither do
-/// the groups nor the catalog's records of them. Larger groups decode each depth map fewer
-/// times: RedKitchen, 1000 frames at 512 MiB, voted 14 groups of 4 leaves, then 3 groups of
-/// 7 leaves two at a time (2,946 decodes, as the two groups drifted apart in the maps), and
-/// now 2 groups of 14 (2,000 decodes).
-pub const GROUP_LEAVES: u64 = 7;
+/// chunks voted on every thread. A cube costs the vote loop 56 bytes (f32 offset and radius
+/// 16, 8 bins 32, distance sums 8; its key is read again from the octree segment only when
+/// the group's segments are written), so 9 leaves' cubes take under the 512 bytes the solver
+/// budgets per leaf cube (`stages::octree::BYTES_PER_LEAF_CUBE`): a group fits where the
+/// solver's leaves in flight do. The cap does not follow the thread count or the memory
+/// budget's share, so neither do the groups nor the catalog's records of them, and a cluster
+/// plans the same groups as one process. Larger groups decode each depth map fewer times:
+/// RedKitchen, 1000 frames at 512 MiB, voted 14 groups of 4 leaves, then 3 groups of 7 leaves
+/// two at a time (2,946 decodes), then 2 groups of 14 (2,000 decodes, 72 bytes a cube with
+/// its key), and now one group of 18 largest leaves' cubes (1,000 decodes).
+pub const GROUP_LEAVES: u64 = 9;
 
 impl HistogramsStage {
     pub fn new(scene: Scene, depth_maps: Vec<(u64, DepthMapRecord)>) -> HistogramsStage {
@@ -91,6 +95,7 @@ impl HistogramsStage {
             units: std::sync::OnceLock::new(),
             groups: std::sync::OnceLock::new(),
             cache: PyramidCache::new(DEFAULT_PYRAMID_CACHE_BYTES),
+            group_leaves: GROUP_LEAVES,
             verified: std::sync::Mutex::default(),
             gpu: None,
         }
@@ -137,6 +142,14 @@ impl HistogramsStage {
     /// Bounds the bytes of decoded pyramids kept between units (0 keeps none).
     pub fn with_cache_bytes(mut self, bytes: u64) -> HistogramsStage {
         self.cache.capacity = bytes;
+        self
+    }
+
+    /// Groups of `leaves` times [`LEAVES_IN_FLIGHT`] largest leaves' cubes rather than
+    /// [`GROUP_LEAVES`] times (a group holds at least one unit): they change how often each
+    /// map is decoded, never a vote.
+    pub fn with_group_leaves(mut self, leaves: u64) -> HistogramsStage {
+        self.group_leaves = leaves;
         self
     }
 
@@ -246,8 +259,8 @@ impl Stage for HistogramsStage {
         }
         // Consecutive pending units share one pass over the depth maps: each map is decoded
         // once per group, not once per unit.
-        let cap =
-            treetop.units.iter().map(|u| u.record.rows).max().unwrap_or(0).max(64) * GROUP_LEAVES * LEAVES_IN_FLIGHT;
+        let largest = treetop.units.iter().map(|u| u.record.rows).max().unwrap_or(0).max(64);
+        let cap = largest * self.group_leaves * LEAVES_IN_FLIGHT;
         let mut groups: Vec<Vec<usize>> = Vec::new();
         let mut load = 0u64;
         for index in pending {
@@ -363,6 +376,7 @@ impl Stage for HistogramsStage {
             map_sets: Vec::new(),
         };
         for voter in voters {
+            let keys = voter.keys(base)?;
             let map_set = catalog::map_set_digest(voter.voted.iter());
             if !extra.map_sets.iter().any(|(digest, _)| *digest == map_set) {
                 extra.map_sets.push((map_set, voter.voted.into_iter().collect()));
@@ -377,7 +391,7 @@ impl Stage for HistogramsStage {
             ));
             segments.push(
                 vec![
-                    Column::keys(voter.keys),
+                    Column::keys(keys),
                     Column::new("hist", BINS as u16, ColumnValues::F32(voter.hist)),
                     Column::new("distance", 2, ColumnValues::F32(voter.distance)),
                 ]
@@ -465,7 +479,8 @@ impl Stage for HistogramsStage {
 /// that have voted into it.
 struct Voter {
     key: CubeKey,
-    keys: Vec<CubeKey>,
+    /// The unit's octree segment, where its keys are read again for its histogram segment.
+    octree_segment: String,
     /// The cubes as they are voted, on the CPU and the GPU: offsets from `center` and voting
     /// radii, in f32 ([`cube_offsets`]).
     offsets: Vec<Vec4>,
@@ -489,6 +504,12 @@ struct Voter {
 }
 
 impl Voter {
+    /// The unit's keys, read again from its octree segment.
+    fn keys(&self, base: &Snapshot<'_>) -> Result<Vec<CubeKey>> {
+        let file = base.open_segment(&self.octree_segment)?;
+        file.reader()?.read_keys().map_err(|e| file.corruption(e))
+    }
+
     /// Votes the maps of `batch` that member `index` may see into its cubes, in the batch's
     /// order ([`vote_maps`]).
     fn vote_batch(&mut self, index: usize, batch: &[ReadyMap]) {
@@ -789,7 +810,7 @@ impl HistogramsStage {
             chunks: chunks(&centers, &radii),
             offsets: cube_offsets(center, &centers, &radii),
             key: plan.key,
-            keys,
+            octree_segment: plan.octree_segment.clone(),
             hist,
             distance,
             band_floor: band_floor(&self.scene),
@@ -819,7 +840,9 @@ fn may_see(voters: &mut [Voter], id: u64, source: &DepthMapSource, world_to_came
             .chunks
             .iter()
             .enumerate()
-            .filter(|(_, chunk)| Pyramid::may_see(source, world_to_camera, chunk.center, chunk.radius))
+            .filter(|(_, chunk)| {
+                Pyramid::may_see_ball(source, world_to_camera, chunk.center, chunk.radius, chunk.max_radius)
+            })
             .map(|(chunk, _)| chunk)
             .collect();
         if !seen.is_empty() {
