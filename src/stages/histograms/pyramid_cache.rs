@@ -28,6 +28,8 @@ struct CacheState {
     clock: u64,
     hits: u64,
     misses: u64,
+    /// Pyramids evicted to make room, since the cache was made.
+    evictions: u64,
 }
 
 impl PyramidCache {
@@ -92,6 +94,7 @@ impl PyramidCache {
             };
             if let Some((evicted, _)) = state.entries.remove(&oldest) {
                 state.bytes = state.bytes.saturating_sub(evicted.bytes());
+                state.evictions += 1;
             }
         }
         let now = state.clock;
@@ -105,6 +108,21 @@ impl PyramidCache {
         let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         state.decoding.remove(&id);
         self.decoded.notify_all();
+    }
+
+    /// Pyramids evicted so far.
+    pub(super) fn evictions(&self) -> u64 {
+        self.state
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+            .evictions
+    }
+
+    /// Drops every cached pyramid (the ones in use stay alive with their users).
+    pub(super) fn clear(&self) {
+        let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        state.entries.clear();
+        state.bytes = 0;
     }
 
     pub(super) fn counts(&self) -> (u64, u64) {
@@ -122,5 +140,43 @@ struct DecodeGuard<'c> {
 impl Drop for DecodeGuard<'_> {
     fn drop(&mut self) {
         self.cache.end_decode(self.id);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::inputs::{DepthImage, DepthMapSource};
+
+    fn pyramid() -> Result<Pyramid> {
+        let (width, height) = (16, 12);
+        let source = DepthMapSource::test_pinhole(
+            "map.pfm",
+            (width, height),
+            [10.0, 10.0, 7.5, 5.5],
+            glam::DMat4::IDENTITY,
+        );
+        let depth = vec![1.0; (width * height) as usize];
+        Ok(Pyramid::new(source, DepthImage { width, height, depth }))
+    }
+
+    #[test]
+    fn evictions_are_counted_and_a_cleared_cache_decodes_again() {
+        let size = pyramid().map(|p| p.bytes()).unwrap_or(0);
+        // Room for two pyramids.
+        let cache = PyramidCache::new(2 * size);
+        for id in 0..2 {
+            cache.get_or_load(id, pyramid).unwrap();
+        }
+        assert_eq!((cache.evictions(), cache.counts()), (0, (0, 2)));
+        cache.get_or_load(0, pyramid).unwrap();
+        cache.get_or_load(2, pyramid).unwrap();
+        // Map 1 was the least recently used.
+        assert_eq!((cache.evictions(), cache.counts()), (1, (1, 3)));
+        cache.get_or_load(0, pyramid).unwrap();
+        assert_eq!(cache.counts(), (2, 3));
+        cache.clear();
+        cache.get_or_load(0, pyramid).unwrap();
+        assert_eq!((cache.evictions(), cache.counts()), (1, (2, 4)));
     }
 }
