@@ -1,6 +1,7 @@
 //! The only module with `unsafe` code: memory-mapping immutable segment files, asking the C
-//! allocator to return freed memory, calling code compiled for AVX2 once the processor has it,
-//! and SSE2's vector conversions, which x86-64 always has.
+//! allocator to return freed memory, and calling code compiled for AVX2 once the processor has
+//! it. (The histogram votes' vectors come from `fearless_simd`, whose tokens prove the
+//! processor's features, so their code needs no `unsafe` here.)
 
 use std::fs::File;
 
@@ -74,29 +75,4 @@ pub fn with_wide_vectors<W: WideWork>(work: W) -> W::Output {
         }
     }
     work.run()
-}
-
-/// Four f32 lanes truncated toward zero, as i32 and back as f32, each in one instruction on
-/// x86-64 (`cvttps2dq`, `cvtdq2ps`). Exact where a lane's magnitude is below 2^31; other lanes
-/// (and NaN) give some value, which callers must not depend on. Rust's `as` casts saturate and
-/// send NaN to zero, a compare and branches a lane: the histogram votes' lanes spent about 30
-/// instructions a cube on them.
-#[inline(always)]
-pub fn truncate_lanes(lanes: glam::Vec4) -> ([i32; 4], glam::Vec4) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_cvtepi32_ps, _mm_cvttps_epi32};
-        // SAFETY: SSE2 is part of the x86-64 baseline, so these instructions always exist;
-        // they take no pointers.
-        let (integers, floats) = unsafe {
-            let integers = _mm_cvttps_epi32(lanes.into());
-            (integers, _mm_cvtepi32_ps(integers))
-        };
-        (bytemuck::cast(integers), glam::Vec4::from(floats))
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        let integers = lanes.to_array().map(|lane| lane as i32);
-        (integers, glam::Vec4::from_array(integers.map(|i| i as f32)))
-    }
 }

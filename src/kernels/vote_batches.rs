@@ -1,6 +1,6 @@
 //! The histogram stage's voting loop over a unit's cubes: Morton-consecutive runs of cubes
 //! (chunks) with the balls that cull them against each map's frustum, and the batches of maps
-//! that vote into them chunk by chunk ([`vote_maps`]), each vote [`vote_relative`] (four cubes
+//! that vote into them chunk by chunk ([`vote_maps`]), each vote [`vote_relative`] (eight cubes
 //! at a time in [`vote_block`] for pinhole maps).
 
 use glam::{DVec3, Vec4};
@@ -104,7 +104,7 @@ impl<'a> MapVote<'a> {
 
 /// Votes a batch of maps (at most [`MAPS_AT_ONCE`]; more are ignored) into the unit's `hist`
 /// and `distance` rows (as [`vote_chunks`] does one map) and returns the number of votes cast.
-/// Each vote is [`vote_relative`] (four at a time in [`vote_block`]).
+/// Each vote is [`vote_relative`] (eight at a time in [`vote_block`]).
 ///
 /// Chunk by chunk: a chunk's cubes meet every map of the batch that may see them, in the
 /// batch's order, while their rows are in cache, where voting one map at a time streamed every
@@ -115,11 +115,10 @@ impl<'a> MapVote<'a> {
 /// are those of voting the maps one at a time, to the bit. Chunks own disjoint rows of the
 /// histogram, so they vote in parallel: a group of one large leaf still uses every core.
 ///
-/// A chunk's loop runs compiled for AVX2 where the processor has it
-/// ([`crate::sys::with_wide_vectors`]): the lanes stay four wide, but the three-operand forms
-/// of the instructions drop most of the register copies that SSE2's two-operand forms need
-/// (RedKitchen's histogram step on a 2-core AMD EPYC VM: 16.2-16.4 s for the baseline, 14.6-15.7
-/// s), with the same results, bit for bit (no fused multiply-adds).
+/// A chunk's loop runs in the widest vectors the processor has (`fearless_simd::dispatch!`,
+/// which compiles it once per x86-64 level and picks one at run time), with the same results
+/// bit for bit at every level: the operations are IEEE ones of the same roundings, and fused
+/// multiply-adds, which round differently, are never asked for.
 pub fn vote_maps(cubes: &ChunkedCubes<'_>, hist: &mut [f32], distance: &mut [f32], maps: &[MapVote<'_>]) -> u64 {
     use rayon::prelude::*;
     let maps = maps.get(..MAPS_AT_ONCE.min(maps.len())).unwrap_or(&[]);
@@ -156,52 +155,48 @@ pub fn vote_maps(cubes: &ChunkedCubes<'_>, hist: &mut [f32], distance: &mut [f32
         rest_distance = tail_distance;
         consumed = chunk.end;
     }
+    let level = fearless_simd::Level::new();
     work.into_par_iter()
         .map(|(offsets, rows, distances, maps_seeing)| {
-            crate::sys::with_wide_vectors(ChunkVotes {
-                maps,
-                maps_seeing,
-                offsets,
-                rows,
-                distances,
-            })
+            fearless_simd::dispatch!(level, simd => chunk_votes(simd, maps, maps_seeing, offsets, rows, distances))
         })
         .sum()
 }
 
-/// One chunk's votes of the maps that see it, as [`vote_maps`] hands them to
-/// [`crate::sys::with_wide_vectors`].
-struct ChunkVotes<'a, 'b> {
-    maps: &'a [MapVote<'b>],
+/// One chunk's votes of the maps that see it (bit `m` of `maps_seeing` for `maps[m]`), in the
+/// batch's order.
+#[inline(always)]
+fn chunk_votes<S: fearless_simd::Simd>(
+    simd: S,
+    maps: &[MapVote<'_>],
     maps_seeing: u64,
-    offsets: &'a [Vec4],
-    rows: &'a mut [f32],
-    distances: &'a mut [f32],
-}
-
-impl crate::sys::WideWork for ChunkVotes<'_, '_> {
-    type Output = u64;
-
-    #[inline(always)]
-    fn run(self) -> u64 {
-        let mut votes = 0;
-        let mut bits = self.maps_seeing;
-        while bits != 0 {
-            let m = bits.trailing_zeros() as usize;
-            bits &= bits - 1;
-            if let Some(map) = self.maps.get(m) {
-                votes += vote_chunk(map, self.offsets, self.rows, self.distances);
-            }
+    offsets: &[Vec4],
+    rows: &mut [f32],
+    distances: &mut [f32],
+) -> u64 {
+    let mut votes = 0;
+    let mut bits = maps_seeing;
+    while bits != 0 {
+        let m = bits.trailing_zeros() as usize;
+        bits &= bits - 1;
+        if let Some(map) = maps.get(m) {
+            votes += vote_chunk(simd, map, offsets, rows, distances);
         }
-        votes
     }
+    votes
 }
 
-/// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes four at a time
+/// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes eight at a time
 /// ([`vote_block`]); a spherical map, and the chunk's last cubes short of a block, one at a
 /// time ([`vote_relative`]).
 #[inline(always)]
-fn vote_chunk(map: &MapVote<'_>, offsets: &[Vec4], rows: &mut [f32], distances: &mut [f32]) -> u64 {
+fn vote_chunk<S: fearless_simd::Simd>(
+    simd: S,
+    map: &MapVote<'_>,
+    offsets: &[Vec4],
+    rows: &mut [f32],
+    distances: &mut [f32],
+) -> u64 {
     let (view, weight) = (&map.view, map.weight);
     let (rows, _) = rows.as_chunks_mut::<BINS>();
     let (sums, _) = distances.as_chunks_mut::<2>();
@@ -212,7 +207,7 @@ fn vote_chunk(map: &MapVote<'_>, offsets: &[Vec4], rows: &mut [f32], distances: 
         let (row_blocks, _) = rows.as_chunks_mut::<LANES>();
         let (sum_blocks, _) = sums.as_chunks_mut::<LANES>();
         for ((cubes, block_rows), block_sums) in blocks.iter().zip(row_blocks).zip(sum_blocks) {
-            votes += vote_block(view, cubes, &map.shapes, weight).add_to(block_rows, block_sums);
+            votes += vote_block(simd, view, cubes, &map.shapes, weight).add_to(simd, block_rows, block_sums);
         }
         in_blocks = blocks.len() * LANES;
     }
@@ -303,8 +298,8 @@ mod tests {
         let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&batch_hist), bits(&hist));
         assert_eq!(bits(&batch_distance), bits(&distance));
-        // And both are the one-cube vote's, cube by cube: the loops run compiled for AVX2 where
-        // the processor has it (`sys::with_wide_vectors`), the one-cube vote for the baseline.
+        // And both are the one-cube vote's, cube by cube: the loops run in the processor's
+        // widest vectors, the one-cube vote in scalar code.
         let (mut reference_hist, mut reference_distance) = (vec![0f32; cubes * BINS], vec![0f32; cubes * 2]);
         for m in 0..sources.len() {
             for &c in &seen[m] {
