@@ -1,7 +1,7 @@
 //! The histogram stage's voting loop over a unit's cubes: Morton-consecutive runs of cubes
 //! (chunks) with the balls that cull them against each map's frustum, and the batches of maps
-//! that vote into them chunk by chunk ([`vote_maps`]), each vote [`vote_relative`] (eight cubes
-//! at a time in [`vote_block`] for pinhole maps).
+//! that vote into them chunk by chunk ([`vote_maps`]), each vote [`vote_relative`] (sixteen
+//! cubes at a time in [`vote_block`] for pinhole maps).
 
 use glam::{DVec3, Vec4};
 
@@ -104,7 +104,7 @@ impl<'a> MapVote<'a> {
 
 /// Votes a batch of maps (at most [`MAPS_AT_ONCE`]; more are ignored) into the unit's `hist`
 /// and `distance` rows (as [`vote_chunks`] does one map) and returns the number of votes cast.
-/// Each vote is [`vote_relative`] (eight at a time in [`vote_block`]).
+/// Each vote is [`vote_relative`] (sixteen at a time in [`vote_block`]).
 ///
 /// Chunk by chunk: a chunk's cubes meet every map of the batch that may see them, in the
 /// batch's order, while their rows are in cache, where voting one map at a time streamed every
@@ -186,7 +186,7 @@ fn chunk_votes<S: fearless_simd::Simd>(
     votes
 }
 
-/// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes eight at a time
+/// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes sixteen at a time
 /// ([`vote_block`]); a spherical map, and the chunk's last cubes short of a block, one at a
 /// time ([`vote_relative`]).
 #[inline(always)]

@@ -1,9 +1,9 @@
-//! The histogram stage's voting loop for pinhole maps: eight cubes at a time as the lanes of
-//! `fearless_simd`'s `f32x8` ([`vote_block`]), in the widest vectors the processor has (one
-//! AVX2 or AVX-512 instruction for the eight lanes; two SSE instructions on an older x86-64,
-//! NEON on aarch64), each lane the operations of [`vote_relative`] in their order, so the
-//! votes are the same to the bit (tested against it at every vector level the processor
-//! has). The crate picks the level at run time and keeps `unsafe` out of this one.
+//! The histogram stage's voting loop for pinhole maps: sixteen cubes at a time as the lanes
+//! of `fearless_simd`'s `f32x16` ([`vote_block`]), in the widest vectors the processor has
+//! (one AVX-512 instruction for the sixteen lanes, two AVX2 ones, four SSE ones on an older
+//! x86-64 or NEON ones on aarch64), each lane the operations of [`vote_relative`] in their
+//! order, so the votes are the same to the bit (tested against it at every vector level the
+//! processor has). The crate picks the level at run time and keeps `unsafe` out of this one.
 //!
 //! Why lanes without branches: the one-cube vote leaves early on each outcome (behind the
 //! camera, outside the image, an invalid pixel, far behind the surface, a square across a
@@ -13,20 +13,22 @@
 //! nearest pixel) and the addition into the cube's histogram row, none of which branches on
 //! the outcome. History: the loop it replaced projected four cubes at once but finished each
 //! lane with the one-cube branches (`cargo bench --bench votes`: 41 to 84-95 million
-//! cube-map tests per second on 2 cores with four lanes of glam's `Vec4`); eight lanes with a
-//! branch-free read took RedKitchen's histogram step (1000 frames, `--max-depth 10`, a
-//! 2-core AMD EPYC VM) from 10.4-11.6 s to 8.9-9.1 s, with the same segments byte for byte.
+//! cube-map tests per second on 2 cores with four lanes of glam's `Vec4`). RedKitchen's
+//! histogram step (1000 frames, `--max-depth 10`, a 2-core AMD EPYC VM with AVX-512), the
+//! same segments byte for byte throughout: four lanes 10.4-11.6 s, eight lanes with the
+//! branch-free read 8.9-9.1 s, and in a faster hour eight lanes 7.9-8.0 s against sixteen
+//! 7.3-7.6 s (sixteen in AVX2 alone: 7.9-8.4 s, as fast as eight).
 //!
 //! [`vote_relative`]: super::votes::vote_relative
 
 use fearless_simd::prelude::*;
-use fearless_simd::{f32x4, f32x8, i32x8};
+use fearless_simd::{f32x4, f32x16, i32x16, u32x16};
 use glam::Vec4;
 
 use super::votes::{BINS, Pyramid, UnitView};
 
 /// Cubes voted at once.
-pub const LANES: usize = 8;
+pub const LANES: usize = 16;
 
 /// Pyramid levels a block can address: a level of 2^31 pixels would be wider than any image.
 const MAX_LEVELS: usize = 32;
@@ -105,26 +107,26 @@ impl BlockVotes {
             rows[lane][self.bin[lane] & (BINS - 1)] += self.weight[lane];
         }
         // Each cube's (sum, total) pair, as the rows hold them: lanes added one by one.
-        let distance_weight = f32x8::simd_from(simd, self.distance_weight);
-        let distance = f32x8::simd_from(simd, self.distance);
+        let distance_weight = f32x16::simd_from(simd, self.distance_weight);
+        let distance = f32x16::simd_from(simd, self.distance);
         let (first, second) = (distance_weight * distance).interleave(distance_weight);
         let (low, high) = sums.as_flattened_mut().split_at_mut(LANES);
-        (f32x8::from_slice(simd, low) + first).store_slice(low);
-        (f32x8::from_slice(simd, high) + second).store_slice(high);
+        (f32x16::from_slice(simd, low) + first).store_slice(low);
+        (f32x16::from_slice(simd, high) + second).store_slice(high);
         u64::from(self.voting.count_ones())
     }
 }
 
-/// Eight lanes of one value.
+/// Sixteen lanes of one value.
 #[inline(always)]
-fn splat<S: Simd>(simd: S, value: f32) -> f32x8<S> {
-    f32x8::splat(simd, value)
+fn splat<S: Simd>(simd: S, value: f32) -> f32x16<S> {
+    f32x16::splat(simd, value)
 }
 
-/// Algorithm 1 for eight cubes of a pinhole map (offsets from the unit's origin and voting
+/// Algorithm 1 for sixteen cubes of a pinhole map (offsets from the unit's origin and voting
 /// radii, as [`super::votes::cube_offsets`] makes them), with vote weight `weight`, in the
-/// vectors of `simd` (AVX2 or AVX-512 where the processor has them: one instruction for the
-/// eight lanes; SSE2 or SSE4.2 two).
+/// vectors of `simd` (AVX-512 where the processor has it: one instruction for the sixteen
+/// lanes; AVX2 two, SSE four).
 ///
 /// The operations per lane are [`super::votes::vote_relative`]'s in its order but these,
 /// which give the same values: a division by the level's scale 2^l is a multiplication by
@@ -159,12 +161,12 @@ pub fn vote_block<S: Simd>(
     let footprint = splat(simd, 2.0) * radius * (splat(simd, k.x.max(k.y)) / lz);
     // The level's scale 2^l: the footprint with its mantissa cleared (2 to the footprint's
     // binary exponent), capped at the top level's; 1 where the footprint is at most 1 or NaN.
-    let exponent = f32x8::from_bits(footprint.to_bits() & 0x7f80_0000);
+    let exponent = f32x16::from_bits(footprint.to_bits() & 0x7f80_0000);
     let scale = footprint
         .simd_gt(one)
         .select(exponent.min(splat(simd, shapes.top_scale)), one);
     // 2^-l and l, on the scale's exponent field.
-    let inverse_scale = f32x8::from_bits(u32x8_splat(simd, 254 << 23) - scale.to_bits());
+    let inverse_scale = f32x16::from_bits(u32x16::splat(simd, 254 << 23) - scale.to_bits());
     let level: [u32; LANES] = (scale.to_bits() >> 23).into();
     let level = level.map(|l| l.wrapping_sub(127) as usize & (MAX_LEVELS - 1));
     // ceil(size / 2^l), exact: the size is below 2^24 and the scaling is by a power of two.
@@ -180,7 +182,7 @@ pub fn vote_block<S: Simd>(
     let inside = lz.simd_gt(zero) & x.simd_ge(zero) & y.simd_ge(zero) & x.simd_lt(width) & y.simd_lt(height);
     if !inside.any_true() {
         // Along a chunk that a frustum's side crosses, whole blocks fall outside the image
-        // (a fifth of RedKitchen's cube-map tests): nothing to read, nothing votes.
+        // (a fifth of RedKitchen's cube-map tests in blocks of four): nothing to read or vote.
         return BlockVotes::NONE;
     }
     // The bilinear square lies inside the level where its corner's coordinates lie in
@@ -190,17 +192,17 @@ pub fn vote_block<S: Simd>(
         & y_level.simd_ge(zero)
         & x_level.simd_lt(width - one)
         & y_level.simd_lt(height - one);
-    let (cx, cy): (i32x8<S>, i32x8<S>) = (x_level.to_int(), y_level.to_int());
-    let (x0, y0): (f32x8<S>, f32x8<S>) = (cx.to_float(), cy.to_float());
-    let (nx, ny): (i32x8<S>, i32x8<S>) = (x.to_int(), y.to_int());
+    let (cx, cy): (i32x16<S>, i32x16<S>) = (x_level.to_int(), y_level.to_int());
+    let (x0, y0): (f32x16<S>, f32x16<S>) = (cx.to_float(), cy.to_float());
+    let (nx, ny): (i32x16<S>, i32x16<S>) = (x.to_int(), y.to_int());
     // Every lane reads the 2 x 2 pixels at its square's corner moved inside the level: the
     // square itself where it lies inside, and a square that holds the nearest pixel (at most
     // one pixel from it on each axis) at the edges, for a lane inside the image. Reading every
     // lane the same way leaves the loop without branches on the lanes' outcomes, which change
     // from cube to cube along a surface; lanes outside the image read some pixel (or none:
     // NaN) and neither vote nor measure.
-    let (width_i, height_i): (i32x8<S>, i32x8<S>) = (width.to_int(), height.to_int());
-    let (zero_i, two_i) = (i32x8::splat(simd, 0), i32x8::splat(simd, 2));
+    let (width_i, height_i): (i32x16<S>, i32x16<S>) = (width.to_int(), height.to_int());
+    let (zero_i, two_i) = (i32x16::splat(simd, 0), i32x16::splat(simd, 2));
     let bx = cx.max(zero_i).min((width_i - two_i).max(zero_i));
     let by = cy.max(zero_i).min((height_i - two_i).max(zero_i));
     let (right, below) = (nx.simd_gt(bx), ny.simd_gt(by));
@@ -219,7 +221,7 @@ pub fn vote_block<S: Simd>(
             corner[lane] = depth;
         }
     }
-    let [a00, a10, a01, a11] = corners.map(|corner| f32x8::simd_from(simd, corner));
+    let [a00, a10, a01, a11] = corners.map(|corner| f32x16::simd_from(simd, corner));
     // In the square, the nearest pixel is the corner that `x + 0.5 >= x0 + 1` picks, the
     // floor's own comparison; at the edges, the one the truncations of x and y name.
     let depth = below.select(right.select(a11, a01), right.select(a10, a00));
@@ -231,7 +233,7 @@ pub fn vote_block<S: Simd>(
     // The bin: (a / delta) clamped to [-1, 1] and mapped to [0, 8], whose truncation is capped
     // at the last bin (the cap taken before truncating, the same for values in [0, 8]).
     let bin = ((a / delta).max(splat(simd, -1.0)).min(one) + one) / splat(simd, 2.0) * splat(simd, 8.0);
-    let bin: [i32; LANES] = bin.min(splat(simd, (BINS - 1) as f32)).to_int::<i32x8<S>>().into();
+    let bin: [i32; LANES] = bin.min(splat(simd, (BINS - 1) as f32)).to_int::<i32x16<S>>().into();
     let band = (splat(simd, view.band_per_delta) * delta).max(splat(simd, view.band_floor));
     let valid = a00.simd_gt(zero) & a10.simd_gt(zero) & a01.simd_gt(zero) & a11.simd_gt(zero);
     let low = a00.min(a10).min(a01.min(a11));
@@ -251,28 +253,20 @@ pub fn vote_block<S: Simd>(
     }
 }
 
-/// Eight lanes of one unsigned integer.
+/// The cubes' x, y, z and radius, each as sixteen lanes.
 #[inline(always)]
-fn u32x8_splat<S: Simd>(simd: S, value: u32) -> fearless_simd::u32x8<S> {
-    fearless_simd::u32x8::splat(simd, value)
-}
-
-/// The cubes' x, y, z and radius, each as eight lanes.
-#[inline(always)]
-fn transposed<S: Simd>(simd: S, cubes: &[Vec4; LANES]) -> (f32x8<S>, f32x8<S>, f32x8<S>, f32x8<S>) {
+fn transposed<S: Simd>(simd: S, cubes: &[Vec4; LANES]) -> (f32x16<S>, f32x16<S>, f32x16<S>, f32x16<S>) {
     let flat: &[f32; 4 * LANES] = bytemuck::cast_ref(cubes);
-    let (low, high) = flat.split_at(2 * LANES);
-    let quarter = |half: &[f32]| -> [f32x4<S>; 4] {
-        let half: &[f32; 16] = half.try_into().unwrap_or(&[f32::NAN; 16]);
-        simd.load_four_interleaved_f32x4(half)
+    let quarter = |q: usize| -> [f32x4<S>; 4] {
+        let part: &[f32; 16] = flat
+            .get(16 * q..16 * q + 16)
+            .and_then(|p| p.try_into().ok())
+            .unwrap_or(&[f32::NAN; 16]);
+        simd.load_four_interleaved_f32x4(part)
     };
-    let ([x0, y0, z0, r0], [x1, y1, z1, r1]) = (quarter(low), quarter(high));
-    (
-        simd.combine_f32x4(x0, x1),
-        simd.combine_f32x4(y0, y1),
-        simd.combine_f32x4(z0, z1),
-        simd.combine_f32x4(r0, r1),
-    )
+    let (a, b, c, d) = (quarter(0), quarter(1), quarter(2), quarter(3));
+    let join = |i: usize| simd.combine_f32x8(simd.combine_f32x4(a[i], b[i]), simd.combine_f32x4(c[i], d[i]));
+    (join(0), join(1), join(2), join(3))
 }
 
 #[cfg(test)]
@@ -298,7 +292,7 @@ mod tests {
     }
 
     #[test]
-    fn eight_cubes_as_lanes_vote_as_one_cube_does_to_the_bit_at_every_vector_level() {
+    fn sixteen_cubes_as_lanes_vote_as_one_cube_does_to_the_bit_at_every_vector_level() {
         // A slanted wall with holes, cubes in front, behind, beside the view and behind the
         // camera, of radii from a fraction of a pixel's footprint to many pixels.
         let (width, height) = (53u32, 41u32);
@@ -318,7 +312,7 @@ mod tests {
             let mut seed = 5u64;
             let mut uniform = move || crate::kernels::random::uniform(&mut seed) as f32;
             let (mut voted, mut refused, mut measured) = (0, 0, 0);
-            for _ in 0..20_000 {
+            for _ in 0..10_000 {
                 let cubes: [Vec4; LANES] = std::array::from_fn(|_| {
                     Vec4::new(
                         uniform() * 6.0 - 3.0,
@@ -359,29 +353,35 @@ mod tests {
 
     #[test]
     fn lanes_that_do_not_vote_leave_the_rows_as_they_were() {
+        // Lanes 8 to 15 repeat lanes 0 to 7 (so both halves of the vectors are checked).
+        let twice = |half: [f32; 8]| -> [f32; LANES] { std::array::from_fn(|lane| half[lane % 8]) };
         let votes = BlockVotes {
-            bin: [3, 0, 7, 7, 1, 2, 0, 5],
-            voting: 0b0110_1101,
-            weight: [1.0, 0.0, 0.5, 2.0, 0.0, 0.25, 1.5, 0.0],
-            distance_weight: [1.0, 0.0, 0.0, 2.0, 0.0, 0.25, 0.0, 0.0],
-            distance: [-0.25, 0.0, 0.0, 0.125, 0.0, 4.0, 0.0, 0.0],
+            bin: std::array::from_fn(|lane| [3, 0, 7, 7, 1, 2, 0, 5][lane % 8]),
+            voting: 0b0110_1101_0110_1101,
+            weight: twice([1.0, 0.0, 0.5, 2.0, 0.0, 0.25, 1.5, 0.0]),
+            distance_weight: twice([1.0, 0.0, 0.0, 2.0, 0.0, 0.25, 0.0, 0.0]),
+            distance: twice([-0.25, 0.0, 0.0, 0.125, 0.0, 4.0, 0.0, 0.0]),
         };
         for (name, level) in vector_levels() {
             let mut rows = [[0f32; BINS]; LANES];
             let mut sums = [[0f32; 2]; LANES];
-            rows[1][0] = 4.0;
-            sums[1] = [-3.0, 4.0];
-            sums[7] = [1.5, 2.0];
+            for half in [0, 8] {
+                rows[half + 1][0] = 4.0;
+                sums[half + 1] = [-3.0, 4.0];
+                sums[half + 7] = [1.5, 2.0];
+            }
             let cast = fearless_simd::dispatch!(level, simd => votes.add_to(simd, &mut rows, &mut sums));
-            assert_eq!(cast, 5, "{name}");
-            assert_eq!(rows[0][3], 1.0);
-            assert_eq!((rows[1][0], sums[1]), (4.0, [-3.0, 4.0]), "{name}");
-            assert_eq!((rows[2][7], sums[2]), (0.5, [0.0, 0.0]), "{name}");
-            assert_eq!(sums[0], [-0.25, 1.0], "{name}");
-            assert_eq!((rows[3][7], sums[3]), (2.0, [0.25, 2.0]), "{name}");
-            assert_eq!((rows[5][2], sums[5]), (0.25, [1.0, 0.25]), "{name}");
-            assert_eq!((rows[6][0], sums[6]), (1.5, [0.0, 0.0]), "{name}");
-            assert_eq!(sums[7], [1.5, 2.0], "{name}");
+            assert_eq!(cast, 10, "{name}");
+            for half in [0, 8] {
+                assert_eq!(rows[half][3], 1.0);
+                assert_eq!((rows[half + 1][0], sums[half + 1]), (4.0, [-3.0, 4.0]), "{name}");
+                assert_eq!((rows[half + 2][7], sums[half + 2]), (0.5, [0.0, 0.0]), "{name}");
+                assert_eq!(sums[half], [-0.25, 1.0], "{name}");
+                assert_eq!((rows[half + 3][7], sums[half + 3]), (2.0, [0.25, 2.0]), "{name}");
+                assert_eq!((rows[half + 5][2], sums[half + 5]), (0.25, [1.0, 0.25]), "{name}");
+                assert_eq!((rows[half + 6][0], sums[half + 6]), (1.5, [0.0, 0.0]), "{name}");
+                assert_eq!(sums[half + 7], [1.5, 2.0], "{name}");
+            }
             // No lane left a negative zero behind: every untouched value is +0.
             for (row, sum) in rows.iter().zip(&sums) {
                 assert!(
