@@ -291,17 +291,21 @@ mod tests {
         levels
     }
 
+    /// The test wall's size: odd, so its pyramid rounds up at every level.
+    const WALL: (u32, u32) = (53, 41);
+
+    /// A pinhole map of the test wall's size, posed by `pose`.
+    fn wall_source(pose: glam::DMat4) -> crate::inputs::DepthMapSource {
+        crate::inputs::DepthMapSource::test_pinhole("wall.pfm", WALL, [45.0, 40.0, 26.0, 20.5], pose)
+    }
+
     #[test]
     fn sixteen_cubes_as_lanes_vote_as_one_cube_does_to_the_bit_at_every_vector_level() {
         // A slanted wall with holes, cubes in front, behind, beside the view and behind the
         // camera, of radii from a fraction of a pixel's footprint to many pixels.
-        let (width, height) = (53u32, 41u32);
-        let source = crate::inputs::DepthMapSource::test_pinhole(
-            "wall.pfm",
-            (width, height),
-            [45.0, 40.0, 26.0, 20.5],
-            glam::DMat4::from_translation(DVec3::new(3.0, -1.0, 2.0)) * glam::DMat4::from_rotation_y(0.3),
-        );
+        let (width, height) = WALL;
+        let source =
+            wall_source(glam::DMat4::from_translation(DVec3::new(3.0, -1.0, 2.0)) * glam::DMat4::from_rotation_y(0.3));
         let wall = crate::kernels::votes::tests::slanted_wall((width, height), 17, 2.0, 0.01);
         let pyramid = Pyramid::new(source.clone(), wall);
         let shapes = LevelShapes::of(&pyramid);
@@ -395,13 +399,8 @@ mod tests {
     #[test]
     fn level_shapes_follow_the_pyramid_s_halving() {
         // Odd sizes: each level is the one above halved, rounding up, down to one pixel.
-        let (width, height) = (53u32, 41u32);
-        let source = crate::inputs::DepthMapSource::test_pinhole(
-            "wall.pfm",
-            (width, height),
-            [45.0, 40.0, 26.0, 20.5],
-            glam::DMat4::IDENTITY,
-        );
+        let (width, height) = WALL;
+        let source = wall_source(glam::DMat4::IDENTITY);
         let pyramid = Pyramid::new(
             source,
             crate::kernels::votes::tests::slanted_wall((width, height), 5, 1.0, 0.0),
