@@ -187,8 +187,8 @@ fn chunk_votes<S: fearless_simd::Simd>(
 }
 
 /// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes sixteen at a time
-/// ([`vote_block`]); a spherical map, and the chunk's last cubes short of a block, one at a
-/// time ([`vote_relative`]).
+/// ([`vote_block`]); a spherical map, one too large for the lanes (2^24 pixels a side), and
+/// the chunk's last cubes short of a block, one at a time ([`vote_relative`]).
 #[inline(always)]
 fn vote_chunk<S: fearless_simd::Simd>(
     simd: S,
@@ -202,7 +202,7 @@ fn vote_chunk<S: fearless_simd::Simd>(
     let (sums, _) = distances.as_chunks_mut::<2>();
     let mut votes = 0u64;
     let mut in_blocks = 0;
-    if !view.spherical {
+    if !view.spherical && map.shapes.fits_lanes() {
         let (blocks, _) = offsets.as_chunks::<LANES>();
         let (row_blocks, _) = rows.as_chunks_mut::<LANES>();
         let (sum_blocks, _) = sums.as_chunks_mut::<LANES>();

@@ -44,6 +44,10 @@ pub struct LevelShapes<'a> {
     top_scale: f32,
 }
 
+/// Sizes the lanes compute exactly in f32 (`ceil(size * 2^-l)`), and whose level indices fit
+/// their i32 lanes: 2^24 pixels a side.
+const LARGEST_LANE_SIZE: u32 = 1 << 24;
+
 impl<'a> LevelShapes<'a> {
     /// The shapes of `pyramid`'s levels (made once per map and unit, not per block).
     pub fn of(pyramid: &'a Pyramid) -> LevelShapes<'a> {
@@ -70,6 +74,14 @@ impl<'a> LevelShapes<'a> {
         let top = pyramid.levels.len().clamp(1, MAX_LEVELS) as u32 - 1;
         shapes.top_scale = f32::from_bits((top + 127) << 23);
         shapes
+    }
+
+    /// Whether [`vote_block`] may vote this pyramid: its sides are below
+    /// [`LARGEST_LANE_SIZE`], and it holds a level (a larger map votes one cube at a time, as
+    /// the reference does).
+    pub fn fits_lanes(&self) -> bool {
+        let fits = |size: f32| size >= 1.0 && size < LARGEST_LANE_SIZE as f32;
+        fits(self.width) && fits(self.height)
     }
 }
 
@@ -406,6 +418,7 @@ mod tests {
             crate::kernels::votes::tests::slanted_wall((width, height), 5, 1.0, 0.0),
         );
         let shapes = LevelShapes::of(&pyramid);
+        assert!(shapes.fits_lanes());
         assert_eq!(pyramid.levels.len(), 7);
         assert_eq!(shapes.top_scale, 64.0);
         for (l, image) in pyramid.levels.iter().enumerate() {
