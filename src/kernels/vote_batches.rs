@@ -187,8 +187,8 @@ fn chunk_votes<S: fearless_simd::Simd>(
 }
 
 /// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes sixteen at a time
-/// ([`vote_block`]); a spherical map, one too large for the lanes (2^24 pixels a side), and
-/// the chunk's last cubes short of a block, one at a time ([`vote_relative`]).
+/// ([`vote_block`]); a spherical map, one too large for the lanes (2^24 pixels a side or 2^31
+/// pixels) and the chunk's last cubes short of a block, one at a time ([`vote_relative`]).
 #[inline(always)]
 fn vote_chunk<S: fearless_simd::Simd>(
     simd: S,

@@ -44,9 +44,11 @@ pub struct LevelShapes<'a> {
     top_scale: f32,
 }
 
-/// Sizes the lanes compute exactly in f32 (`ceil(size * 2^-l)`), and whose level indices fit
-/// their i32 lanes: 2^24 pixels a side.
-const LARGEST_LANE_SIZE: u32 = 1 << 24;
+/// Sizes the lanes compute exactly in f32 (`ceil(size * 2^-l)`): below 2^24 pixels a side.
+const LARGEST_LANE_SIDE: f32 = 16_777_216.0;
+
+/// Pixels a level may hold for the lanes' i32 indices into it: below 2^31.
+const LARGEST_LANE_PIXELS: f64 = 2_147_483_648.0;
 
 impl<'a> LevelShapes<'a> {
     /// The shapes of `pyramid`'s levels (made once per map and unit, not per block).
@@ -76,12 +78,12 @@ impl<'a> LevelShapes<'a> {
         shapes
     }
 
-    /// Whether [`vote_block`] may vote this pyramid: its sides are below
-    /// [`LARGEST_LANE_SIZE`], and it holds a level (a larger map votes one cube at a time, as
-    /// the reference does).
+    /// Whether [`vote_block`] may vote this pyramid: it holds a level, its sides are below
+    /// [`LARGEST_LANE_SIDE`] and its full level's pixels below [`LARGEST_LANE_PIXELS`] (a
+    /// larger map votes one cube at a time, as the reference does).
     pub fn fits_lanes(&self) -> bool {
-        let fits = |size: f32| size >= 1.0 && size < LARGEST_LANE_SIZE as f32;
-        fits(self.width) && fits(self.height)
+        let side = |size: f32| (1.0..LARGEST_LANE_SIDE).contains(&size);
+        side(self.width) && side(self.height) && f64::from(self.width) * f64::from(self.height) < LARGEST_LANE_PIXELS
     }
 }
 
@@ -406,6 +408,23 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn maps_too_large_for_the_lanes_are_told_apart() {
+        let shapes = |width: f32, height: f32| LevelShapes {
+            pixels: [&[]; MAX_LEVELS],
+            width,
+            height,
+            top_scale: 1.0,
+        };
+        assert!(shapes(640.0, 480.0).fits_lanes());
+        assert!(shapes(16_777_215.0, 1.0).fits_lanes());
+        // A side whose halvings f32 no longer computes exactly, a level whose pixels an i32
+        // index cannot reach, no level at all.
+        assert!(!shapes(16_777_216.0, 1.0).fits_lanes());
+        assert!(!shapes(50_000.0, 50_000.0).fits_lanes());
+        assert!(!shapes(0.0, 0.0).fits_lanes());
     }
 
     #[test]
