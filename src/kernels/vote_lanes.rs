@@ -153,6 +153,9 @@ fn splat<S: Simd>(simd: S, value: f32) -> f32x16<S> {
 /// vector semantics, which differ from `f32::min` only on NaN, and a lane whose values are
 /// NaN does not vote or measure either way; so does the truncation to integers, which only
 /// lanes inside the image (below 2^31) use.
+///
+/// `shapes` must [fit the lanes](LevelShapes::fits_lanes); a larger map's lanes would read
+/// the wrong pixels (inside the pyramid, but not the reference's).
 #[inline(always)]
 pub fn vote_block<S: Simd>(
     simd: S,
@@ -183,7 +186,8 @@ pub fn vote_block<S: Simd>(
     let inverse_scale = f32x16::from_bits(u32x16::splat(simd, 254 << 23) - scale.to_bits());
     let level: [u32; LANES] = (scale.to_bits() >> 23).into();
     let level = level.map(|l| l.wrapping_sub(127) as usize & (MAX_LEVELS - 1));
-    // ceil(size / 2^l), exact: the size is below 2^24 and the scaling is by a power of two.
+    // ceil(size / 2^l), exact: the size is below 2^24 (`LevelShapes::fits_lanes`) and the
+    // scaling is by a power of two.
     let width = (splat(simd, shapes.width) * inverse_scale).ceil();
     let height = (splat(simd, shapes.height) * inverse_scale).ceil();
     let half = splat(simd, 0.5);
