@@ -281,6 +281,19 @@ impl CubeKey {
         Some(CubeKey((self.morton_at_depth(depth - 1) << 8) | u128::from(depth - 1)))
     }
 
+    /// The smallest cube that holds both this one and `other`: their deepest common ancestor
+    /// (or either, if one holds the other).
+    pub fn smallest_common_ancestor(self, other: CubeKey) -> CubeKey {
+        let differing = (self.morton() ^ other.morton()) & MORTON_MASK;
+        // Leading 3-bit groups (one per depth) the two codes share, of the code's 96 bits.
+        let shared = (differing.leading_zeros() - 32) / 3;
+        let depth = u8::try_from(shared)
+            .unwrap_or(MAX_DEPTH)
+            .min(self.depth())
+            .min(other.depth());
+        CubeKey((self.morton_at_depth(depth) << 8) | u128::from(depth))
+    }
+
     /// The Morton code's bits that address cubes of `depth` (at most [`MAX_DEPTH`]); finer
     /// bits, and bits past the code's 96, cleared.
     fn morton_at_depth(self, depth: u8) -> u128 {
@@ -432,6 +445,28 @@ mod tests {
                     assert_eq!(interleave3(x, y, z), spread3(x) | spread3(y) << 1 | spread3(z) << 2);
                 }
             }
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn the_smallest_common_ancestor_is_the_deepest_cube_holding_both(
+            a in (0u8..=MAX_DEPTH, any::<[u32; 3]>()),
+            b in (0u8..=MAX_DEPTH, any::<[u32; 3]>()),
+        ) {
+            let key = |(depth, [x, y, z]): (u8, [u32; 3])| {
+                let keep = |c: u32| c.checked_shr(u32::from(MAX_DEPTH - depth)).unwrap_or(0);
+                CubeKey::new(depth, keep(x), keep(y), keep(z))
+            };
+            let (a, b) = (key(a), key(b));
+            let common = a.smallest_common_ancestor(b);
+            // By the parent chain: the first ancestor of `a` that holds `b`.
+            let mut expected = a;
+            while !expected.is_ancestor_or_self_of(b) {
+                expected = expected.parent().expect("the root holds every cube");
+            }
+            prop_assert_eq!(common, expected);
+            prop_assert_eq!(b.smallest_common_ancestor(a), expected);
         }
     }
 

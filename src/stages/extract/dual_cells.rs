@@ -9,7 +9,7 @@ use super::weld::NameIndex;
 use crate::format::key::{add_axis_bits, axis_bits, corner_axis_bits, sub_axis_bits};
 use crate::format::{CubeKey, MAX_DEPTH, Scene};
 use crate::mesh::{CornerId, UnitMesh, VertexId, VertexMove};
-use crate::stages::solve::{CutValue, LevelCut, cut_cube_ending_at};
+use crate::stages::solve::{CutValue, LevelCut};
 use crate::store::Result;
 
 mod pinholes;
@@ -129,7 +129,7 @@ const NEAR_SURFACE_SPANS: f64 = 1.0;
 /// Within 1.5 spans it trims less (2.1 %); within 1 span alone (no pinhole fill) it opened
 /// holes in the noisy bunnies of `tests/quality.rs`, which [`pinholes::fill_pinholes`] closes; a
 /// share of 0.15 opens holes in the clean one.
-fn tetrahedron_supported(t: &[Corner; 4]) -> bool {
+fn tetrahedron_supported(t: &[&Corner; 4]) -> bool {
     let mut span: f64 = 0.0;
     for (i, a) in t.iter().enumerate() {
         for b in t.iter().skip(i + 1) {
@@ -199,62 +199,98 @@ pub(super) fn full_side(depth: u8) -> u64 {
     1u64 << (u32::from(MAX_DEPTH) - u32::from(depth))
 }
 
-/// The cut cube containing the finest cell `probe` (a key of depth [`MAX_DEPTH`]), and its
-/// values. The unit's own sorted cut (`keys`, `values`) is searched first, outwards from `near`
-/// (the cube whose corners are being probed, so the answer is usually a few keys away): the cut
-/// tiles the root, so a cube of the unit that contains the cell is the answer. Cells outside
-/// the unit go to the level's lookup.
-fn cut_cube_near(
-    level: &mut LevelCut<'_, '_>,
-    keys: &[CubeKey],
-    values: &[CutValue],
-    near: usize,
-    probe: CubeKey,
-) -> Result<Option<(CubeKey, CutValue)>> {
-    match cut_cube_ending_at(keys, values, partition_point_near(keys, near, probe), probe) {
-        Some(found) => Ok(Some(found)),
-        None => level.cube_containing(probe),
-    }
+/// A unit's sorted cut, and where each block of the Morton range of the smallest cube holding
+/// it begins in it: the cube is split into blocks (cubes of one depth), at most eight times as
+/// many as the cut has keys, so a probe's cube is found among the few keys of the probe's
+/// block. A search over the whole cut (galloping outwards from the probing cube) took about 15
+/// comparisons a probe over a megabyte of keys, half of the dual cells' time on RedKitchen; with
+/// at most as many blocks as keys, a third of it, since keys crowd into the blocks the surface
+/// passes through. The table's 4 bytes a block (at most 32 a key) are less than the solve
+/// holds per cube of a unit.
+struct UnitCut<'k> {
+    keys: &'k [CubeKey],
+    values: &'k [CutValue],
+    /// The full-resolution Morton code of the smallest cube holding every key, and how many
+    /// codes that cube spans.
+    base: u128,
+    span: u128,
+    /// A block spans `1 << block_shift` codes.
+    block_shift: u32,
+    /// Per block, how many keys lie in blocks before it (the index of its first key, if any).
+    block_starts: Vec<u32>,
 }
 
-/// `keys.partition_point(|k| *k <= probe)` for sorted `keys`, found by galloping outwards from
-/// `near`: O(log d) comparisons, near the start, for an answer d keys away.
-fn partition_point_near(keys: &[CubeKey], near: usize, probe: CubeKey) -> usize {
-    let at_or_below = |i: usize| keys.get(i).is_some_and(|k| *k <= probe);
-    let near = near.min(keys.len());
-    // The answer lies in (low, high]: keys[low] <= probe (or low is the start) and
-    // keys[high] > probe (or high is the end).
-    let (low, high) = if at_or_below(near) {
-        let mut step = 1;
-        let mut low = near;
-        loop {
-            let next = near.saturating_add(step);
-            if next >= keys.len() {
-                break (low + 1, keys.len());
-            }
-            if !at_or_below(next) {
-                break (low + 1, next);
-            }
-            low = next;
-            step *= 2;
-        }
-    } else {
-        let mut step = 1;
-        let mut high = near;
-        loop {
-            let Some(next) = near.checked_sub(step) else {
-                break (0, high);
+impl<'k> UnitCut<'k> {
+    fn new(keys: &'k [CubeKey], values: &'k [CutValue]) -> UnitCut<'k> {
+        let (Some(&first), Some(&last)) = (keys.first(), keys.last()) else {
+            return UnitCut {
+                keys,
+                values,
+                base: 0,
+                span: 0,
+                block_shift: 0,
+                block_starts: Vec::new(),
             };
-            if at_or_below(next) {
-                break (next + 1, high);
+        };
+        let holder = first.smallest_common_ancestor(last);
+        let levels = u32::from(MAX_DEPTH - holder.depth());
+        // 8^k blocks, 8^k <= 8 keys, k at most the levels below the holder; one block (the
+        // whole cut) for a cut whose counts would not fit the table's u32.
+        let block_levels = if u32::try_from(keys.len()).is_ok() {
+            (keys.len().ilog2() / 3 + 1).min(levels)
+        } else {
+            0
+        };
+        let block_shift = 3 * (levels - block_levels);
+        let mut block_starts = Vec::with_capacity(1 << (3 * block_levels));
+        let mut next = 0usize;
+        for block in 0..1u128 << (3 * block_levels) {
+            while keys
+                .get(next)
+                .is_some_and(|k| k.morton().saturating_sub(holder.morton()) >> block_shift < block)
+            {
+                next += 1;
             }
-            high = next;
-            step *= 2;
+            block_starts.push(next as u32);
         }
-    };
-    low + keys
-        .get(low..high)
-        .map_or(0, |range| range.partition_point(|k| *k <= probe))
+        UnitCut {
+            keys,
+            values,
+            base: holder.morton(),
+            span: 1 << (3 * levels),
+            block_shift,
+            block_starts,
+        }
+    }
+
+    /// The index of the key that is `probe` (a finest cell) or an ancestor of it, if the cut
+    /// holds one.
+    fn position_of(&self, probe: CubeKey) -> Option<usize> {
+        let offset = probe.morton().checked_sub(self.base).filter(|o| *o < self.span)?;
+        // Keys before the probe's block are below it and keys after it above it.
+        let block = (offset >> self.block_shift) as usize;
+        let start = |block: usize| self.block_starts.get(block).map_or(self.keys.len(), |&s| s as usize);
+        let (start, end) = (start(block), start(block + 1));
+        let in_block = self.keys.get(start..end)?.partition_point(|k| *k <= probe);
+        let position = (start + in_block).checked_sub(1)?;
+        self.keys
+            .get(position)
+            .is_some_and(|k| k.is_ancestor_or_self_of(probe))
+            .then_some(position)
+    }
+
+    /// The cut cube containing the finest cell `probe` (a key of depth [`MAX_DEPTH`]), and its
+    /// values. The cut tiles the root, so a cube of the unit that contains the cell is the
+    /// answer; cells it does not hold go to the level's lookup.
+    fn cube_containing(&self, level: &mut LevelCut<'_, '_>, probe: CubeKey) -> Result<Option<(CubeKey, CutValue)>> {
+        let found = self
+            .position_of(probe)
+            .and_then(|position| self.keys.get(position).zip(self.values.get(position)));
+        match found {
+            Some((key, value)) => Ok(Some((*key, *value))),
+            None => level.cube_containing(probe),
+        }
+    }
 }
 
 /// A cell a dual-cell corner probes, along one axis. Outside the root the octree continues as
@@ -445,7 +481,8 @@ pub(super) fn dual_cells_of_unit(
         vertex_index: NameIndex::with_capacity(keys.len() / 2),
         ..Piece::default()
     };
-    for (index, (key, own)) in keys.iter().zip(values).enumerate() {
+    let cut = UnitCut::new(keys, values);
+    for (key, own) in keys.iter().zip(values) {
         let d = key.depth();
         let side = full_side(d);
         let [x, y, z] = key.corner_full_resolution().map(u64::from);
@@ -471,15 +508,17 @@ pub(super) fn dual_cells_of_unit(
             // is deeper and none as deep comes first in octant order, so the probes stop at the
             // first leaf that rules it out (most corners of a uniform region end at octant 0).
             let own_octant = (7 - corner) as usize;
-            let mut incident = [Incident {
-                leaf: *key,
-                value: *own,
-                mirrored: 0,
-                below_root: 0,
-            }; 8];
-            let mut generator_ok = true;
-            for (octant, slot) in incident.iter_mut().enumerate() {
+            // Filled in octant order as the probes find them (most corners stop at their first
+            // probe, so the eight slots are not written ahead).
+            let mut incident = ArrayVec::<Incident, 8>::new();
+            for octant in 0..8 {
                 if octant == own_octant {
+                    incident.push(Incident {
+                        leaf: *key,
+                        value: *own,
+                        mirrored: 0,
+                        below_root: 0,
+                    });
                     continue;
                 }
                 let o = octant as u64;
@@ -495,27 +534,25 @@ pub(super) fn dual_cells_of_unit(
                     cells[0].axis_bits | cells[1].axis_bits << 1 | cells[2].axis_bits << 2,
                     MAX_DEPTH,
                 );
-                let Some((leaf, value)) = cut_cube_near(level, keys, values, index, probe)? else {
-                    generator_ok = false;
+                let Some((leaf, value)) = cut.cube_containing(level, probe)? else {
                     break;
                 };
                 if mirrored == 0 && (leaf.depth() > d || (leaf.depth() == d && octant < own_octant)) {
-                    generator_ok = false;
                     break;
                 }
-                *slot = Incident {
+                incident.push(Incident {
                     leaf,
                     value,
                     mirrored,
                     below_root,
-                };
+                });
             }
             // Most corners fail at their first probe (another leaf generates them), and most
             // that this cube generates have no sign change: their corners' centres are never
             // computed.
-            if !generator_ok {
+            let Ok(incident) = incident.into_inner() else {
                 continue;
-            }
+            };
             // Generated by the deepest real leaf, first in octant order.
             let real = |c: &&Incident| c.mirrored == 0;
             let deepest = incident.iter().filter(real).map(|c| c.leaf.depth()).max();
@@ -567,7 +604,7 @@ fn cell_gradient(corners: &[Corner; 8]) -> DVec3 {
 /// The vertices of a cut tetrahedron's surface polygon, in order around it, as pairs of
 /// corner indices (inside, outside) into the tetrahedron: at most four, in a fixed array (a
 /// list per cut tetrahedron allocated).
-fn polygon_edges(t: &[Corner; 4]) -> ArrayVec<(usize, usize), 4> {
+fn polygon_edges(t: &[&Corner; 4]) -> ArrayVec<(usize, usize), 4> {
     // The corners on each side, in order.
     let (mut inside, mut outside) = (ArrayVec::<usize, 4>::new(), ArrayVec::<usize, 4>::new());
     for (i, c) in t.iter().enumerate() {
@@ -607,7 +644,9 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut P
     let measured: f32 = corners.iter().map(|c| c.measured).sum();
     let cell_observed = corners.iter().any(|c| c.sampled) && measured >= MEASURED_SHARE * votes;
     for tet in KUHN {
-        let t = tet.map(|i| corners[i]);
+        // The corners by reference: a tetrahedron's copy is a quarter of a kilobyte, made
+        // six times a cell.
+        let t = tet.map(|i| &corners[i]);
         let observed = cell_observed && t.iter().all(|c| c.votes > 0.0);
         if !(closed || observed) {
             continue;
@@ -617,7 +656,10 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut P
             continue;
         }
         if !(closed || tetrahedron_supported(&t)) {
-            piece.held.push(pinholes::HeldTetrahedron { corners: t, gradient });
+            piece.held.push(pinholes::HeldTetrahedron {
+                corners: t.map(|c| *c),
+                gradient,
+            });
             continue;
         }
         let polygon = mesh_tetrahedron(&t, gradient, piece);
@@ -641,7 +683,7 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut P
 
 /// Adds the surface polygon of a cut tetrahedron to the piece (triangles oriented towards
 /// positive u, vertices found or added by name) and returns its vertices.
-fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> ArrayVec<u32, 4> {
+fn mesh_tetrahedron(t: &[&Corner; 4], gradient: DVec3, piece: &mut Piece) -> ArrayVec<u32, 4> {
     let Piece {
         mesh,
         guides,
@@ -651,13 +693,13 @@ fn mesh_tetrahedron(t: &[Corner; 4], gradient: DVec3, piece: &mut Piece) -> Arra
     let mut polygon = ArrayVec::<u32, 4>::new();
     for (a, b) in polygon_edges(t) {
         let (ca, cb) = (t[a], t[b]);
-        let edge = vertex_name(&ca, &cb);
+        let edge = vertex_name(ca, cb);
         let vertices = &mesh.vertices;
         let index = match vertex_index.entry(edge, |i| vertices.get(i as usize).map(|v| v.0)) {
             hashbrown::hash_table::Entry::Occupied(found) => *found.get(),
             hashbrown::hash_table::Entry::Vacant(slot) => {
                 let (lo, hi) = if ca.id <= cb.id { (ca, cb) } else { (cb, ca) };
-                let position = lo.center + (hi.center - lo.center) * crossing(&lo, &hi);
+                let position = lo.center + (hi.center - lo.center) * crossing(lo, hi);
                 let index = mesh.vertices.len() as u32;
                 mesh.vertices.push((edge, position, DVec3::ZERO));
                 guides.ends.push((lo.center, hi.center));

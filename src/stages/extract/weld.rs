@@ -275,6 +275,8 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
         // for the others): 8 bytes per vertex of the largest piece, not 24 with an Option.
         const PRIVATE: u32 = u32::MAX;
         let mut map: Vec<(u32, u32)> = Vec::with_capacity(mesh.vertices.len());
+        // Every private vertex is new in this unit: its index is at least this.
+        let first_new = self.summary.vertices;
         let mut shares = mesh.seam_moves.iter().peekable();
         for (local, (edge, p, n)) in mesh.vertices.iter().enumerate() {
             let share = shares
@@ -318,7 +320,9 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
             map.push((index, last));
         }
         self.most_open = self.most_open.max(self.seam.len());
-        let mut local_edges: FastMap<(u32, u32), u32> = FastMap::default();
+        // Edges with a private end, by the private end (the lower one, if both are) as an
+        // offset from `first_new`, and the other end.
+        let mut local_edges: Vec<(u32, u32)> = Vec::with_capacity(3 * mesh.triangles.len());
         for t in &mesh.triangles {
             let [Some(a), Some(b), Some(c)] = t.map(|v| map.get(v as usize).copied()) else {
                 continue;
@@ -337,11 +341,17 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                         }
                         *uses += 1;
                     }
-                    _ => *local_edges.entry(edge).or_insert(0) += 1,
+                    (lx, _) => {
+                        let (private, other) = if lx == PRIVATE { (x.0, y.0) } else { (y.0, x.0) };
+                        let (private, other) = if x.1 == y.1 { edge } else { (private, other) };
+                        let offset = u64::from(private) - first_new;
+                        local_edges.push((offset as u32, other));
+                    }
                 }
             }
         }
-        self.count_edges(local_edges.values());
+        let new_vertices = (self.summary.vertices - first_new) as usize;
+        self.count_edges(edge_uses(&local_edges, new_vertices).iter());
         self.most_open_edges = self.most_open_edges.max(self.seam_edges.len());
         self.retire_through(unit)
     }
@@ -393,6 +403,44 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
         self.retire_through(usize::MAX - 1)?;
         Ok((self.writer, self.summary))
     }
+}
+
+/// How many times each distinct edge occurs in `edges`, each given by a key below `keys`
+/// (one end, as the same key wherever the edge occurs) and its other end; in no particular
+/// order. A counting sort by key, then the few edges of each key compared: linear in the
+/// edges, where a hash table of them missed the cache on every use (a tenth of the weld's time).
+fn edge_uses(edges: &[(u32, u32)], keys: usize) -> Vec<u32> {
+    let mut starts = vec![0u32; keys + 1];
+    for &(key, _) in edges {
+        if let Some(count) = starts.get_mut(key as usize + 1) {
+            *count += 1;
+        }
+    }
+    let mut total = 0;
+    for start in starts.iter_mut() {
+        total += *start;
+        *start = total;
+    }
+    let mut others = vec![0u32; edges.len()];
+    let mut next = starts.clone();
+    for &(key, other) in edges {
+        if let Some(at) = next.get_mut(key as usize) {
+            if let Some(slot) = others.get_mut(*at as usize) {
+                *slot = other;
+            }
+            *at += 1;
+        }
+    }
+    let mut uses = Vec::with_capacity(edges.len() / 2);
+    for bounds in starts.windows(2) {
+        let &[start, end] = bounds else { continue };
+        let Some(group) = others.get_mut(start as usize..end as usize) else {
+            continue;
+        };
+        group.sort_unstable();
+        uses.extend(group.chunk_by(|a, b| a == b).map(|same| same.len() as u32));
+    }
+    uses
 }
 
 #[cfg(test)]
@@ -496,6 +544,36 @@ mod tests {
             differs_from_own_unit > 2_000,
             "{differs_from_own_unit} leaves saw another unit"
         );
+    }
+
+    #[test]
+    fn edge_uses_count_each_distinct_edge_as_a_map_does() {
+        let mut seed = 11;
+        for (keys, edges) in [(0usize, 0usize), (1, 5), (40, 300), (1000, 20_000)] {
+            let list: Vec<(u32, u32)> = (0..edges)
+                .map(|_| {
+                    (
+                        (random(&mut seed) % keys as u64) as u32,
+                        (random(&mut seed) % 64) as u32,
+                    )
+                })
+                .collect();
+            let mut expected: Vec<u32> = list
+                .iter()
+                .fold(
+                    std::collections::HashMap::<(u32, u32), u32>::new(),
+                    |mut counts, edge| {
+                        *counts.entry(*edge).or_default() += 1;
+                        counts
+                    },
+                )
+                .into_values()
+                .collect();
+            let mut uses = edge_uses(&list, keys);
+            expected.sort_unstable();
+            uses.sort_unstable();
+            assert_eq!(uses, expected, "{edges} edges on {keys} keys");
+        }
     }
 
     #[test]

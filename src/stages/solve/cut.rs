@@ -353,7 +353,7 @@ impl<'a, 's> LevelCut<'a, 's> {
 /// The cube of a sorted cut (`keys`, their values) just before `position`, the cut's first key
 /// after `probe`, when it contains `probe`: the cut tiles what it covers, so that cube is the
 /// only candidate.
-pub fn cut_cube_ending_at<T: Copy>(
+fn cut_cube_ending_at<T: Copy>(
     keys: &[CubeKey],
     values: &[T],
     position: usize,

@@ -38,7 +38,7 @@ pub use coarse::{COARSE_ROWS_LEVEL, CoarseRowsCache};
 pub use ssd::{CoarseSamplesCache, METHOD_COLUMN, PendingCoarseSamples, method_of_segment};
 
 use cut::WindowTest;
-pub use cut::{CutValue, LeafValues, LevelCut, cut_cube_ending_at, read_level_u};
+pub use cut::{CutValue, LeafValues, LevelCut, read_level_u};
 
 pub use params::{DEFAULT_SSD_TOLERANCE, DEFAULT_TOLERANCE, Method, SolveParams, SsdParams};
 

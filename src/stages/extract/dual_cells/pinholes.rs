@@ -35,7 +35,7 @@ pub(super) fn fill_pinholes(piece: &mut Piece) {
     let polygons: Vec<Vec<VertexId>> = held
         .iter()
         .map(|h| {
-            polygon_edges(&h.corners)
+            polygon_edges(&h.corners.each_ref())
                 .into_iter()
                 .map(|(a, b)| vertex_name(&h.corners[a], &h.corners[b]))
                 .collect()
@@ -106,7 +106,7 @@ pub(super) fn fill_pinholes(piece: &mut Piece) {
         let root = find(&mut parent, i);
         let size = group_size.get(&root).copied().unwrap_or(usize::MAX);
         if size <= PINHOLE_TETRAHEDRA && group_closed.get(&root).copied().unwrap_or(false) {
-            mesh_tetrahedron(&h.corners, h.gradient, piece);
+            mesh_tetrahedron(&h.corners.each_ref(), h.gradient, piece);
         }
     }
 }

@@ -1,4 +1,4 @@
-//! Tests of a unit's dual cells: the probes' search and skips, the tetrahedron support test,
+//! Tests of a unit's dual cells: the probes' lookup and skips, the tetrahedron support test,
 //! offset planes and vertex moves.
 
 use super::*;
@@ -7,38 +7,77 @@ fn random(seed: &mut u64) -> u64 {
     crate::kernels::random::splitmix(seed) >> 33
 }
 
-#[test]
-fn galloping_search_agrees_with_binary_search_from_every_start() {
-    let mut seed = 7;
-    for len in [0usize, 1, 2, 3, 17, 300] {
-        // Sorted keys at mixed depths; probes on, between, below and above them.
-        let mut keys: Vec<CubeKey> = (0..len)
-            .map(|_| {
-                let depth = 1 + (random(&mut seed) % 12) as u8;
-                let mask = (1u64 << depth) as u32 - 1;
-                let mut c = || random(&mut seed) as u32 & mask;
-                CubeKey::new(depth, c(), c(), c())
-            })
-            .collect();
-        keys.sort();
-        keys.dedup();
-        let cells: Vec<CubeKey> = (0..64)
-            .map(|_| {
-                let mut c = || (random(&mut seed) as u32) << 1;
-                CubeKey::new(MAX_DEPTH, c(), c(), c())
-            })
-            .collect();
-        for probe in keys.iter().copied().chain(cells) {
-            let expected = keys.partition_point(|k| *k <= probe);
-            for near in 0..keys.len() + 2 {
-                assert_eq!(
-                    partition_point_near(&keys, near, probe),
-                    expected,
-                    "{len} keys, from {near}, probe {probe:?}"
-                );
+/// A random cut of the cube `top` in key order: each cube splits with a chance of 5 in 8,
+/// down to `deepest`; with `gaps`, a quarter of its cubes left out (a unit's cut need not
+/// fill the cube that holds it).
+fn random_cut(top: CubeKey, deepest: u8, gaps: bool, seed: &mut u64) -> Vec<CubeKey> {
+    let mut cut = Vec::new();
+    let mut stack = vec![top];
+    while let Some(cube) = stack.pop() {
+        if cube.depth() < deepest && random(seed) % 8 < 5 {
+            let [x, y, z] = cube.coords();
+            for child in (0..8u32).rev() {
+                let at = |c: u32, bit: u32| 2 * c + (child >> bit & 1);
+                stack.push(CubeKey::new(cube.depth() + 1, at(x, 0), at(y, 1), at(z, 2)));
             }
+        } else if !(gaps && random(seed).is_multiple_of(4)) {
+            cut.push(cube);
         }
     }
+    cut.sort();
+    cut
+}
+
+#[test]
+fn a_unit_cut_finds_the_cube_holding_a_probe_as_a_scan_does() {
+    let mut seed = 7;
+    let value = CutValue {
+        u: 0.0,
+        votes: 0.0,
+        measured: 0.0,
+        sampled: false,
+        offset: 0.0,
+    };
+    for (top, deepest, gaps) in [
+        (CubeKey::new(0, 0, 0, 0), 0, false),
+        (CubeKey::new(0, 0, 0, 0), 5, false),
+        (CubeKey::new(3, 5, 2, 7), 9, false),
+        (CubeKey::new(3, 5, 2, 7), 9, true),
+        (CubeKey::new(27, 1, 2, 3), MAX_DEPTH, true),
+    ] {
+        let keys = random_cut(top, deepest, gaps, &mut seed);
+        let values = vec![value; keys.len()];
+        let cut = UnitCut::new(&keys, &values);
+        let [x, y, z] = top.corner_full_resolution();
+        let side = full_side(top.depth());
+        // Finest cells in the top cube, then anywhere in the root, then each key's first.
+        let mut probes: Vec<CubeKey> = (0..2000)
+            .map(|i| {
+                let mut c = |low: u32| {
+                    if i < 1500 {
+                        low + (random(&mut seed) % side) as u32
+                    } else {
+                        (random(&mut seed) << 1) as u32
+                    }
+                };
+                CubeKey::from_full_resolution(MAX_DEPTH, c(x), c(y), c(z))
+            })
+            .collect();
+        probes.extend(keys.iter().map(|k| CubeKey::from_morton(k.morton(), MAX_DEPTH)));
+        for probe in probes {
+            let expected = keys.iter().position(|k| k.is_ancestor_or_self_of(probe));
+            assert_eq!(
+                cut.position_of(probe),
+                expected,
+                "{} keys under {top:?}, probe {probe:?}",
+                keys.len()
+            );
+        }
+    }
+    assert_eq!(
+        UnitCut::new(&[], &[]).position_of(CubeKey::new(MAX_DEPTH, 0, 0, 0)),
+        None
+    );
 }
 
 #[test]
@@ -103,7 +142,7 @@ fn a_tetrahedron_needs_its_own_corners_to_support_a_surface() {
     let tetrahedron = |c: [Corner; 8]| KUHN[0].map(|i| c[i]);
     // The surface crosses the tetrahedron: its corners measured it within a side.
     let through = tetrahedron(cell(|p| p.z - 0.5 * side, side));
-    assert!(tetrahedron_supported(&through));
+    assert!(tetrahedron_supported(&through.each_ref()));
     // A fringe past a depth edge: the votes put the surface two sides away or measured
     // nothing, and samples reached one corner alone.
     let mut fringe = tetrahedron(cell(|p| p.z - 3.0 * side, side));
@@ -111,15 +150,15 @@ fn a_tetrahedron_needs_its_own_corners_to_support_a_surface() {
     for c in fringe.iter_mut().skip(1) {
         c.sampled = false;
     }
-    assert!(!tetrahedron_supported(&fringe));
+    assert!(!tetrahedron_supported(&fringe.each_ref()));
     // Samples in two of its cells and enough measured votes vouch for it...
     fringe[1].sampled = true;
-    assert!(tetrahedron_supported(&fringe));
+    assert!(tetrahedron_supported(&fringe.each_ref()));
     // ...unless nearly all its votes were clamped (occluded or free space).
     for c in fringe.iter_mut() {
         c.measured = 0.05 * c.votes;
     }
-    assert!(!tetrahedron_supported(&fringe));
+    assert!(!tetrahedron_supported(&fringe.each_ref()));
 }
 
 #[test]
