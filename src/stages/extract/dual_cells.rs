@@ -6,7 +6,7 @@ use arrayvec::ArrayVec;
 use glam::DVec3;
 
 use super::weld::NameIndex;
-use crate::format::key::{add_axis_bits, axis_bits, corner_axis_bits, sub_axis_bits};
+use crate::format::key::{KeyBlocks, add_axis_bits, axis_bits, corner_axis_bits, sub_axis_bits};
 use crate::format::{CubeKey, MAX_DEPTH, Scene};
 use crate::mesh::{CornerId, UnitMesh, VertexId, VertexMove};
 use crate::stages::solve::{CutValue, LevelCut};
@@ -199,84 +199,29 @@ pub(super) fn full_side(depth: u8) -> u64 {
     1u64 << (u32::from(MAX_DEPTH) - u32::from(depth))
 }
 
-/// A unit's sorted cut, and where each block of the Morton range of the smallest cube holding
-/// it begins in it: the cube is split into blocks (cubes of one depth), at most eight times as
-/// many as the cut has keys, so a probe's cube is found among the few keys of the probe's
-/// block. A search over the whole cut (galloping outwards from the probing cube) took about 15
-/// comparisons a probe over a megabyte of keys, half of the dual cells' time on RedKitchen; with
-/// at most as many blocks as keys, a third of it, since keys crowd into the blocks the surface
-/// passes through. The table's 4 bytes a block (at most 32 a key) are less than the solve
-/// holds per cube of a unit.
+/// A unit's sorted cut, with its [`KeyBlocks`]: a probe's cube is looked up among the few keys
+/// of the probe's block. (A search over the whole cut, galloping outwards from the probing
+/// cube, took about 15 comparisons a probe over a megabyte of keys: half of this module's time
+/// on RedKitchen.)
 struct UnitCut<'k> {
     keys: &'k [CubeKey],
     values: &'k [CutValue],
-    /// The full-resolution Morton code of the smallest cube holding every key, and how many
-    /// codes that cube spans.
-    base: u128,
-    span: u128,
-    /// A block spans `1 << block_shift` codes.
-    block_shift: u32,
-    /// Per block, how many keys lie in blocks before it (the index of its first key, if any).
-    block_starts: Vec<u32>,
+    blocks: KeyBlocks,
 }
 
 impl<'k> UnitCut<'k> {
     fn new(keys: &'k [CubeKey], values: &'k [CutValue]) -> UnitCut<'k> {
-        let (Some(&first), Some(&last)) = (keys.first(), keys.last()) else {
-            return UnitCut {
-                keys,
-                values,
-                base: 0,
-                span: 0,
-                block_shift: 0,
-                block_starts: Vec::new(),
-            };
-        };
-        let holder = first.smallest_common_ancestor(last);
-        let levels = u32::from(MAX_DEPTH - holder.depth());
-        // 8^k blocks, 8^k <= 8 keys, k at most the levels below the holder; one block (the
-        // whole cut) for a cut whose counts would not fit the table's u32.
-        let block_levels = if u32::try_from(keys.len()).is_ok() {
-            (keys.len().ilog2() / 3 + 1).min(levels)
-        } else {
-            0
-        };
-        let block_shift = 3 * (levels - block_levels);
-        let mut block_starts = Vec::with_capacity(1 << (3 * block_levels));
-        let mut next = 0usize;
-        for block in 0..1u128 << (3 * block_levels) {
-            while keys
-                .get(next)
-                .is_some_and(|k| k.morton().saturating_sub(holder.morton()) >> block_shift < block)
-            {
-                next += 1;
-            }
-            block_starts.push(next as u32);
-        }
         UnitCut {
             keys,
             values,
-            base: holder.morton(),
-            span: 1 << (3 * levels),
-            block_shift,
-            block_starts,
+            blocks: KeyBlocks::of(keys),
         }
     }
 
     /// The index of the key that is `probe` (a finest cell) or an ancestor of it, if the cut
     /// holds one.
     fn position_of(&self, probe: CubeKey) -> Option<usize> {
-        let offset = probe.morton().checked_sub(self.base).filter(|o| *o < self.span)?;
-        // Keys before the probe's block are below it and keys after it above it.
-        let block = (offset >> self.block_shift) as usize;
-        let start = |block: usize| self.block_starts.get(block).map_or(self.keys.len(), |&s| s as usize);
-        let (start, end) = (start(block), start(block + 1));
-        let in_block = self.keys.get(start..end)?.partition_point(|k| *k <= probe);
-        let position = (start + in_block).checked_sub(1)?;
-        self.keys
-            .get(position)
-            .is_some_and(|k| k.is_ancestor_or_self_of(probe))
-            .then_some(position)
+        self.blocks.ancestor_or_self(self.keys, probe)
     }
 
     /// The cut cube containing the finest cell `probe` (a key of depth [`MAX_DEPTH`]), and its
