@@ -77,7 +77,12 @@ pub fn xorshift(state: &mut u64) -> u64 {
 /// A SIGKILL experiment: run `args(store, false)` uninterrupted once for reference, then per
 /// trial prepare a fresh store, kill the same command at a random moment within
 /// `window_percent` of the reference's duration, require `verify` to pass, resume with
-/// `args(store, true)`, and require the result to equal the reference byte for byte.
+/// `args(store, true)`, and require the result to equal the reference byte for byte. At least
+/// half of `trials` kills must land mid-run; trials go on (each one checked the same way), up to
+/// three times `trials`, until they have: a reference timed while the other tests of its binary
+/// loaded both cores can put the first kill moments past the end of the faster trials that
+/// follow (CI, 2026-12-02: 2 of 6 landed, with a window of 140 ms where an idle machine's is
+/// 101 to 111 ms), and the window shrinks only as trials end before their kill.
 pub struct KillTrials<'a> {
     pub root: &'a Path,
     pub trials: u64,
@@ -104,7 +109,8 @@ impl KillTrials<'_> {
 
         let mut state = self.seed;
         let mut interrupted = 0;
-        for trial in 0..self.trials {
+        let mut trial = 0;
+        while trial < self.trials || (interrupted < self.trials / 2 && trial < 3 * self.trials) {
             let store = self.root.join(format!("trial-{trial}"));
             (self.prepare)(&store);
             let delay = Duration::from_micros(xorshift(&mut state) % window);
@@ -155,15 +161,12 @@ impl KillTrials<'_> {
                 &fingerprint(&store),
                 &format!("trial {trial}, killed after {delay:?}"),
             );
+            trial += 1;
         }
-        eprintln!(
-            "{interrupted} of {} kills landed mid-run; final window {window} us",
-            self.trials
-        );
+        eprintln!("{interrupted} of {trial} kills landed mid-run; final window {window} us");
         assert!(
             interrupted >= self.trials / 2,
-            "only {interrupted} of {} kills landed mid-run",
-            self.trials
+            "only {interrupted} of {trial} kills landed mid-run"
         );
     }
 }
