@@ -132,8 +132,6 @@ pub struct KeyBlocks {
     block_shift: u32,
     /// Per block, the index of the first key at or after its start.
     starts: Vec<u32>,
-    /// How many keys there are.
-    len: usize,
 }
 
 impl KeyBlocks {
@@ -167,7 +165,6 @@ impl KeyBlocks {
             span: 1 << (3 * levels),
             block_shift,
             starts,
-            len: sorted.len(),
         }
     }
 
@@ -178,11 +175,11 @@ impl KeyBlocks {
             return 0;
         };
         if offset >= self.span {
-            return self.len;
+            return sorted.len();
         }
         // Keys before the key's block are below it and keys after it above it.
         let block = (offset >> self.block_shift) as usize;
-        let start = |block: usize| self.starts.get(block).map_or(self.len, |&s| s as usize);
+        let start = |block: usize| self.starts.get(block).map_or(sorted.len(), |&s| s as usize);
         let (start, end) = (start(block), start(block + 1));
         start
             + sorted

@@ -88,6 +88,64 @@ use crate::store::{Result, Snapshot, StoreError};
 /// order, so a fast fixed-seed hasher replaces SipHash.
 type FastMap<K, V> = HashMap<K, V, foldhash::fast::FixedState>;
 
+/// The second values of pairs grouped by their first (a key below a bound), each group sorted,
+/// in one list with each key's start in it: a counting sort, linear in the pairs, where a list
+/// or a hash table entry per key missed the cache on every pair. A piece's edges, grouped by
+/// vertex, give both the smoothing's neighbours (`relax`) and the weld's edge counts.
+struct Grouped {
+    /// Key `k`'s values are `values[starts[k]..starts[k + 1]]`.
+    starts: Vec<usize>,
+    values: Vec<u32>,
+}
+
+impl Grouped {
+    /// The pairs `pairs()` yields (asked for twice: to count, then to place), those whose key
+    /// is `keys` or more left out.
+    fn of<I: Iterator<Item = (u32, u32)>>(keys: usize, pairs: impl Fn() -> I) -> Grouped {
+        let mut starts = vec![0usize; keys + 1];
+        for (key, _) in pairs() {
+            if let Some(count) = starts.get_mut(key as usize + 1) {
+                *count += 1;
+            }
+        }
+        let mut total = 0;
+        for start in starts.iter_mut() {
+            total += *start;
+            *start = total;
+        }
+        let mut values = vec![0u32; total];
+        let mut next = starts.clone();
+        for (key, value) in pairs() {
+            if let Some(at) = next.get_mut(key as usize)
+                && let Some(slot) = values.get_mut(*at)
+            {
+                *slot = value;
+                *at += 1;
+            }
+        }
+        let mut grouped = Grouped { starts, values };
+        for key in 0..keys {
+            if let Some(group) = grouped.range(key).and_then(|range| grouped.values.get_mut(range)) {
+                group.sort_unstable();
+            }
+        }
+        grouped
+    }
+
+    fn range(&self, key: usize) -> Option<std::ops::Range<usize>> {
+        Some(*self.starts.get(key)?..*self.starts.get(key + 1)?)
+    }
+
+    /// Key `key`'s values, ascending.
+    fn of_key(&self, key: usize) -> Option<&[u32]> {
+        self.values.get(self.range(key)?)
+    }
+
+    fn keys(&self) -> usize {
+        self.starts.len().saturating_sub(1)
+    }
+}
+
 /// What to extract and how.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ExtractOptions {

@@ -13,6 +13,7 @@
 
 use glam::DVec3;
 
+use super::Grouped;
 use crate::mesh::UnitMesh;
 
 /// Taubin step pairs. Measured on the bunny (0.2 % depth noise, 24 views, in its room, finest
@@ -77,51 +78,23 @@ struct Neighbours {
 
 impl Neighbours {
     fn of(n: usize, triangles: &[[u32; 3]]) -> Neighbours {
-        let edges = || {
+        // Both directions of every edge, grouped by the vertex they leave.
+        let grouped = Grouped::of(n, || {
             triangles.iter().flat_map(|t| {
                 [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])]
                     .into_iter()
                     .flat_map(|(a, b)| [(a, b), (b, a)])
-                    .filter(move |&(from, _)| (from as usize) < n)
             })
-        };
-        // Both directions of every edge, grouped by the vertex they leave.
-        let mut ends = vec![0usize; n + 1];
-        for (from, _) in edges() {
-            if let Some(count) = ends.get_mut(from as usize + 1) {
-                *count += 1;
-            }
-        }
-        for i in 1..ends.len() {
-            let before = ends.get(i - 1).copied().unwrap_or(0);
-            if let Some(end) = ends.get_mut(i) {
-                *end += before;
-            }
-        }
-        let mut grouped = vec![0u32; ends.last().copied().unwrap_or(0)];
-        let mut next = ends.clone();
-        for (from, to) in edges() {
-            if let Some(at) = next.get_mut(from as usize)
-                && let Some(slot) = grouped.get_mut(*at)
-            {
-                *slot = to;
-                *at += 1;
-            }
-        }
+        });
         let mut starts = Vec::with_capacity(n + 1);
-        let mut list = Vec::with_capacity(grouped.len());
+        let mut list = Vec::with_capacity(grouped.values.len());
         starts.push(0);
-        for window in ends.windows(2) {
-            if let [start, end] = *window
-                && let Some(group) = grouped.get_mut(start..end)
-            {
-                group.sort_unstable();
-                let mut last = None;
-                for &to in group.iter() {
-                    if last != Some(to) {
-                        list.push(to);
-                        last = Some(to);
-                    }
+        for vertex in 0..n {
+            let mut last = None;
+            for &to in grouped.of_key(vertex).unwrap_or_default() {
+                if last != Some(to) {
+                    list.push(to);
+                    last = Some(to);
                 }
             }
             starts.push(list.len());

@@ -7,7 +7,7 @@ use arrayvec::ArrayVec;
 use glam::DVec3;
 
 use super::dual_cells::full_side;
-use super::{FastMap, MeshSummary};
+use super::{FastMap, Grouped, MeshSummary};
 use crate::format::{CubeKey, MAX_DEPTH};
 use crate::mesh::{CornerId, UnitMesh, VertexId, VertexMove};
 use crate::stages::treetop::Treetop;
@@ -341,9 +341,12 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                         }
                         *uses += 1;
                     }
-                    (lx, _) => {
-                        let (private, other) = if lx == PRIVATE { (x.0, y.0) } else { (y.0, x.0) };
-                        let (private, other) = if x.1 == y.1 { edge } else { (private, other) };
+                    (lx, ly) => {
+                        let (private, other) = match (lx == PRIVATE, ly == PRIVATE) {
+                            (true, false) => (x.0, y.0),
+                            (false, true) => (y.0, x.0),
+                            _ => edge,
+                        };
                         let offset = u64::from(private) - first_new;
                         local_edges.push((offset as u32, other));
                     }
@@ -407,40 +410,13 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
 
 /// How many times each distinct edge occurs in `edges`, each given by a key below `keys`
 /// (one end, as the same key wherever the edge occurs) and its other end; in no particular
-/// order. A counting sort by key, then the few edges of each key compared: linear in the
-/// edges, where a hash table of them missed the cache on every use (a tenth of the weld's time).
+/// order. The edges grouped by key ([`Grouped`]), then the few of each key compared.
 fn edge_uses(edges: &[(u32, u32)], keys: usize) -> Vec<u32> {
-    let mut starts = vec![0u32; keys + 1];
-    for &(key, _) in edges {
-        if let Some(count) = starts.get_mut(key as usize + 1) {
-            *count += 1;
-        }
-    }
-    let mut total = 0;
-    for start in starts.iter_mut() {
-        total += *start;
-        *start = total;
-    }
-    let mut others = vec![0u32; edges.len()];
-    let mut next = starts.clone();
-    for &(key, other) in edges {
-        if let Some(at) = next.get_mut(key as usize) {
-            if let Some(slot) = others.get_mut(*at as usize) {
-                *slot = other;
-            }
-            *at += 1;
-        }
-    }
-    let mut uses = Vec::with_capacity(edges.len() / 2);
-    for bounds in starts.windows(2) {
-        let &[start, end] = bounds else { continue };
-        let Some(group) = others.get_mut(start as usize..end as usize) else {
-            continue;
-        };
-        group.sort_unstable();
-        uses.extend(group.chunk_by(|a, b| a == b).map(|same| same.len() as u32));
-    }
-    uses
+    let grouped = Grouped::of(keys, || edges.iter().copied());
+    (0..grouped.keys())
+        .filter_map(|key| grouped.of_key(key))
+        .flat_map(|group| group.chunk_by(|a, b| a == b).map(|same| same.len() as u32))
+        .collect()
 }
 
 #[cfg(test)]
