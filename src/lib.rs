@@ -41,7 +41,7 @@ pub mod stages;
 pub mod store;
 #[allow(
     unsafe_code,
-    reason = "memory maps of immutable segment files, malloc_trim, AVX2 code and SSE2 conversions: see sys.rs"
+    reason = "memory maps of immutable segment files, malloc_trim, AVX2 code, SSE2 conversions and AVX-512 gathers: see sys.rs"
 )]
 mod sys;
 

@@ -1,7 +1,8 @@
 //! The only module with `unsafe` code: memory-mapping immutable segment files, asking the C
-//! allocator to return freed memory, and calling code compiled for AVX2 once the processor has
-//! it. (The histogram votes' vectors come from `fearless_simd`, whose tokens prove the
-//! processor's features, so their code needs no `unsafe` here.)
+//! allocator to return freed memory, calling code compiled for AVX2 once the processor has
+//! it, and the histogram votes' AVX-512 gathers of depth pixels. (The votes' other vector code
+//! comes from `fearless_simd`, whose tokens prove the processor's features, so it needs no
+//! `unsafe` here.)
 
 use std::fs::File;
 
@@ -75,4 +76,234 @@ pub fn with_wide_vectors<W: WideWork>(work: W) -> W::Output {
         }
     }
     work.run()
+}
+
+/// The pyramid levels of one depth map, addressed for AVX-512 gathers from the first level's
+/// start: each level's start as a byte offset from it (the levels are separate allocations,
+/// which may lie anywhere: 64-bit offsets reach them all), and its length. Made where the
+/// pyramid has at most [`GATHER_LEVELS`] levels ([`LevelGather::new`]).
+#[cfg(target_arch = "x86_64")]
+pub struct LevelGather<'a> {
+    /// The first level, from whose start the others are addressed.
+    base: &'a [f32],
+    starts: [i64; GATHER_LEVELS],
+    /// Each level's length in pixels, for the 32 levels a lane may name (0 past the top).
+    lengths: [i32; 32],
+}
+
+/// Levels a [`LevelGather`] addresses: a pyramid of 2^15 pixels a side or less (its top level
+/// is level 15 at most).
+#[cfg(target_arch = "x86_64")]
+pub const GATHER_LEVELS: usize = 16;
+
+#[cfg(target_arch = "x86_64")]
+impl<'a> LevelGather<'a> {
+    /// The levels (empty ones past the pyramid's top), or `None` where a level past the first
+    /// [`GATHER_LEVELS`] holds pixels or a level holds 2^31 pixels or more.
+    pub fn new(levels: &[&'a [f32]; 32]) -> Option<LevelGather<'a>> {
+        let base = *levels.first()?;
+        let mut gather = LevelGather {
+            base,
+            starts: [0; GATHER_LEVELS],
+            lengths: [0; 32],
+        };
+        for (index, (level, length)) in levels.iter().zip(&mut gather.lengths).enumerate() {
+            if level.is_empty() {
+                continue;
+            }
+            *length = i32::try_from(level.len()).ok()?;
+            let start = gather.starts.get_mut(index)?;
+            // A distance between two allocations, in bytes: an integer, never dereferenced.
+            *start = (level.as_ptr() as i64).wrapping_sub(base.as_ptr() as i64);
+        }
+        Some(gather)
+    }
+
+    /// For sixteen lanes, the depths of the 2 x 2 square at pixel `at` of level `level` (a row
+    /// `stride` pixels long): pixels `at`, `at + 1`, `at + stride`, `at + stride + 1`, where
+    /// the level holds them all (`0 <= at` and `at + stride + 1 <` its length, as a slice's
+    /// `get(at..at + stride + 2)` holds them); the second value has bit `lane` set there, and
+    /// the other lanes' depths are NaN. `level` is taken modulo 32. `token` proves the
+    /// processor has AVX-512.
+    #[inline(always)]
+    pub fn squares(
+        &self,
+        token: fearless_simd::Avx512,
+        level: fearless_simd::i32x16<fearless_simd::Avx512>,
+        at: fearless_simd::i32x16<fearless_simd::Avx512>,
+        stride: fearless_simd::i32x16<fearless_simd::Avx512>,
+    ) -> ([fearless_simd::f32x16<fearless_simd::Avx512>; 4], u16) {
+        use fearless_simd::SimdFrom;
+        // SAFETY: the token exists only where the processor has the AVX-512 features
+        // (`fearless_simd`'s tokens are made by its run-time detection or by code that already
+        // has them), among which `squares_avx512` needs only AVX-512F.
+        let (square, inside) = unsafe { self.squares_avx512(level.into(), at.into(), stride.into()) };
+        (
+            square.map(|depths| fearless_simd::f32x16::simd_from(token, depths)),
+            inside,
+        )
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx512f")]
+    fn squares_avx512(
+        &self,
+        level: std::arch::x86_64::__m512i,
+        at: std::arch::x86_64::__m512i,
+        stride: std::arch::x86_64::__m512i,
+    ) -> ([std::arch::x86_64::__m512; 4], u16) {
+        use std::arch::x86_64::*;
+        let halves = |values: &[i32; 32]| {
+            let (low, high) = values.split_at(16);
+            // SAFETY: each half is 16 i32s, the 64 bytes an unaligned load reads.
+            unsafe {
+                (
+                    _mm512_loadu_si512(low.as_ptr().cast()),
+                    _mm512_loadu_si512(high.as_ptr().cast()),
+                )
+            }
+        };
+        let (lengths_low, lengths_high) = halves(&self.lengths);
+        // The lane's level's length, as the low five bits of `level` pick it from the 32.
+        let length = _mm512_permutex2var_epi32(lengths_low, level, lengths_high);
+        let zero = _mm512_setzero_si512();
+        let below = _mm512_add_epi32(at, stride);
+        let last = _mm512_add_epi32(below, _mm512_set1_epi32(1));
+        // `last > at` rules out a sum that wrapped. A level past the first `GATHER_LEVELS`
+        // has length 0 (`LevelGather::new`), so every lane inside names one of those.
+        let inside = _mm512_cmpge_epi32_mask(at, zero)
+            & _mm512_cmpge_epi32_mask(stride, zero)
+            & _mm512_cmpgt_epi32_mask(last, at)
+            & _mm512_cmplt_epi32_mask(last, length);
+        // SAFETY: 16 i64s, the 64 bytes each unaligned load reads.
+        let (starts_low, starts_high) = unsafe {
+            let (low, high) = self.starts.split_at(8);
+            (
+                _mm512_loadu_si512(low.as_ptr().cast()),
+                _mm512_loadu_si512(high.as_ptr().cast()),
+            )
+        };
+        let nan = _mm512_castps_si512(_mm512_set1_ps(f32::NAN));
+        let base: *const i64 = self.base.as_ptr().cast();
+        // The pixel pairs at `first` (pixel and the next) of eight lanes: `half` 0 for lanes
+        // 0-7, 1 for lanes 8-15.
+        let pairs = |first: __m512i, half: u32| {
+            let (levels, pixels, mask) = if half == 0 {
+                (
+                    _mm512_castsi512_si256(level),
+                    _mm512_castsi512_si256(first),
+                    inside as u8,
+                )
+            } else {
+                (
+                    _mm512_extracti64x4_epi64::<1>(level),
+                    _mm512_extracti64x4_epi64::<1>(first),
+                    (inside >> 8) as u8,
+                )
+            };
+            let start = _mm512_permutex2var_epi64(starts_low, _mm512_cvtepi32_epi64(levels), starts_high);
+            let offset = _mm512_add_epi64(start, _mm512_slli_epi64::<2>(_mm512_cvtepi32_epi64(pixels)));
+            // SAFETY: the gather reads 8 bytes at each lane of `mask` (lanes of `inside`): the
+            // pixel `first` and the next of the lane's level, whose start lies `start` bytes
+            // from `base` (`LevelGather::new`; a level below `GATHER_LEVELS`, picked by the
+            // low four bits of its index). Both pixels are in that level: `0 <= at`, `at + 1 <=
+            // at + stride + 1 < length` (`stride >= 0`, no sum wrapped), and the borrow of the
+            // levels keeps them alive. The other lanes read nothing and keep `nan`.
+            unsafe { _mm512_mask_i64gather_epi64::<1>(nan, mask, offset, base) }
+        };
+        let even = _mm512_set_epi32(30, 28, 26, 24, 22, 20, 18, 16, 14, 12, 10, 8, 6, 4, 2, 0);
+        let odd = _mm512_set_epi32(31, 29, 27, 25, 23, 21, 19, 17, 15, 13, 11, 9, 7, 5, 3, 1);
+        // Each row's sixteen pairs, split into the left pixels and the right ones.
+        let row = |first: __m512i| {
+            let (low, high) = (
+                _mm512_castsi512_ps(pairs(first, 0)),
+                _mm512_castsi512_ps(pairs(first, 1)),
+            );
+            (
+                _mm512_permutex2var_ps(low, even, high),
+                _mm512_permutex2var_ps(low, odd, high),
+            )
+        };
+        let ((d00, d10), (d01, d11)) = (row(at), row(below));
+        ([d00, d10, d01, d11], inside)
+    }
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+#[expect(clippy::indexing_slicing, reason = "tests")]
+mod tests {
+    use fearless_simd::{SimdFrom, i32x16};
+
+    use super::LevelGather;
+
+    #[test]
+    fn gathered_squares_are_the_level_s_pixels_and_only_where_the_level_holds_them() {
+        // Levels of odd sizes down to one pixel, as a pyramid halves them; empty past the top.
+        let sizes = [(37usize, 23usize), (19, 12), (10, 6), (5, 3), (3, 2), (2, 1), (1, 1)];
+        let levels: Vec<Vec<f32>> = sizes
+            .iter()
+            .enumerate()
+            .map(|(l, (w, h))| (0..w * h).map(|i| (l * 1000 + i) as f32).collect())
+            .collect();
+        let mut slices: [&[f32]; 32] = [&[]; 32];
+        for (slice, level) in slices.iter_mut().zip(&levels) {
+            *slice = level;
+        }
+        let gather = LevelGather::new(&slices).expect("seven levels");
+        let Some(token) = fearless_simd::Level::new().as_avx512() else {
+            // Nothing to gather with here; the votes' tests still check the reads lane by lane.
+            return;
+        };
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move |range: i64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state % range as u64) as i64
+        };
+        let (mut read, mut refused) = (0, 0);
+        for _ in 0..20_000 {
+            // Levels past the top, pixels before, inside and past each level's end, strides
+            // of the level's width, other widths, negative, and sums that wrap past i32::MAX.
+            let level: [i32; 16] = std::array::from_fn(|_| next(10) as i32);
+            let at: [i32; 16] = std::array::from_fn(|lane| match next(8) {
+                0 => -(next(5) as i32) - 1,
+                1 => i32::MAX - next(3) as i32,
+                _ => next(slices[level[lane] as usize].len() as i64 + 3) as i32,
+            });
+            let stride: [i32; 16] = std::array::from_fn(|lane| match next(6) {
+                0 => -1,
+                1 => next(40) as i32,
+                2 => i32::MAX,
+                _ => sizes.get(level[lane] as usize).map_or(7, |(w, _)| *w as i32),
+            });
+            let lanes = |values: [i32; 16]| i32x16::simd_from(token, values);
+            let (square, inside) = gather.squares(token, lanes(level), lanes(at), lanes(stride));
+            let square: [[f32; 16]; 4] = square.map(Into::into);
+            for lane in 0..16 {
+                let pixels = slices[level[lane] as usize];
+                let (a, s) = (i64::from(at[lane]), i64::from(stride[lane]));
+                let whole = a >= 0 && s >= 0 && a + s + 1 < pixels.len() as i64;
+                assert_eq!(
+                    inside & (1 << lane) != 0,
+                    whole,
+                    "level {} at {a} stride {s}",
+                    level[lane]
+                );
+                let got = [0, 1, 2, 3].map(|corner| square[corner][lane]);
+                if whole {
+                    let (a, s) = (a as usize, s as usize);
+                    assert_eq!(got, [pixels[a], pixels[a + 1], pixels[a + s], pixels[a + s + 1]]);
+                    read += 1;
+                } else {
+                    assert!(got.iter().all(|depth| depth.is_nan()));
+                    refused += 1;
+                }
+            }
+        }
+        assert!(
+            read > 40_000 && refused > 40_000,
+            "{read} squares read, {refused} refused"
+        );
+    }
 }

@@ -1,6 +1,6 @@
 //! Segments too large for memory: a stage appends rows batch by batch to one scratch file per
 //! column, and the store encodes the segment from those files when it writes the unit's parts
-//! (`format::segment::encode_segment_streamed`: one block's worth of memory whatever the size).
+//! (`format::segment::encode_segment_streamed`: a few blocks' worth of memory whatever the size).
 //!
 //! The scratch files are unlinked at creation (`tempfile::tempfile_in`), so a killed process
 //! leaves nothing behind, and the segment's bytes are exactly those of the same rows held in
