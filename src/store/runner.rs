@@ -362,14 +362,22 @@ impl Store {
         target: u64,
         unit: &UnitSpec,
     ) -> Result<ProducedUnit> {
+        use rayon::prelude::*;
         let output = stage.run_unit(base, unit)?;
-        let mut written = Vec::with_capacity(output.segments.len());
-        for (part, content) in output.segments.into_iter().enumerate() {
-            let file = segment_name(stage.name(), target, unit.id, part);
-            let summary = self.write_segment_file(&file, content, output.block_rows)?;
-            let record = SegmentRecord::written(stage.name(), unit.id, part, &summary, target);
-            written.push((file, record));
-        }
+        // A unit's parts are files of their own, written on every thread: the histogram
+        // step's one RedKitchen unit ended with its 72 parts (55 MB) written one after the
+        // other on one core, about half a second. Their records keep the parts' order.
+        let written = output
+            .segments
+            .into_par_iter()
+            .enumerate()
+            .map(|(part, content)| {
+                let file = segment_name(stage.name(), target, unit.id, part);
+                let summary = self.write_segment_file(&file, content, output.block_rows)?;
+                let record = SegmentRecord::written(stage.name(), unit.id, part, &summary, target);
+                Ok((file, record))
+            })
+            .collect::<Result<Vec<_>>>()?;
         Ok((unit.id, written, output.extra))
     }
 
