@@ -153,9 +153,10 @@ impl<'a> LevelGather<'a> {
         stride: std::arch::x86_64::__m512i,
     ) -> ([std::arch::x86_64::__m512; 4], u16) {
         use std::arch::x86_64::*;
-        let halves = |values: &[i32; 32]| {
-            let (low, high) = values.split_at(16);
-            // SAFETY: each half is 16 i32s, the 64 bytes an unaligned load reads.
+        // A 128-byte table as two vectors (the 32 lengths, the 16 starts).
+        let halves = |table: &[u8; 128]| {
+            let (low, high) = table.split_at(64);
+            // SAFETY: each half is 64 bytes, what an unaligned load reads.
             unsafe {
                 (
                     _mm512_loadu_si512(low.as_ptr().cast()),
@@ -163,7 +164,7 @@ impl<'a> LevelGather<'a> {
                 )
             }
         };
-        let (lengths_low, lengths_high) = halves(&self.lengths);
+        let (lengths_low, lengths_high) = halves(bytemuck::cast_ref(&self.lengths));
         // The lane's level's length, as the low five bits of `level` pick it from the 32.
         let length = _mm512_permutex2var_epi32(lengths_low, level, lengths_high);
         let zero = _mm512_setzero_si512();
@@ -175,14 +176,7 @@ impl<'a> LevelGather<'a> {
             & _mm512_cmpge_epi32_mask(stride, zero)
             & _mm512_cmpgt_epi32_mask(last, at)
             & _mm512_cmplt_epi32_mask(last, length);
-        // SAFETY: 16 i64s, the 64 bytes each unaligned load reads.
-        let (starts_low, starts_high) = unsafe {
-            let (low, high) = self.starts.split_at(8);
-            (
-                _mm512_loadu_si512(low.as_ptr().cast()),
-                _mm512_loadu_si512(high.as_ptr().cast()),
-            )
-        };
+        let (starts_low, starts_high) = halves(bytemuck::cast_ref(&self.starts));
         let nan = _mm512_castps_si512(_mm512_set1_ps(f32::NAN));
         let base: *const i64 = self.base.as_ptr().cast();
         // The pixel pairs at `first` (pixel and the next) of eight lanes: `half` 0 for lanes

@@ -147,8 +147,8 @@ fn validate_shapes(shapes: &[ColumnShape], rows: u64, sources: usize) -> Result<
 
 /// Writes one segment of `rows` rows whose columns' raw values (row by row, as
 /// [`ColumnValues`] holds them in memory) are read from `sources`, one source per shape, each
-/// read once from its start: a segment far larger than memory is encoded in a batch of blocks' worth
-/// of memory. The bytes are exactly those [`encode_segment_with_block_rows`] writes for the
+/// read once from its start: a segment far larger than memory is encoded in a batch of
+/// blocks' worth of memory. The bytes are exactly those [`encode_segment_with_block_rows`] writes for the
 /// same columns. Keys must be strictly increasing; a source shorter than `rows` rows is an
 /// error.
 pub fn encode_segment_streamed<W: Write, R: Read>(
@@ -181,7 +181,7 @@ pub fn encode_segment_streamed<W: Write, R: Read>(
     let mut blocks: Vec<(u32, CubeKey, CubeKey)> = Vec::with_capacity(block_count as usize);
     let mut previous_key: Option<CubeKey> = None;
     let mut raw: Vec<Vec<u8>> = Vec::new();
-    let batch = compressors.batch();
+    let batch = Compressors::batch();
     for (index, (shape, source)) in shapes.iter().zip(sources.iter_mut()).enumerate() {
         let row_bytes = shape.row_bytes();
         let total = usize::try_from(rows)
@@ -204,7 +204,9 @@ pub fn encode_segment_streamed<W: Write, R: Read>(
                 if raw.len() == read {
                     raw.push(Vec::new());
                 }
-                let Some(bytes) = raw.get_mut(read) else { break };
+                let Some(bytes) = raw.get_mut(read) else {
+                    break;
+                };
                 bytes.resize(block as usize * row_bytes, 0);
                 source.read_exact(bytes).map_err(|e| {
                     EncodeError::Invalid(format!("column '{}' ends before its {rows} rows: {e}", shape.name))
@@ -318,7 +320,7 @@ struct Compressors {
 impl Compressors {
     /// Blocks a batch holds: two for each thread, so a thread that finishes first takes
     /// another, and at most eight (a batch's raw blocks are in memory at once).
-    fn batch(&self) -> usize {
+    fn batch() -> usize {
         (2 * rayon::current_num_threads()).clamp(1, 8)
     }
 
