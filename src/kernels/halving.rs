@@ -42,7 +42,7 @@ pub fn halve_finite_first(
                 depth.extend(blocks().map(&fast));
                 let row = depth.get_mut(start..).unwrap_or_default();
                 for (value, block) in row.iter_mut().zip(blocks()) {
-                    if !(value.is_normal() && block.iter().all(|v| v.is_finite())) {
+                    if !(is_normal(*value) && block.iter().fold(true, |all, v| all & is_finite(*v))) {
                         *value = reduce(block);
                     }
                 }
@@ -67,6 +67,19 @@ pub fn halve_finite_first(
         height: h,
         depth,
     }
+}
+
+/// `f32::is_normal` on the exponent bits alone: the std method classifies the number with a
+/// branch per category, and the halving checks every block's value (about a tenth of the
+/// pyramid's time on RedKitchen).
+fn is_normal(value: f32) -> bool {
+    let exponent = value.to_bits() & 0x7f80_0000;
+    exponent != 0 && exponent != 0x7f80_0000
+}
+
+/// `f32::is_finite` on the bits, without a branch: the exponent is not all ones.
+fn is_finite(value: f32) -> bool {
+    value.to_bits() & 0x7f80_0000 != 0x7f80_0000
 }
 
 /// [`median_of_valid`] of four finite values whose median is a normal number, without
@@ -155,6 +168,32 @@ mod tests {
             halve_finite_first(&image, median_of_finite, median_of_valid).depth,
             vec![3e38]
         );
+    }
+
+    #[test]
+    fn the_bit_tests_are_the_std_ones() {
+        let mut seed = 23u64;
+        let mut bits = move || (crate::kernels::random::uniform(&mut seed) * 4_294_967_296.0) as u32;
+        let edges = [
+            0.0,
+            -0.0,
+            1e-45,
+            -1e-45,
+            f32::MIN_POSITIVE,
+            -f32::MIN_POSITIVE,
+            f32::MIN_POSITIVE * 0.5,
+            1.0,
+            f32::MAX,
+            f32::MIN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            -f32::NAN,
+        ];
+        for value in edges.into_iter().chain((0..100_000).map(|_| f32::from_bits(bits()))) {
+            assert_eq!(is_normal(value), value.is_normal(), "{value:e}");
+            assert_eq!(is_finite(value), value.is_finite(), "{value:e}");
+        }
     }
 
     #[test]

@@ -29,6 +29,29 @@ pub struct FarthestDepths {
     levels: Vec<DepthImage>,
 }
 
+/// ceil(log2(x)) for x > 1 from its bits (0 for x <= 1 or NaN, 1024 for infinity): without a
+/// libm call, which the culling of every chunk against every map made (about a tenth of its
+/// time on RedKitchen).
+fn ceil_log2(x: f64) -> u32 {
+    if x.is_nan() || x <= 1.0 {
+        return 0;
+    }
+    let bits = x.to_bits();
+    let exponent = ((bits >> 52) & 0x7ff) as u32 - 1023;
+    exponent + u32::from(bits & ((1 << 52) - 1) != 0)
+}
+
+/// `f64::floor` without a libm call (this build's baseline x86-64 has no rounding
+/// instruction): the truncation, one lower where it rounded up. Values of 2^52 and more are
+/// integers already; NaN, infinities and zeros (either sign) come back as they are.
+fn floor(x: f64) -> f64 {
+    if x.is_nan() || x.abs() >= 4_503_599_627_370_496.0 || x == 0.0 {
+        return x;
+    }
+    let truncated = x as i64 as f64;
+    if truncated > x { truncated - 1.0 } else { truncated }
+}
+
 /// [`largest_valid`] of four finite values whose largest is a normal number, without
 /// branches.
 fn largest_finite([a, b, c, d]: [f32; 4]) -> f32 {
@@ -73,24 +96,25 @@ impl FarthestDepths {
     /// rows `rows` (inclusive, clipped to the image); None when none of them is valid.
     fn farthest_in(&self, cols: (f64, f64), rows: (f64, f64)) -> Option<f32> {
         let span = (cols.1 - cols.0).max(rows.1 - rows.0).max(1.0);
-        let wanted = (span / MOST_BLOCKS).log2().ceil().max(f64::from(FIRST_LEVEL));
-        let index = (wanted - f64::from(FIRST_LEVEL)) as usize;
-        let index = index.min(self.levels.len().saturating_sub(1));
+        // The finest kept level whose blocks, MOST_BLOCKS of them, span the footprint.
+        let wanted = ceil_log2(span / MOST_BLOCKS).max(FIRST_LEVEL);
+        let index = ((wanted - FIRST_LEVEL) as usize).min(self.levels.len().saturating_sub(1));
         let level = self.levels.get(index)?;
         let block = f64::from(1u32 << (FIRST_LEVEL as usize + index));
         let clip = |lo: f64, hi: f64, size: u32| -> Option<(u32, u32)> {
-            let (lo, hi) = (
-                (lo / block).floor().max(0.0),
-                (hi / block).floor().min(f64::from(size) - 1.0),
-            );
+            let (lo, hi) = (floor(lo / block).max(0.0), floor(hi / block).min(f64::from(size) - 1.0));
             (lo <= hi).then_some((lo as u32, hi as u32))
         };
         let (i0, i1) = clip(cols.0, cols.1, level.width)?;
         let (j0, j1) = clip(rows.0, rows.1, level.height)?;
+        let width = level.width as usize;
         let mut farthest: Option<f32> = None;
-        for j in j0..=j1 {
-            for i in i0..=i1 {
-                let d = level.get(i, j);
+        for j in j0 as usize..=j1 as usize {
+            let row = level
+                .depth
+                .get(j * width + i0 as usize..=j * width + i1 as usize)
+                .unwrap_or(&[]);
+            for &d in row {
                 if d.is_finite() {
                     farthest = Some(farthest.map_or(d, |f| f.max(d)));
                 }
@@ -170,6 +194,49 @@ mod tests {
             let bits = |level: &DepthImage| level.depth.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&fast), bits(&exact), "round {round}");
         }
+    }
+
+    #[test]
+    fn floor_and_ceil_log2_are_the_libm_ones() {
+        let mut seed = 19u64;
+        let mut uniform = move || crate::kernels::random::uniform(&mut seed);
+        let mut values = vec![
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            1.5,
+            -1.5,
+            2.0,
+            4.0,
+            8.0 + 1e-12,
+            4_503_599_627_370_495.5,
+            -4_503_599_627_370_495.5,
+            4_503_599_627_370_496.0,
+            1e300,
+            -1e300,
+            f64::MIN_POSITIVE,
+            -f64::MIN_POSITIVE,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+        ];
+        values.extend((0..10_000).map(|_| (uniform() - 0.5) * 2f64.powf(uniform() * 80.0 - 20.0)));
+        for x in values {
+            assert_eq!(floor(x).to_bits(), x.floor().to_bits(), "floor({x})");
+            let libm = if x > 1.0 { x.log2().ceil() } else { 0.0 };
+            // log2 rounds: a value just above a power of two may log2 to the power itself.
+            let exact = (0..=1024).find(|&k| 2f64.powi(k) >= x).unwrap_or(1024);
+            if x.is_finite() && x > 1.0 {
+                assert_eq!(ceil_log2(x), exact as u32, "ceil_log2({x})");
+                assert!(f64::from(ceil_log2(x)) >= libm, "ceil_log2({x}) below libm's {libm}");
+            } else if x.is_nan() || x <= 1.0 {
+                assert_eq!(ceil_log2(x), 0, "ceil_log2({x})");
+            }
+        }
+        assert_eq!(ceil_log2(f64::INFINITY), 1024);
     }
 
     #[test]

@@ -223,25 +223,50 @@ impl Pyramid {
         radius: f64,
         voting_radius: f64,
     ) -> bool {
+        FrustumTest::new(source).may_see_ball(world_to_camera, center, radius, voting_radius)
+    }
+}
+
+/// [`Pyramid::may_see_ball`] of one map, its four side planes made once: the histogram stage
+/// tests every chunk of a unit against every map, and the planes' lengths (square roots) were
+/// most of a test. The same operations on the same values, so the same outcomes.
+pub enum FrustumTest {
+    /// A 360-degree map sees all around.
+    Everywhere,
+    /// Each side of a pinhole map: the plane's normal (pointing out of the image) through the
+    /// camera centre, its length, and the widening allowed beyond it per unit of voting radius.
+    Sides([(DVec3, f64, f64); 4]),
+}
+
+impl FrustumTest {
+    /// The planes of `source`'s frustum.
+    pub fn new(source: &DepthMapSource) -> FrustumTest {
         match source.projection {
-            Projection::Spherical => true,
+            Projection::Spherical => FrustumTest::Everywhere,
             Projection::Pinhole { fx, fy, cx, cy } => {
-                let p = world_to_camera.transform_point3(center);
-                if p.z + radius <= 0.0 {
-                    return false;
-                }
                 let f = fx.max(fy);
                 let (w, h) = (f64::from(source.width), f64::from(source.height));
-                // Each side: the plane's normal (pointing out of the image) through the
-                // camera centre, and the widening allowed beyond it.
                 let sides = [
                     (DVec3::new(-fx, 0.0, -(cx + 1.0)), 0.0),
                     (DVec3::new(0.0, -fy, -(cy + 1.0)), 0.0),
                     (DVec3::new(fx, 0.0, cx - w - 1.0), 2.0 * f),
                     (DVec3::new(0.0, fy, cy - h - 1.0), 2.0 * f),
                 ];
-                sides.iter().all(|(normal, widening)| {
-                    let length = normal.length();
+                FrustumTest::Sides(sides.map(|(normal, widening)| (normal, normal.length(), widening)))
+            }
+        }
+    }
+
+    /// [`Pyramid::may_see_ball`] against these planes.
+    pub fn may_see_ball(&self, world_to_camera: &glam::DMat4, center: DVec3, radius: f64, voting_radius: f64) -> bool {
+        match self {
+            FrustumTest::Everywhere => true,
+            FrustumTest::Sides(sides) => {
+                let p = world_to_camera.transform_point3(center);
+                if p.z + radius <= 0.0 {
+                    return false;
+                }
+                sides.iter().all(|(normal, length, widening)| {
                     normal.dot(p) / length <= radius + widening * voting_radius / length
                 })
             }

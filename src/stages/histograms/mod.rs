@@ -25,8 +25,8 @@ use super::{HISTOGRAMS, OCTREE};
 use crate::format::{Column, ColumnValues, CubeKey, Scene};
 use crate::inputs::DepthMapSource;
 use crate::kernels::votes::{
-    BINS, Chunk, ChunkedCubes, MAPS_AT_ONCE, MapVote, Pyramid, UnitView, band_floor, chunks, cube_geometry,
-    cube_offsets, quantized_weight, vote_maps,
+    BINS, Chunk, ChunkedCubes, FrustumTest, MAPS_AT_ONCE, MapVote, Pyramid, UnitView, band_floor, chunks,
+    cube_geometry, cube_offsets, quantized_weight, vote_maps,
 };
 use crate::store::catalog::{self, META, UNIT_STATE, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
@@ -834,31 +834,36 @@ impl HistogramsStage {
 }
 
 /// The members map `id` has not voted into yet, each with the chunks the map's frustum may see
-/// (none when it sees none of them); every such member records the map as voted.
+/// (none when it sees none of them); every such member records the map as voted. The members'
+/// chunks are tested on every thread: the maps' tests run between the batches' votes, where
+/// they kept a core idle (RedKitchen: 72 members, 15,400 chunks, 1000 maps).
 fn may_see(voters: &mut [Voter], id: u64, source: &DepthMapSource, world_to_camera: &glam::DMat4) -> Needed {
-    let mut needed = Vec::new();
+    use rayon::prelude::*;
+    let frustum = FrustumTest::new(source);
+    let mut candidates = Vec::new();
     for (index, voter) in voters.iter_mut().enumerate() {
         if voter.already.contains(&id) {
             continue;
         }
         voter.voted.insert(id);
-        if !Pyramid::may_see(source, world_to_camera, voter.center, voter.radius) {
-            continue;
-        }
-        let seen: Vec<usize> = voter
-            .chunks
-            .iter()
-            .enumerate()
-            .filter(|(_, chunk)| {
-                Pyramid::may_see_ball(source, world_to_camera, chunk.center, chunk.radius, chunk.max_radius)
-            })
-            .map(|(chunk, _)| chunk)
-            .collect();
-        if !seen.is_empty() {
-            needed.push((index, seen));
+        if frustum.may_see_ball(world_to_camera, voter.center, voter.radius, voter.radius) {
+            candidates.push((index, &voter.chunks));
         }
     }
-    needed
+    candidates
+        .into_par_iter()
+        .filter_map(|(index, chunks)| {
+            let seen: Vec<usize> = chunks
+                .iter()
+                .enumerate()
+                .filter(|(_, chunk)| {
+                    frustum.may_see_ball(world_to_camera, chunk.center, chunk.radius, chunk.max_radius)
+                })
+                .map(|(chunk, _)| chunk)
+                .collect();
+            (!seen.is_empty()).then_some((index, seen))
+        })
+        .collect()
 }
 
 fn file_digest(base: &Snapshot<'_>, segment: &str) -> u64 {
