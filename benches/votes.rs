@@ -85,14 +85,16 @@ fn main() {
     order.sort_by_key(|&i| tile(centers[i]));
     let (tiled_centers, tiled_radii): (Vec<DVec3>, Vec<f64>) = order.iter().map(|&i| (centers[i], radii[i])).unzip();
     let runs = octstore::kernels::votes::chunks(&tiled_centers, &tiled_radii);
-    let offsets = octstore::kernels::votes::cube_offsets(origin, &tiled_centers, &tiled_radii);
+    let mut offsets = octstore::kernels::votes::cube_offsets(origin, &tiled_centers, &tiled_radii);
+    let (mut hist, mut distance) = (vec![0f32; 8 * cubes], vec![0f32; 2 * cubes]);
+    // The loops read and write whole blocks of cubes in lane layout, as the stage holds them.
+    octstore::kernels::votes::relayout_for_lanes(&mut offsets, &mut hist, &mut distance, true);
     let chunked = octstore::kernels::votes::ChunkedCubes {
         offsets: &offsets,
         chunks: &runs,
     };
     let view = octstore::kernels::votes::UnitView::new(&source, &world_to_camera, origin, 0.0);
     let seen: Vec<usize> = (0..runs.len()).collect();
-    let (mut hist, mut distance) = (vec![0f32; 8 * cubes], vec![0f32; 2 * cubes]);
     let started = Instant::now();
     let mut cast = 0u64;
     for _ in 0..maps {

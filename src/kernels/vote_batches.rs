@@ -12,6 +12,10 @@ use super::votes::{BINS, Pyramid, UnitView, vote_relative};
 /// stays small near the surface, where the cubes are.
 const CHUNK_CUBES: usize = 256;
 
+// A chunk's whole blocks must be the unit's ([`relayout_for_lanes`]): chunks start at
+// multiples of a block.
+const _: () = assert!(CHUNK_CUBES.is_multiple_of(LANES), "a chunk must hold whole blocks");
+
 /// Cubes `start..end` of a unit and a ball that holds every one of their voting balls.
 #[derive(Clone, Debug)]
 pub struct Chunk {
@@ -63,7 +67,8 @@ pub struct ChunkedCubes<'a> {
 /// Votes `pyramid`, seen from the unit as `view`, into `hist` (BINS per cube) and `distance`
 /// (two per cube: the weighted sum of the votes' truncated distances, in world units, and
 /// the sum of their weights) for the cubes of the chunks listed in `seen` (ascending), and
-/// returns the number of votes cast: [`vote_maps`] with one map.
+/// returns the number of votes cast: [`vote_maps`] with one map. The cubes' offsets, `hist`
+/// and `distance` hold their whole blocks in lane layout ([`relayout_for_lanes`]).
 pub fn vote_chunks(
     cubes: &ChunkedCubes<'_>,
     hist: &mut [f32],
@@ -103,7 +108,8 @@ impl<'a> MapVote<'a> {
 }
 
 /// Votes a batch of maps (at most [`MAPS_AT_ONCE`]; more are ignored) into the unit's `hist`
-/// and `distance` rows (as [`vote_chunks`] does one map) and returns the number of votes cast.
+/// and `distance` rows (as [`vote_chunks`] does one map; whole blocks of cubes, rows and sums
+/// in lane layout, [`relayout_for_lanes`]) and returns the number of votes cast.
 /// Each vote is [`vote_relative`] (sixteen at a time in [`vote_block`]).
 ///
 /// Chunk by chunk: a chunk's cubes meet every map of the batch that may see them, in the
@@ -189,6 +195,8 @@ fn chunk_votes<S: fearless_simd::Simd>(
 /// One chunk's votes of one map ([`vote_chunks`]): a pinhole map's cubes sixteen at a time
 /// ([`vote_block`]); a spherical map, one too large for the lanes (2^24 pixels a side or 2^31
 /// pixels) and the chunk's last cubes short of a block, one at a time ([`vote_relative`]).
+/// The chunk's whole blocks are in lane layout ([`relayout_for_lanes`]; a chunk starts at a
+/// multiple of [`LANES`] cubes), so the one-cube votes read and write them lane by lane.
 #[inline(always)]
 fn vote_chunk<S: fearless_simd::Simd>(
     simd: S,
@@ -198,32 +206,118 @@ fn vote_chunk<S: fearless_simd::Simd>(
     distances: &mut [f32],
 ) -> u64 {
     let (view, weight) = (&map.view, map.weight);
-    let (rows, _) = rows.as_chunks_mut::<BINS>();
-    let (sums, _) = distances.as_chunks_mut::<2>();
+    let (blocks, tail_offsets) = offsets.as_chunks::<LANES>();
+    let (row_blocks, tail_rows) = rows.as_chunks_mut::<{ BINS * LANES }>();
+    let (sum_blocks, tail_sums) = distances.as_chunks_mut::<{ 2 * LANES }>();
     let mut votes = 0u64;
-    let mut in_blocks = 0;
+    let blocks = blocks.iter().zip(row_blocks).zip(sum_blocks);
     if !view.spherical && map.shapes.fits_lanes() {
-        let (blocks, _) = offsets.as_chunks::<LANES>();
-        let (row_blocks, _) = rows.as_chunks_mut::<LANES>();
-        let (sum_blocks, _) = sums.as_chunks_mut::<LANES>();
-        for ((cubes, block_rows), block_sums) in blocks.iter().zip(row_blocks).zip(sum_blocks) {
+        for ((cubes, block_rows), block_sums) in blocks {
             votes += vote_block(simd, view, cubes, &map.shapes, weight).add_to(simd, block_rows, block_sums);
         }
-        in_blocks = blocks.len() * LANES;
-    }
-    for ((row, [sum, total]), cube) in rows.iter_mut().zip(sums.iter_mut()).zip(offsets).skip(in_blocks) {
-        if let Some((bin, distance)) = vote_relative(view, *cube, map.pyramid)
-            && let Some(h) = row.get_mut(bin)
-        {
-            *h += weight;
-            if let Some(d) = distance {
-                *sum += weight * d;
-                *total += weight;
+    } else {
+        for ((lanes, block_rows), block_sums) in blocks {
+            for (lane, cube) in relayout_cubes(lanes, false).into_iter().enumerate() {
+                let bin_at = |bin: usize| bin * LANES + lane;
+                votes += vote_one(
+                    view,
+                    cube,
+                    map.pyramid,
+                    weight,
+                    (block_rows, bin_at),
+                    (block_sums, lane, lane + LANES),
+                );
             }
-            votes += 1;
         }
     }
+    let (tail_rows, _) = tail_rows.as_chunks_mut::<BINS>();
+    for ((row, sums), cube) in tail_rows
+        .iter_mut()
+        .zip(tail_sums.chunks_exact_mut(2))
+        .zip(tail_offsets)
+    {
+        votes += vote_one(view, *cube, map.pyramid, weight, (row, |bin| bin), (sums, 0, 1));
+    }
     votes
+}
+
+/// [`vote_relative`] of one cube added to its histogram row (bin b at `rows.0[rows.1(b)]`)
+/// and distance sums (the sum at `sums.0[sums.1]`, its weights' at `sums.0[sums.2]`): the
+/// votes cast, 0 or 1.
+#[inline(always)]
+fn vote_one(
+    view: &UnitView,
+    cube: Vec4,
+    pyramid: &Pyramid,
+    weight: f32,
+    rows: (&mut [f32], impl Fn(usize) -> usize),
+    sums: (&mut [f32], usize, usize),
+) -> u64 {
+    let Some((bin, distance)) = vote_relative(view, cube, pyramid) else {
+        return 0;
+    };
+    let Some(h) = rows.0.get_mut(rows.1(bin)) else {
+        return 0;
+    };
+    *h += weight;
+    if let Some(d) = distance {
+        let (sums, sum_at, weight_at) = sums;
+        if let Some(sum) = sums.get_mut(sum_at) {
+            *sum += weight * d;
+        }
+        if let Some(total) = sums.get_mut(weight_at) {
+            *total += weight;
+        }
+    }
+    1
+}
+
+/// A block of [`LANES`] cubes' offsets between the per-cube layout and the lane layout (the x
+/// of the sixteen cubes, then y, z and radius; [`relayout_for_lanes`]).
+pub fn relayout_cubes(cubes: &[Vec4; LANES], to_lanes: bool) -> [Vec4; LANES] {
+    let mut block = *cubes;
+    transpose_block::<4>(bytemuck::cast_slice_mut(&mut block), to_lanes);
+    block
+}
+
+/// Rewrites a block of [`LANES`] rows of `WIDTH` values between the per-cube layout (row by
+/// row) and the lane layout (value by value, each the sixteen rows').
+fn transpose_block<const WIDTH: usize>(block: &mut [f32], to_lanes: bool) {
+    let mut out = [0f32; 16 * 8];
+    for (row, values) in block.chunks_exact(if to_lanes { WIDTH } else { LANES }).enumerate() {
+        for (column, value) in values.iter().enumerate() {
+            if let Some(slot) = out.get_mut(column * if to_lanes { LANES } else { WIDTH } + row) {
+                *slot = *value;
+            }
+        }
+    }
+    for (slot, value) in block.iter_mut().zip(out) {
+        *slot = value;
+    }
+}
+
+/// Rewrites the whole blocks of [`LANES`] cubes of a unit's `offsets` (xyz and radius),
+/// histogram rows (`hist`, [`BINS`] a cube) and distance sums (`distance`, two a cube) between
+/// the per-cube layout and the lane layout the voting loop reads and writes ([`vote_maps`],
+/// [`vote_chunks`]): a block's offsets as the x of its sixteen cubes, then y, z and radius; its
+/// rows as bin 0 of the sixteen cubes, then bin 1, ...; its sums as the sixteen sums, then the
+/// sixteen weights. The cubes after the last whole block keep the per-cube layout. Pure data
+/// movement, so a round trip gives the same bits; the voting loop then loads each of a block's
+/// values as one vector, where the per-cube layout took shuffles and a scalar addition a lane.
+pub fn relayout_for_lanes(offsets: &mut [Vec4], hist: &mut [f32], distance: &mut [f32], to_lanes: bool) {
+    use rayon::prelude::*;
+    let (offset_blocks, _) = offsets.as_chunks_mut::<LANES>();
+    offset_blocks
+        .par_iter_mut()
+        .for_each(|block| transpose_block::<4>(bytemuck::cast_slice_mut(block), to_lanes));
+    let (row_blocks, _) = hist.as_chunks_mut::<{ BINS * LANES }>();
+    row_blocks
+        .par_iter_mut()
+        .for_each(|block| transpose_block::<BINS>(block, to_lanes));
+    let (sum_blocks, _) = distance.as_chunks_mut::<{ 2 * LANES }>();
+    sum_blocks
+        .par_iter_mut()
+        .for_each(|block| transpose_block::<2>(block, to_lanes));
 }
 
 #[cfg(test)]
@@ -232,6 +326,42 @@ mod tests {
     use crate::inputs::Projection;
     use crate::kernels::votes::cube_offsets;
     use crate::kernels::votes::tests::{pinhole_source, slanted_wall};
+
+    #[test]
+    fn the_lane_layout_moves_whole_blocks_and_leaves_the_tail() {
+        let cubes = 2 * LANES + 5;
+        let offsets: Vec<Vec4> = (0..cubes)
+            .map(|c| Vec4::new(c as f32, 100.0 + c as f32, -(c as f32), 0.5))
+            .collect();
+        let hist: Vec<f32> = (0..cubes * BINS).map(|i| i as f32).collect();
+        let distance: Vec<f32> = (0..cubes * 2).map(|i| -(i as f32)).collect();
+        let (mut o, mut h, mut d) = (offsets.clone(), hist.clone(), distance.clone());
+        relayout_for_lanes(&mut o, &mut h, &mut d, true);
+        for cube in 0..cubes {
+            let (block, lane) = (cube / LANES, cube % LANES);
+            let flat: &[f32] = bytemuck::cast_slice(&o);
+            if block < 2 {
+                for (axis, value) in offsets[cube].to_array().into_iter().enumerate() {
+                    assert_eq!(
+                        flat[block * 4 * LANES + axis * LANES + lane],
+                        value,
+                        "cube {cube} axis {axis}"
+                    );
+                }
+                for bin in 0..BINS {
+                    assert_eq!(h[block * BINS * LANES + bin * LANES + lane], hist[cube * BINS + bin]);
+                }
+                assert_eq!(d[block * 2 * LANES + lane], distance[cube * 2]);
+                assert_eq!(d[block * 2 * LANES + LANES + lane], distance[cube * 2 + 1]);
+            } else {
+                assert_eq!(o[cube], offsets[cube], "the tail stays per cube");
+                assert_eq!(h[cube * BINS..(cube + 1) * BINS], hist[cube * BINS..(cube + 1) * BINS]);
+                assert_eq!(d[cube * 2..cube * 2 + 2], distance[cube * 2..cube * 2 + 2]);
+            }
+        }
+        relayout_for_lanes(&mut o, &mut h, &mut d, false);
+        assert_eq!((o, h, d), (offsets, hist, distance));
+    }
 
     #[test]
     fn a_batch_of_maps_votes_as_the_maps_one_at_a_time_do_to_the_bit() {
@@ -263,8 +393,13 @@ mod tests {
         let radii: Vec<f64> = (0..cubes).map(|_| 0.002 + 0.02 * uniform().powi(2)).collect();
         let offsets = cube_offsets(origin, &centers, &radii);
         let chunk_list = chunks(&centers, &radii);
+        // The loops read and write whole blocks in lane layout (3000 cubes: 187 blocks and a
+        // tail of 8 cubes in the per-cube layout).
+        let mut lane_offsets = offsets.clone();
+        let (mut no_rows, mut no_sums) = (vec![0f32; cubes * BINS], vec![0f32; cubes * 2]);
+        relayout_for_lanes(&mut lane_offsets, &mut no_rows, &mut no_sums, true);
         let chunked = ChunkedCubes {
-            offsets: &offsets,
+            offsets: &lane_offsets,
             chunks: &chunk_list,
         };
         let seen: Vec<Vec<usize>> = (0..sources.len())
@@ -294,6 +429,10 @@ mod tests {
         let (mut batch_hist, mut batch_distance) = (vec![0f32; cubes * BINS], vec![0f32; cubes * 2]);
         let batched = vote_maps(&chunked, &mut batch_hist, &mut batch_distance, &maps);
         assert_eq!(batched, one_at_a_time);
+        let mut scratch = lane_offsets.clone();
+        relayout_for_lanes(&mut scratch, &mut hist, &mut distance, false);
+        relayout_for_lanes(&mut lane_offsets, &mut batch_hist, &mut batch_distance, false);
+        assert_eq!(lane_offsets, offsets, "a round trip of the layouts");
         assert!(one_at_a_time > 3_000, "{one_at_a_time} votes: the scene proves little");
         let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&batch_hist), bits(&hist));

@@ -26,7 +26,7 @@ use crate::format::{Column, ColumnValues, CubeKey, Scene};
 use crate::inputs::DepthMapSource;
 use crate::kernels::votes::{
     BINS, Chunk, ChunkedCubes, FrustumTest, MAPS_AT_ONCE, MapVote, Pyramid, UnitView, band_floor, chunks,
-    cube_geometry, cube_offsets, quantized_weight, vote_maps,
+    cube_geometry, cube_offsets, quantized_weight, relayout_for_lanes, vote_maps,
 };
 use crate::store::catalog::{self, META, UNIT_STATE, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
@@ -364,12 +364,19 @@ impl Stage for HistogramsStage {
             gpu.count(on_gpu);
         }
         if !on_gpu {
+            // The voting loop reads and writes whole blocks of cubes in lane layout.
+            for voter in &mut voters {
+                relayout_for_lanes(&mut voter.offsets, &mut voter.hist, &mut voter.distance, true);
+            }
             self.pass_over_maps(&mut voters, unit, |voters, batch| {
                 for (index, voter) in voters.iter_mut().enumerate() {
                     voter.vote_batch(index, batch);
                 }
                 Ok(true)
             })?;
+            for voter in &mut voters {
+                relayout_for_lanes(&mut voter.offsets, &mut voter.hist, &mut voter.distance, false);
+            }
         }
         // A pass that evicted pyramids leaves the cache holding its last maps, which the next
         // group's pass (in id order) reaches last, long after evicting them: they would only
