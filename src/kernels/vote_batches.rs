@@ -280,10 +280,11 @@ pub fn relayout_cubes(cubes: &[Vec4; LANES], to_lanes: bool) -> [Vec4; LANES] {
     block
 }
 
-/// Rewrites a block of [`LANES`] rows of `WIDTH` values between the per-cube layout (row by
-/// row) and the lane layout (value by value, each the sixteen rows').
+/// Rewrites a block of [`LANES`] rows of `WIDTH` values (at most [`BINS`]) between the
+/// per-cube layout (row by row) and the lane layout (value by value, each the sixteen rows').
 fn transpose_block<const WIDTH: usize>(block: &mut [f32], to_lanes: bool) {
-    let mut out = [0f32; 16 * 8];
+    const { assert!(WIDTH <= BINS, "a block's rows are at most a histogram row wide") };
+    let mut out = [0f32; LANES * BINS];
     for (row, values) in block.chunks_exact(if to_lanes { WIDTH } else { LANES }).enumerate() {
         for (column, value) in values.iter().enumerate() {
             if let Some(slot) = out.get_mut(column * if to_lanes { LANES } else { WIDTH } + row) {
