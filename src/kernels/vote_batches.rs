@@ -285,9 +285,11 @@ pub fn relayout_cubes(cubes: &[Vec4; LANES], to_lanes: bool) -> [Vec4; LANES] {
 fn transpose_block<const WIDTH: usize>(block: &mut [f32], to_lanes: bool) {
     const { assert!(WIDTH <= BINS, "a block's rows are at most a histogram row wide") };
     let mut out = [0f32; LANES * BINS];
-    for (row, values) in block.chunks_exact(if to_lanes { WIDTH } else { LANES }).enumerate() {
+    // The block as a matrix of `rows` x `columns` values, written out transposed.
+    let (columns, rows) = if to_lanes { (WIDTH, LANES) } else { (LANES, WIDTH) };
+    for (row, values) in block.chunks_exact(columns).enumerate() {
         for (column, value) in values.iter().enumerate() {
-            if let Some(slot) = out.get_mut(column * if to_lanes { LANES } else { WIDTH } + row) {
+            if let Some(slot) = out.get_mut(column * rows + row) {
                 *slot = *value;
             }
         }

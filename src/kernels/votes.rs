@@ -9,7 +9,7 @@ use super::halving::{halve_finite_first, median_of_finite, median_of_valid};
 use super::occlusion::FarthestDepths;
 use super::surface_depth::{surface_depth, surface_depth_f32, truncated_surface_distance};
 pub use super::vote_batches::{
-    Chunk, ChunkedCubes, MAPS_AT_ONCE, MapVote, chunks, relayout_cubes, relayout_for_lanes, vote_chunks, vote_maps,
+    Chunk, ChunkedCubes, MAPS_AT_ONCE, MapVote, chunks, relayout_for_lanes, vote_chunks, vote_maps,
 };
 
 use crate::format::{CubeKey, Scene};
