@@ -11,7 +11,7 @@ pub mod segment;
 mod world;
 
 pub use key::{CubeKey, MAX_DEPTH};
-pub use segment::{Column, ColumnShape, ColumnValues, ElementType, SegmentReader, SegmentSummary};
+pub use segment::{Column, ColumnShape, ColumnValues, Compression, ElementType, SegmentReader, SegmentSummary};
 pub use world::{BoundingBox, META_SCENE, RADIUS_FRACTION_BITS, RadiusDepths, Scene, round_half_away_from_zero};
 
 #[cfg(target_endian = "big")]

@@ -9,8 +9,8 @@ use std::io::{Read, Write};
 use xxhash_rust::xxh3::{Xxh3, xxh3_64};
 
 use super::{
-    Column, ColumnValues, DEFAULT_BLOCK_ROWS, ElementType, FOOTER_LEN, FORMAT_VERSION, KEY_COLUMN, MAGIC, MAX_COLUMNS,
-    MAX_NAME_LEN, SegmentSummary, ZSTD_LEVEL,
+    Column, ColumnValues, Compression, DEFAULT_BLOCK_ROWS, ElementType, FOOTER_LEN, FORMAT_VERSION, KEY_COLUMN, MAGIC,
+    MAX_COLUMNS, MAX_NAME_LEN, SegmentSummary, ZSTD_LEVEL,
 };
 use crate::format::{CubeKey, EncodeError};
 
@@ -93,6 +93,8 @@ pub struct ColumnShape {
     pub element: ElementType,
     /// Elements per row.
     pub width: u16,
+    /// How its chunks are compressed.
+    pub compression: Compression,
 }
 
 impl ColumnShape {
@@ -102,6 +104,7 @@ impl ColumnShape {
             name: column.name.clone(),
             element: column.values.element_type(),
             width: column.width,
+            compression: column.compression,
         }
     }
 
@@ -217,7 +220,7 @@ pub fn encode_segment_streamed<W: Write, R: Read>(
                 }
                 read += 1;
             }
-            for compressed in compressors.compress(raw.get(..read).unwrap_or_default())? {
+            for compressed in compressors.compress(raw.get(..read).unwrap_or_default(), shape.compression)? {
                 let len = u32::try_from(compressed.len())
                     .map_err(|_| EncodeError::Invalid("compressed block larger than 4 GiB".into()))?;
                 entries.push((w.written, len, xxh3_64(&compressed)));
@@ -293,10 +296,12 @@ impl ChunkCompressor {
         })
     }
 
-    fn compress(&mut self, raw: &[u8]) -> Result<Vec<u8>, EncodeError> {
-        let huffman = self.huffman.compress(raw).map_err(EncodeError::Compression)?;
-        if huffman.len().saturating_mul(HUFFMAN_WORTH_DEN) <= raw.len().saturating_mul(HUFFMAN_WORTH_NUM) {
-            return Ok(huffman);
+    fn compress(&mut self, raw: &[u8], compression: Compression) -> Result<Vec<u8>, EncodeError> {
+        if compression == Compression::Adaptive {
+            let huffman = self.huffman.compress(raw).map_err(EncodeError::Compression)?;
+            if huffman.len().saturating_mul(HUFFMAN_WORTH_DEN) <= raw.len().saturating_mul(HUFFMAN_WORTH_NUM) {
+                return Ok(huffman);
+            }
         }
         let fast = match &mut self.raw_literals {
             Some(fast) => fast,
@@ -325,17 +330,17 @@ impl Compressors {
     }
 
     /// The compressed blocks, in order.
-    fn compress(&mut self, blocks: &[Vec<u8>]) -> Result<Vec<Vec<u8>>, EncodeError> {
+    fn compress(&mut self, blocks: &[Vec<u8>], compression: Compression) -> Result<Vec<Vec<u8>>, EncodeError> {
         use rayon::prelude::*;
         while self.each.len() < blocks.len() {
             self.each.push(ChunkCompressor::new()?);
         }
         match (blocks, self.each.first_mut()) {
-            ([one], Some(compressor)) => Ok(vec![compressor.compress(one)?]),
+            ([one], Some(compressor)) => Ok(vec![compressor.compress(one, compression)?]),
             _ => blocks
                 .par_iter()
                 .zip(self.each.par_iter_mut())
-                .map(|(block, compressor)| compressor.compress(block))
+                .map(|(block, compressor)| compressor.compress(block, compression))
                 .collect(),
         }
     }
@@ -397,20 +402,28 @@ mod tests {
             })
             .collect();
         let ramp: Vec<u32> = (0..rows).map(|i| i / 7).collect();
+        let small: Vec<u32> = noise.iter().map(|x| x & 0xff).collect();
         let columns = [
             Column::keys(keys),
             Column::new("noise", 1, ColumnValues::U32(noise.clone())),
             Column::new("ramp", 1, ColumnValues::U32(ramp.clone())),
+            // Asked for raw literals: they are used though Huffman coding would shrink it.
+            Column::new("small noise asked raw", 1, ColumnValues::U32(small.clone())).with_raw_literals(),
         ];
         let mut bytes = Vec::new();
         encode_segment_with_block_rows(&columns, 1024, &mut bytes).expect("encodes");
         let reader = SegmentReader::parse(&bytes).expect("parses");
-        for (name, values, level) in [("noise", &noise, RAW_LITERALS_ZSTD_LEVEL), ("ramp", &ramp, ZSTD_LEVEL)] {
+        for (name, values, level) in [
+            ("noise", &noise, RAW_LITERALS_ZSTD_LEVEL),
+            ("ramp", &ramp, ZSTD_LEVEL),
+            ("small noise asked raw", &small, RAW_LITERALS_ZSTD_LEVEL),
+        ] {
             for (block, chunk) in chunks(&bytes, &reader, name).into_iter().enumerate() {
                 let raw = values.chunks(1024).nth(block).expect("a block");
                 let expected = zstd::bulk::compress(bytemuck::cast_slice(raw), level).expect("compresses");
                 let huffman = zstd::bulk::compress(bytemuck::cast_slice(raw), ZSTD_LEVEL).expect("compresses");
-                assert!(name == "ramp" || huffman.len() * 4 > raw.len() * 4 * 3 && huffman != expected);
+                assert!(name != "noise" || huffman.len() * 4 > raw.len() * 4 * 3 && huffman != expected);
+                assert!(name != "small noise asked raw" || huffman.len() * 4 <= raw.len() * 4 * 3);
                 assert_eq!(chunk, expected.as_slice(), "{name}, block {block}");
             }
             assert_eq!(reader.read_u32(name).expect("decodes").1, *values);
@@ -453,7 +466,9 @@ mod tests {
         assert_eq!(chunks.len(), 21);
         let mut compressor = ChunkCompressor::new().expect("a compressor");
         for (block, (chunk, raw)) in chunks.iter().zip(values.chunks(512)).enumerate() {
-            let alone = compressor.compress(bytemuck::cast_slice(raw)).expect("compresses");
+            let alone = compressor
+                .compress(bytemuck::cast_slice(raw), Compression::Adaptive)
+                .expect("compresses");
             assert_eq!(*chunk, alone.as_slice(), "block {block}");
         }
         assert_eq!(reader.read_f32("u").expect("decodes").1, values);

@@ -141,6 +141,22 @@ pub struct Column {
     pub width: u16,
     /// `rows * width` values, row by row.
     pub values: ColumnValues,
+    /// How the writer compresses the column's chunks.
+    pub compression: Compression,
+}
+
+/// How a column's chunks are compressed. Readers need not know: every chunk is a plain zstd
+/// frame (format-spec.md, "Segment files").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Compression {
+    /// At zstd level 1, and again with raw literals where Huffman coding kept more than three
+    /// quarters of the bytes.
+    #[default]
+    Adaptive,
+    /// With raw literals straight away: for values whose bytes look random (the solver's v, p
+    /// and q, whose every chunk of RedKitchen's finest level the adaptive rule sent to raw
+    /// literals after compressing it at level 1 first, at twice the time).
+    RawLiterals,
 }
 
 impl Column {
@@ -150,6 +166,15 @@ impl Column {
             name: name.to_string(),
             width,
             values,
+            compression: Compression::Adaptive,
+        }
+    }
+
+    /// The column, its chunks compressed with raw literals ([`Compression::RawLiterals`]).
+    pub fn with_raw_literals(self) -> Column {
+        Column {
+            compression: Compression::RawLiterals,
+            ..self
         }
     }
 

@@ -111,12 +111,12 @@ impl Packed {
 
 /// Scales `x` (and its partner, as one vector) into the unit ball; norms at most 1 are scaled
 /// by exactly 1, without a branch.
-#[inline]
+#[inline(always)]
 fn unit_ball_scale(squared_norm: f32) -> f32 {
     1.0 / squared_norm.sqrt().max(1.0)
 }
 
-#[inline]
+#[inline(always)]
 fn sum3(x: Vec4) -> f32 {
     x.x * x.x + x.y * x.y + x.z * x.z
 }
@@ -278,38 +278,22 @@ impl Kernel {
                     .zip(self.lengths.par_chunks(CHUNK))
                     .zip(bar[..n].par_chunks(CHUNK))
                     .enumerate()
-                    .for_each(|(chunk, ((((((p, qd), qo), rows), constants), lengths), centres))| {
-                        let mut terms = self
-                            .terms_from(&self.row_start, &self.row_terms, 3 * chunk * CHUNK)
-                            .iter();
-                        let (p_lanes, p) = p.as_chunks_mut::<LANES>();
-                        let (qd_lanes, qd) = qd.as_chunks_mut::<LANES>();
-                        let (qo_lanes, qo) = qo.as_chunks_mut::<LANES>();
-                        let (rows_lanes, rows) = rows.as_chunks_mut::<{ 3 * LANES }>();
-                        let (k_lanes, constants) = constants.as_chunks::<LANES>();
-                        let (lengths_lanes, lengths) = lengths.as_chunks::<LANES>();
-                        let (centres_lanes, centres) = centres.as_chunks::<LANES>();
-                        let groups = p_lanes
-                            .iter_mut()
-                            .zip(qd_lanes.iter_mut())
-                            .zip(qo_lanes.iter_mut())
-                            .zip(rows_lanes.iter_mut())
-                            .zip(k_lanes.iter().zip(lengths_lanes).zip(centres_lanes));
-                        for ((((p, qd), qo), rows), ((k, lengths), centres)) in groups {
-                            let k = bytemuck::cast_ref(k);
-                            dual_lanes(&mut terms, bar, centres, k, lengths, p, qd, qo, rows);
-                        }
-                        // The chunk's last cubes, fewer than LANES: the same steps one at a time.
-                        let cubes = p
-                            .iter_mut()
-                            .zip(qd.iter_mut())
-                            .zip(qo.iter_mut())
-                            .zip(rows.chunks_exact_mut(3))
-                            .zip(constants.iter().zip(lengths).zip(centres));
-                        for ((((p, qd), qo), rows), ((k, lengths), centre)) in cubes {
-                            dual(&mut terms, bar, *centre, k, lengths, p, qd, qo, rows);
-                        }
-                    });
+                    .for_each(
+                        |(chunk, ((((((p, q_diag), q_off), rows), constants), lengths), centres))| {
+                            let work = DualChunk {
+                                terms: self.terms_from(&self.row_start, &self.row_terms, 3 * chunk * CHUNK),
+                                bar,
+                                p,
+                                q_diag,
+                                q_off,
+                                rows,
+                                constants,
+                                lengths,
+                                centres,
+                            };
+                            crate::sys::with_wide_vectors(work);
+                        },
+                    );
             }
             {
                 let rows: &[Vec4] = rows;
@@ -323,32 +307,139 @@ impl Kernel {
                     .zip(self.slopes.par_chunks(CHUNK))
                     .enumerate()
                     .for_each(|(chunk, (((((uv, bar), own_rows), constants), lengths), slopes))| {
-                        let mut terms = self.terms_from(&self.col_start, &self.col_terms, chunk * CHUNK).iter();
-                        let (uv_lanes, uv) = uv.as_chunks_mut::<LANES>();
-                        let (bar_lanes, bar) = bar.as_chunks_mut::<LANES>();
-                        let (own_lanes, own_rows) = own_rows.as_chunks::<{ 3 * LANES }>();
-                        let (k_lanes, constants) = constants.as_chunks::<LANES>();
-                        let (lengths_lanes, lengths) = lengths.as_chunks::<LANES>();
-                        let (slopes_lanes, slopes) = slopes.as_chunks::<LANES>();
-                        let groups = uv_lanes
-                            .iter_mut()
-                            .zip(bar_lanes.iter_mut())
-                            .zip(own_lanes)
-                            .zip(k_lanes.iter().zip(lengths_lanes).zip(slopes_lanes));
-                        for (((uv, bar), own_rows), ((k, lengths), slopes)) in groups {
-                            let (k, slopes) = (bytemuck::cast_ref(k), bytemuck::cast_ref(slopes));
-                            primal_lanes(&mut terms, rows, own_rows, k, lengths, slopes, self.lambda, uv, bar);
-                        }
-                        let cubes = uv
-                            .iter_mut()
-                            .zip(bar.iter_mut())
-                            .zip(own_rows.chunks_exact(3))
-                            .zip(constants.iter().zip(lengths).zip(slopes));
-                        for (((uv, bar), own_rows), ((k, lengths), slopes)) in cubes {
-                            primal(&mut terms, rows, own_rows, k, lengths, slopes, self.lambda, uv, bar);
-                        }
+                        let work = PrimalChunk {
+                            terms: self.terms_from(&self.col_start, &self.col_terms, chunk * CHUNK),
+                            rows,
+                            uv,
+                            bar,
+                            own_rows,
+                            constants,
+                            lengths,
+                            slopes,
+                            lambda: self.lambda,
+                        };
+                        crate::sys::with_wide_vectors(work);
                     });
             }
+        }
+    }
+}
+
+/// One chunk's dual pass: its cubes' columns and the gather terms from its first row on. Run
+/// through [`crate::sys::with_wide_vectors`], which compiles the steps it inlines (every
+/// helper of the passes is `#[inline(always)]`) for AVX2 where the processor has it: the same
+/// 4-wide float operations in three-operand encodings, so the same bits, without the register
+/// copies of SSE's two-operand forms.
+struct DualChunk<'a> {
+    terms: &'a [Gather],
+    bar: &'a [Vec4],
+    p: &'a mut [Vec4],
+    q_diag: &'a mut [Vec4],
+    q_off: &'a mut [Vec4],
+    rows: &'a mut [Vec4],
+    constants: &'a [DualConstants],
+    lengths: &'a [[u16; 4]],
+    centres: &'a [Vec4],
+}
+
+impl crate::sys::WideWork for DualChunk<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run(self) {
+        let mut terms = self.terms.iter();
+        let (p_lanes, p) = self.p.as_chunks_mut::<LANES>();
+        let (qd_lanes, qd) = self.q_diag.as_chunks_mut::<LANES>();
+        let (qo_lanes, qo) = self.q_off.as_chunks_mut::<LANES>();
+        let (rows_lanes, rows) = self.rows.as_chunks_mut::<{ 3 * LANES }>();
+        let (k_lanes, constants) = self.constants.as_chunks::<LANES>();
+        let (lengths_lanes, lengths) = self.lengths.as_chunks::<LANES>();
+        let (centres_lanes, centres) = self.centres.as_chunks::<LANES>();
+        let groups = p_lanes
+            .iter_mut()
+            .zip(qd_lanes.iter_mut())
+            .zip(qo_lanes.iter_mut())
+            .zip(rows_lanes.iter_mut())
+            .zip(k_lanes.iter().zip(lengths_lanes).zip(centres_lanes));
+        for ((((p, qd), qo), rows), ((k, lengths), centres)) in groups {
+            let k = bytemuck::cast_ref(k);
+            dual_lanes(&mut terms, self.bar, centres, k, lengths, p, qd, qo, rows);
+        }
+        // The chunk's last cubes, fewer than LANES: the same steps one at a time.
+        let cubes = p
+            .iter_mut()
+            .zip(qd.iter_mut())
+            .zip(qo.iter_mut())
+            .zip(rows.chunks_exact_mut(3))
+            .zip(constants.iter().zip(lengths).zip(centres));
+        for ((((p, qd), qo), rows), ((k, lengths), centre)) in cubes {
+            dual(&mut terms, self.bar, *centre, k, lengths, p, qd, qo, rows);
+        }
+    }
+}
+
+/// One chunk's primal pass: its cubes' columns and the gather terms from its first cube on; run
+/// as [`DualChunk`] is.
+struct PrimalChunk<'a> {
+    terms: &'a [Gather],
+    rows: &'a [Vec4],
+    uv: &'a mut [Vec4],
+    bar: &'a mut [Vec4],
+    own_rows: &'a [Vec4],
+    constants: &'a [PrimalConstants],
+    lengths: &'a [[u16; 4]],
+    slopes: &'a [Slopes],
+    lambda: f32,
+}
+
+impl crate::sys::WideWork for PrimalChunk<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run(self) {
+        let mut terms = self.terms.iter();
+        let (uv_lanes, uv) = self.uv.as_chunks_mut::<LANES>();
+        let (bar_lanes, bar) = self.bar.as_chunks_mut::<LANES>();
+        let (own_lanes, own_rows) = self.own_rows.as_chunks::<{ 3 * LANES }>();
+        let (k_lanes, constants) = self.constants.as_chunks::<LANES>();
+        let (lengths_lanes, lengths) = self.lengths.as_chunks::<LANES>();
+        let (slopes_lanes, slopes) = self.slopes.as_chunks::<LANES>();
+        let groups = uv_lanes
+            .iter_mut()
+            .zip(bar_lanes.iter_mut())
+            .zip(own_lanes)
+            .zip(k_lanes.iter().zip(lengths_lanes).zip(slopes_lanes));
+        for (((uv, bar), own_rows), ((k, lengths), slopes)) in groups {
+            let (k, slopes) = (bytemuck::cast_ref(k), bytemuck::cast_ref(slopes));
+            primal_lanes(
+                &mut terms,
+                self.rows,
+                own_rows,
+                k,
+                lengths,
+                slopes,
+                self.lambda,
+                uv,
+                bar,
+            );
+        }
+        let cubes = uv
+            .iter_mut()
+            .zip(bar.iter_mut())
+            .zip(own_rows.chunks_exact(3))
+            .zip(constants.iter().zip(lengths).zip(slopes));
+        for (((uv, bar), own_rows), ((k, lengths), slopes)) in cubes {
+            primal(
+                &mut terms,
+                self.rows,
+                own_rows,
+                k,
+                lengths,
+                slopes,
+                self.lambda,
+                uv,
+                bar,
+            );
         }
     }
 }
@@ -356,7 +447,7 @@ impl Kernel {
 /// Dual step of one cube from the extrapolated primal `bar`: p and q move along K and are
 /// projected onto their unit balls; then the cube's three packed dual rows are written.
 /// Advances `terms` past this cube's.
-#[inline]
+#[inline(always)]
 #[expect(clippy::too_many_arguments, reason = "one cube's columns, borrowed apart")]
 pub(super) fn dual(
     terms: &mut std::slice::Iter<'_, Gather>,
@@ -407,7 +498,7 @@ pub(super) fn dual(
 /// Primal step of one cube: the adjoint gathered from the packed dual rows, the prox of the
 /// data term for u, a plain step for v; writes the extrapolation 2 x_new - x_old to `bar`.
 /// Advances `terms` past this cube's.
-#[inline]
+#[inline(always)]
 #[expect(clippy::too_many_arguments, reason = "one cube's columns, borrowed apart")]
 pub(super) fn primal(
     terms: &mut std::slice::Iter<'_, Gather>,

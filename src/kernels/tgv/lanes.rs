@@ -16,7 +16,7 @@ pub(super) const LANES: usize = 4;
 const _: () = assert!(CHUNK.is_multiple_of(LANES), "a chunk must hold whole lane groups");
 
 /// The transpose of 4 vectors: lane i of the result's column j is lane j of `x[i]`.
-#[inline]
+#[inline(always)]
 pub(super) fn transpose(x: [Vec4; LANES]) -> [Vec4; 4] {
     let t = Mat4::from_cols(x[0], x[1], x[2], x[3]).transpose();
     [t.x_axis, t.y_axis, t.z_axis, t.w_axis]
@@ -24,14 +24,14 @@ pub(super) fn transpose(x: [Vec4; LANES]) -> [Vec4; 4] {
 
 /// `1 / max(sqrt(s), 1)` per lane: [`unit_ball_scale`] of 4 cubes. `max` returns its second
 /// operand when the first is NaN, as `f32::max` does here.
-#[inline]
+#[inline(always)]
 fn unit_ball_scale_lanes(squared_norm: Vec4) -> Vec4 {
     // f32::sqrt is correctly rounded, so each lane is the one-cube value; LLVM emits sqrtps.
     Vec4::ONE / squared_norm.map(f32::sqrt).max(Vec4::ONE)
 }
 
 /// `x.x^2 + x.y^2 + x.z^2` of 4 cubes, summed in [`sum3`]'s order.
-#[inline]
+#[inline(always)]
 fn sum3_lanes(x: [Vec4; 3]) -> Vec4 {
     x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
 }
@@ -40,7 +40,7 @@ fn sum3_lanes(x: [Vec4; 3]) -> Vec4 {
 /// [`dual`], the rest on lane-layout values (`p`, `q_diag`, `q_off` hold one vector per
 /// component, their w lanes stay 0). Every cube sees the same float operations in the same
 /// order as in [`dual`], so both give the same bits (the GPU twins check this).
-#[inline]
+#[inline(always)]
 #[expect(clippy::too_many_arguments, reason = "4 cubes' columns, borrowed apart")]
 pub(super) fn dual_lanes(
     terms: &mut std::slice::Iter<'_, Gather>,
@@ -119,7 +119,7 @@ pub(super) fn dual_lanes(
 /// [`primal`] of 4 consecutive cubes with cubes as lanes: the adjoint is gathered per cube as
 /// in [`primal`], the steps and the prox run on lane-layout values (`uv` holds u, v0, v1, v2 of
 /// the 4 cubes), with the same float operations in the same order, so both give the same bits.
-#[inline]
+#[inline(always)]
 #[expect(clippy::too_many_arguments, reason = "4 cubes' columns, borrowed apart")]
 pub(super) fn primal_lanes(
     terms: &mut std::slice::Iter<'_, Gather>,
@@ -150,7 +150,7 @@ pub(super) fn primal_lanes(
 }
 
 /// [`prox_slopes`] of 4 cubes, with the same operations in the same order per cube.
-#[inline]
+#[inline(always)]
 fn prox_slopes_lanes(u_tilde: Vec4, tau_lambda: Vec4, slopes: &SlopeLanes) -> Vec4 {
     let slope = |i: usize| {
         let at = LANES * i;

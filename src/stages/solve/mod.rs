@@ -18,7 +18,7 @@ use super::HISTOGRAMS;
 use super::observed::{measured_weight, sampled_of, seen_weight, surface_offset};
 use super::treetop::{Treetop, UnitKeys, children_on_min_face};
 use crate::format::Scene;
-use crate::format::key::find_sorted_from;
+use crate::format::key::{find_sorted_from, last_at_or_below_from};
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
 use crate::kernels::tgv::{Problem, State};
 use crate::kernels::votes::BINS;
@@ -101,9 +101,9 @@ fn columns_of(values: &LevelValues, observed: ObservedColumns) -> Vec<Column> {
     vec![
         Column::keys(values.keys.clone()),
         Column::new("u", 1, ColumnValues::F32(values.u.clone())),
-        Column::new("v", 3, ColumnValues::F32(flat(&values.v))),
-        Column::new("p", 3, ColumnValues::F32(flat(&values.p))),
-        Column::new("q", 6, ColumnValues::F32(values.q.iter().flatten().copied().collect())),
+        Column::new("v", 3, ColumnValues::F32(flat(&values.v))).with_raw_literals(),
+        Column::new("p", 3, ColumnValues::F32(flat(&values.p))).with_raw_literals(),
+        Column::new("q", 6, ColumnValues::F32(values.q.iter().flatten().copied().collect())).with_raw_literals(),
         Column::new("seen", 1, ColumnValues::F32(observed.seen)),
         Column::new("sampled", 1, ColumnValues::U32(observed.sampled)),
         Column::new("surface_offset", 1, ColumnValues::F32(observed.offset)),
@@ -196,8 +196,12 @@ struct Neighbourhood<'a, 's> {
     /// At the coarse levels, where the units' nodes come from.
     coarse: Option<&'a CoarseRowsCache>,
     keys: BTreeMap<usize, Arc<LevelKeys>>,
-    /// Previous-level values by group id.
-    values: BTreeMap<u64, Arc<LevelValues>>,
+    /// Per unit, where its last [`Neighbourhood::node`] lookup ended: the cut asks about cubes
+    /// in ascending order, mostly a few keys past the last one.
+    key_cursors: BTreeMap<usize, usize>,
+    /// Previous-level values by group id, with where the last lookup in them ended (the cut's
+    /// sources ascend likewise).
+    values: BTreeMap<u64, (Arc<LevelValues>, usize)>,
     /// The cubes whose previous-level values or octree nodes are asked for (the units' own
     /// and those across their faces, and their ancestors) all meet this box: the blocks of a
     /// neighbour's segment behind the shared face are not decoded.
@@ -275,8 +279,20 @@ impl Neighbourhood<'_, '_> {
     /// Whether `key` exists, and if so whether it is an octree leaf.
     fn node(&mut self, key: CubeKey) -> Result<Option<bool>> {
         let unit = self.treetop.unit_of(key);
-        let keys = self.unit_keys(unit)?;
-        Ok(keys.keys.keys.binary_search(&key).ok().map(|i| keys.keys.is_leaf(i)))
+        if !self.keys.contains_key(&unit) {
+            self.unit_keys(unit)?;
+        }
+        // Borrowed, not cloned (an atomic count up and down per lookup), and searched from the
+        // last lookup's end (a bisection of the whole unit missed the cache at every step).
+        let Some(keys) = self.keys.get(&unit) else {
+            return Ok(None);
+        };
+        let cursor = self.key_cursors.entry(unit).or_default();
+        let found = last_at_or_below_from(&keys.keys.keys, *cursor, key);
+        *cursor = found.unwrap_or(0);
+        Ok(found
+            .filter(|&i| keys.keys.keys.get(i) == Some(&key))
+            .map(|i| keys.keys.is_leaf(i)))
     }
 
     fn previous(&mut self, key: CubeKey) -> Result<Option<Inherited>> {
@@ -288,14 +304,17 @@ impl Neighbourhood<'_, '_> {
         };
         if !self.values.contains_key(&group) {
             let loaded = Arc::new(read_level_values_where(self.base, name, Some(&self.window))?);
-            self.values.insert(group, loaded);
+            self.values.insert(group, (loaded, 0));
         }
         // Borrowed, not cloned: two atomic counts per cut cube were a tenth of this lookup.
-        Ok(self.values.get(&group).and_then(|values| {
-            values
-                .find(key)
-                .map(|i| (values.u[i], values.v[i], values.p[i], values.q[i]))
-        }))
+        let Some((values, cursor)) = self.values.get_mut(&group) else {
+            return Ok(None);
+        };
+        let found = last_at_or_below_from(&values.keys, *cursor, key);
+        *cursor = found.unwrap_or(0);
+        Ok(found
+            .filter(|&i| values.keys.get(i) == Some(&key))
+            .map(|i| (values.u[i], values.v[i], values.p[i], values.q[i])))
     }
 }
 
@@ -498,6 +517,7 @@ impl LevelStage {
             previous_level: self.previous_stage().map(|stage| LevelSegments::of(base, stage)),
             coarse: self.coarse_rows(),
             keys: BTreeMap::new(),
+            key_cursors: BTreeMap::new(),
             values: BTreeMap::new(),
             window: WindowTest::around_units(treetop, &members),
             members: &members,
