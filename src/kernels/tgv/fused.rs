@@ -198,7 +198,43 @@ impl Kernel {
     /// stopping rule's checks took a tenth of RedKitchen's finest level). Every lane is the
     /// reference's sum in the reference's order; starting from +0 where the reference's sums
     /// start from -0 changes at most the sign of a zero, which the squares drop.
+    ///
+    /// Whole groups of [`LANES`] cubes of each chunk compute their terms with cubes as lanes
+    /// ([`energy_lanes`]: the same operations per lane, so the same bits as [`cube_energy`]),
+    /// the rest one cube at a time; the cubes' terms are then summed in cube order.
     pub fn energy(&self, problem: &Problem, state: &Packed) -> f64 {
+        let n = self.n;
+        let per_cube: Vec<f64> = (0..n.div_ceil(CHUNK))
+            .into_par_iter()
+            .flat_map_iter(|chunk| {
+                let (first, end) = (chunk * CHUNK, ((chunk + 1) * CHUNK).min(n));
+                let groups = (end - first) / LANES;
+                let mut terms = Vec::with_capacity(end - first);
+                for group in 0..groups {
+                    let cube = first + group * LANES;
+                    let centres: [Vec4; LANES] =
+                        std::array::from_fn(|i| state.uv.get(cube + i).copied().unwrap_or(Vec4::ZERO));
+                    let differences = std::array::from_fn(|i| self.differences(state, cube + i, centres[i]));
+                    terms.extend(energy_lanes(problem, cube, &centres, &differences));
+                }
+                terms.extend((first + groups * LANES..end).map(|c| {
+                    let centre = state.uv.get(c).copied().unwrap_or(Vec4::ZERO);
+                    let acc = self.differences(state, c, centre);
+                    let du = [acc[0].x, acc[1].x, acc[2].x];
+                    // dv[i][j] = D_j v_i
+                    let dv: [[f32; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| acc[j][1 + i]));
+                    cube_energy(problem, c, centre.x, [centre.y, centre.z, centre.w], du, dv)
+                }));
+                terms
+            })
+            .collect();
+        per_cube.iter().sum()
+    }
+
+    /// Cube `c`'s differences along each axis, `(D_axis u, D_axis v0, D_axis v1, D_axis v2)`,
+    /// at the iterate `state` whose value at `c` is `centre`.
+    #[inline(always)]
+    pub(super) fn differences(&self, state: &Packed, c: usize, centre: Vec4) -> [Vec4; 3] {
         let n = self.n;
         let value = |index: u32| {
             let index = index as usize;
@@ -208,30 +244,18 @@ impl Kernel {
                 self.frozen.get(index - n).copied()
             }
         };
-        let per_cube: Vec<f64> = (0..n)
-            .into_par_iter()
-            .map(|c| {
-                let centre = state.uv.get(c).copied().unwrap_or(Vec4::ZERO);
-                // acc[axis] = (D_axis u, D_axis v0, D_axis v1, D_axis v2)
-                let acc: [Vec4; 3] = std::array::from_fn(|axis| {
-                    let row = 3 * c + axis;
-                    let from = self.row_start.get(row).copied().unwrap_or(0) as usize;
-                    let to = self.row_start.get(row + 1).copied().unwrap_or(0) as usize;
-                    self.row_terms
-                        .get(from..to)
-                        .unwrap_or(&[])
-                        .iter()
-                        .fold(Vec4::ZERO, |acc, term| {
-                            acc + term.weight * (value(term.index).unwrap_or(centre) - centre)
-                        })
-                });
-                let du = [acc[0].x, acc[1].x, acc[2].x];
-                // dv[i][j] = D_j v_i
-                let dv: [[f32; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| acc[j][1 + i]));
-                cube_energy(problem, c, centre.x, [centre.y, centre.z, centre.w], du, dv)
-            })
-            .collect();
-        per_cube.iter().sum()
+        std::array::from_fn(|axis| {
+            let row = 3 * c + axis;
+            let from = self.row_start.get(row).copied().unwrap_or(0) as usize;
+            let to = self.row_start.get(row + 1).copied().unwrap_or(0) as usize;
+            self.row_terms
+                .get(from..to)
+                .unwrap_or(&[])
+                .iter()
+                .fold(Vec4::ZERO, |acc, term| {
+                    acc + term.weight * (value(term.index).unwrap_or(centre) - centre)
+                })
+        })
     }
 
     /// The gather terms from row (or column) `first` on; a chunk walks them with a cursor.

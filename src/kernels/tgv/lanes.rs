@@ -179,6 +179,48 @@ fn prox_slopes_lanes(u_tilde: Vec4, tau_lambda: Vec4, slopes: &SlopeLanes) -> Ve
     Vec4::select(sum.cmpgt(high), high, sum)
 }
 
+/// [`cube_energy`] of the [`LANES`] cubes from `first` on, with cubes as lanes: `centres` are
+/// their packed `(u, v0, v1, v2)` and `differences[cube][axis]` their `(D_axis u, D_axis v0,
+/// D_axis v1, D_axis v2)`. Each lane sees [`cube_energy`]'s float operations in its order (its
+/// sums start from -0, as `f32`'s `Sum` does), so each term has the same bits.
+#[inline(always)]
+pub(super) fn energy_lanes(
+    problem: &Problem,
+    first: usize,
+    centres: &[Vec4; LANES],
+    differences: &[[Vec4; 3]; LANES],
+) -> [f64; LANES] {
+    let column =
+        |values: &[f32]| Vec4::from_array(std::array::from_fn(|i| values.get(first + i).copied().unwrap_or(0.0)));
+    let (w1, w0) = (column(&problem.alpha1), column(&problem.alpha0));
+    // d[axis] = [D_axis u, D_axis v0, D_axis v1, D_axis v2], each over the 4 cubes.
+    let d: [[Vec4; 4]; 3] = std::array::from_fn(|axis| transpose(differences.map(|a| a[axis])));
+    let [u, v0, v1, v2] = transpose(*centres);
+    let v = [v0, v1, v2];
+    let g: [Vec4; 3] = std::array::from_fn(|axis| w1 * (d[axis][0] - v[axis]));
+    // dv(i, j) = D_j v_i
+    let dv = |i: usize, j: usize| d[j][i + 1];
+    let e = [
+        dv(0, 0),
+        dv(1, 1),
+        dv(2, 2),
+        SQRT_HALF * (dv(0, 1) + dv(1, 0)),
+        SQRT_HALF * (dv(0, 2) + dv(2, 0)),
+        SQRT_HALF * (dv(1, 2) + dv(2, 1)),
+    ]
+    .map(|x| w0 * x);
+    let squares = |x: &[Vec4]| x.iter().fold(Vec4::splat(-0.0), |sum, x| sum + *x * *x);
+    let tv = squares(&g).map(f32::sqrt);
+    let tgv = squares(&e).map(f32::sqrt);
+    let hist: [[f32; BINS]; LANES] = std::array::from_fn(|i| problem.hist.get(first + i).copied().unwrap_or_default());
+    let data = (0..BINS).fold(Vec4::splat(-0.0), |sum, b| {
+        let h = Vec4::from_array(hist.map(|h| h.get(b).copied().unwrap_or(0.0)));
+        sum + h * (u - Vec4::splat(bin_center(b))).abs()
+    });
+    let data = problem.lambda * data;
+    std::array::from_fn(|i| f64::from(tv[i]) + f64::from(tgv[i]) + f64::from(data[i]))
+}
+
 /// [`DualConstants`] of a group of [`LANES`] cubes in lane layout: each field's 4 vectors are
 /// the transpose of the 4 cubes' values, so `sigma_p[axis]` holds that axis's sigma_p of all 4
 /// cubes and `sigma_p[3]` their alpha1. Same size and alignment as `[DualConstants; LANES]`,

@@ -411,3 +411,46 @@ fn the_kernel_energy_is_the_reference_energy_to_the_bit() {
         assert!(reference > 0.0);
     }
 }
+
+#[test]
+fn energy_terms_in_lanes_are_the_per_cube_terms_to_the_bit() {
+    // Every group of an irregular problem's iterate, with signed zeros in u and v and
+    // histograms with empty and full bins: each lane's term is `cube_energy`'s.
+    let n = 4 * 61;
+    let mut problem = irregular_problem(n);
+    for (c, hist) in problem.hist.iter_mut().enumerate() {
+        *hist = std::array::from_fn(|b| {
+            if (c + b) % 3 == 0 {
+                0.0
+            } else {
+                ((c * 7 + b) % 5) as f32 * 0.5
+            }
+        });
+    }
+    let op = Operator::new(&problem);
+    let mut kernel = Kernel::new(&op).expect("short gather lists");
+    let mut state = State::zeros(n);
+    state
+        .u
+        .iter_mut()
+        .enumerate()
+        .for_each(|(i, u)| *u = if i % 5 == 0 { -0.0 } else { (i as f32 * 0.31).cos() });
+    let mut packed = Packed::of(&state);
+    kernel.iterate(&mut packed, 3);
+    for (i, uv) in packed.uv.iter_mut().enumerate().filter(|(i, _)| i % 7 == 0) {
+        uv.y = if i % 2 == 0 { -0.0 } else { 0.0 };
+    }
+    for first in (0..n).step_by(LANES) {
+        let centres: [Vec4; LANES] = std::array::from_fn(|i| packed.uv[first + i]);
+        let differences = std::array::from_fn(|i| kernel.differences(&packed, first + i, centres[i]));
+        let lanes = energy_lanes(&problem, first, &centres, &differences);
+        for (i, term) in lanes.iter().enumerate() {
+            let acc = differences[i];
+            let du = [acc[0].x, acc[1].x, acc[2].x];
+            let dv: [[f32; 3]; 3] = std::array::from_fn(|a| std::array::from_fn(|j| acc[j][1 + a]));
+            let centre = centres[i];
+            let one = cube_energy(&problem, first + i, centre.x, [centre.y, centre.z, centre.w], du, dv);
+            assert_eq!(term.to_bits(), one.to_bits(), "cube {}: {term} vs {one}", first + i);
+        }
+    }
+}
