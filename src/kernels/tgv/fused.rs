@@ -219,11 +219,7 @@ impl Kernel {
                 }
                 terms.extend((first + groups * LANES..end).map(|c| {
                     let centre = state.uv.get(c).copied().unwrap_or(Vec4::ZERO);
-                    let acc = self.differences(state, c, centre);
-                    let du = [acc[0].x, acc[1].x, acc[2].x];
-                    // dv[i][j] = D_j v_i
-                    let dv: [[f32; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| acc[j][1 + i]));
-                    cube_energy(problem, c, centre.x, [centre.y, centre.z, centre.w], du, dv)
+                    packed_cube_energy(problem, c, centre, self.differences(state, c, centre))
                 }));
                 terms
             })
@@ -466,6 +462,15 @@ impl crate::sys::WideWork for PrimalChunk<'_> {
             );
         }
     }
+}
+
+/// [`cube_energy`] of cube `c` from its packed `(u, v0, v1, v2)` and its `differences` (per
+/// axis, `(D_axis u, D_axis v0, D_axis v1, D_axis v2)`, as [`Kernel::differences`] gives them).
+pub(super) fn packed_cube_energy(problem: &Problem, c: usize, centre: Vec4, differences: [Vec4; 3]) -> f64 {
+    let du = differences.map(|d| d.x);
+    // dv[i][j] = D_j v_i
+    let dv: [[f32; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| differences[j][1 + i]));
+    cube_energy(problem, c, centre.x, [centre.y, centre.z, centre.w], du, dv)
 }
 
 /// Dual step of one cube from the extrapolated primal `bar`: p and q move along K and are

@@ -445,11 +445,7 @@ fn energy_terms_in_lanes_are_the_per_cube_terms_to_the_bit() {
         let differences = std::array::from_fn(|i| kernel.differences(&packed, first + i, centres[i]));
         let lanes = energy_lanes(&problem, first, &centres, &differences);
         for (i, term) in lanes.iter().enumerate() {
-            let acc = differences[i];
-            let du = [acc[0].x, acc[1].x, acc[2].x];
-            let dv: [[f32; 3]; 3] = std::array::from_fn(|a| std::array::from_fn(|j| acc[j][1 + a]));
-            let centre = centres[i];
-            let one = cube_energy(&problem, first + i, centre.x, [centre.y, centre.z, centre.w], du, dv);
+            let one = packed_cube_energy(&problem, first + i, centres[i], differences[i]);
             assert_eq!(term.to_bits(), one.to_bits(), "cube {}: {term} vs {one}", first + i);
         }
     }

@@ -201,7 +201,7 @@ struct Neighbourhood<'a, 's> {
     key_cursors: BTreeMap<usize, usize>,
     /// Previous-level values by group id, with where the last lookup in them ended (the cut's
     /// sources ascend likewise).
-    values: BTreeMap<u64, (Arc<LevelValues>, usize)>,
+    values: BTreeMap<u64, (LevelValues, usize)>,
     /// The cubes whose previous-level values or octree nodes are asked for (the units' own
     /// and those across their faces, and their ancestors) all meet this box: the blocks of a
     /// neighbour's segment behind the shared face are not decoded.
@@ -303,10 +303,10 @@ impl Neighbourhood<'_, '_> {
             return Ok(None);
         };
         if !self.values.contains_key(&group) {
-            let loaded = Arc::new(read_level_values_where(self.base, name, Some(&self.window))?);
+            let loaded = read_level_values_where(self.base, name, Some(&self.window))?;
             self.values.insert(group, (loaded, 0));
         }
-        // Borrowed, not cloned: two atomic counts per cut cube were a tenth of this lookup.
+        // Searched from where the last lookup in this group ended: the cut asks in ascending order.
         let Some((values, cursor)) = self.values.get_mut(&group) else {
             return Ok(None);
         };
