@@ -596,13 +596,14 @@ fn frames_without_their_own_intrinsics_take_them_from_intrinsics_file() {
     );
 }
 
-/// RGB-D frames take the structured-light noise model by default: their samples' cubes are
-/// never smaller than one sigma of the sensor's depth noise, so two RedKitchen frames make
-/// fewer cubes than with the pixel footprint alone (`--depth-noise none`), and fewer still at
-/// two sigmas. The model is recorded with each map; the CLI's numbers equal to the default give
-/// the same store; malformed models are refused with what is expected.
+/// RGB-D frames measure their noise by default: the Kinect's depths are a staircase of
+/// disparity steps (quantized), so the measured model spans two sigmas, and on RedKitchen it
+/// makes as many cubes as the Kinect table at one sigma (within a tenth), fewer than the pixel
+/// footprint alone (`--depth-noise none`). The tables stay as choices (`kinect`, fewer cubes
+/// still at two sigmas); every model is recorded with its map; the CLI's numbers equal to the
+/// table give the same store; malformed models are refused with what is expected.
 #[test]
-fn rgbd_frames_take_the_sensor_noise_model_unless_told_otherwise() {
+fn rgbd_frames_measure_their_noise_unless_told_otherwise() {
     let root = tempfile::tempdir().unwrap();
     let (a, b) = (frame(0), frame(500));
     let ingest = |store: &str, extra: &[&str]| {
@@ -625,39 +626,60 @@ fn rgbd_frames_take_the_sensor_noise_model_unless_told_otherwise() {
             serde_json::from_str(&stdout(&octstore(&["info", path.to_str().unwrap(), "--json"], &[]))).unwrap();
         info["digest"].clone()
     };
+    let kinect = octstore::inputs::DepthNoise::STRUCTURED_LIGHT;
     let mut cubes = Vec::new();
     let mut paths = Vec::new();
     for (store, extra, noise) in [
         (
             "none",
             &["--depth-noise", "none"][..],
-            octstore::inputs::DepthNoise::Footprint,
+            Some(octstore::inputs::DepthNoise::Footprint),
         ),
-        ("default", &[][..], octstore::inputs::DepthNoise::STRUCTURED_LIGHT),
+        ("default", &[][..], None),
+        ("kinect", &["--depth-noise", "kinect"][..], Some(kinect)),
         (
             "two",
-            &["--noise-sigmas", "2"][..],
-            octstore::inputs::DepthNoise::STRUCTURED_LIGHT.with_sigmas(2.0),
+            &["--depth-noise", "kinect", "--noise-sigmas", "2"][..],
+            Some(kinect.with_sigmas(2.0)),
         ),
         (
             "explicit",
             &["--depth-noise", "0.0012,0.0019,0.4", "--noise-sigmas", "1"][..],
-            octstore::inputs::DepthNoise::STRUCTURED_LIGHT,
+            Some(kinect),
         ),
     ] {
         let (path, out) = ingest(store, extra);
         assert!(out.status.success(), "{store}: {}", stderr(&out));
         let (recorded_noise, count) = recorded(&path);
-        assert_eq!(recorded_noise, noise, "{store}");
+        match noise {
+            Some(noise) => assert_eq!(recorded_noise, noise, "{store}"),
+            None => match recorded_noise {
+                octstore::inputs::DepthNoise::Axial {
+                    quadratic,
+                    offset,
+                    sigmas,
+                    ..
+                } => {
+                    assert!(quadratic > 0.0 && offset == 0.0, "{recorded_noise:?}");
+                    assert_eq!(sigmas, octstore::stages::ingest::noise::QUANTIZED_SIGMAS);
+                }
+                other => panic!("the default recorded {other:?}"),
+            },
+        }
         cubes.push(count);
         paths.push(path);
     }
+    let (none, measured, table, two) = (cubes[0], cubes[1], cubes[2], cubes[3]);
     assert!(
-        cubes[0] > cubes[1] * 5 / 4 && cubes[1] > cubes[2] * 11 / 10,
-        "cubes with none, 1 and 2 sigmas: {cubes:?}"
+        none > table * 5 / 4 && table > two * 11 / 10,
+        "cubes with none, the table at 1 and 2 sigmas: {cubes:?}"
     );
-    assert_eq!(cubes[1], cubes[3]);
-    assert_eq!(digest(&paths[1]), digest(&paths[3]));
+    assert!(
+        measured.abs_diff(table) * 10 <= table,
+        "measured against the table: {cubes:?}"
+    );
+    assert_eq!(cubes[2], cubes[4]);
+    assert_eq!(digest(&paths[2]), digest(&paths[4]));
 
     for (extra, expected) in [
         (&["--depth-noise", "1,2"][..], "1 number (sigma) or 3"),

@@ -584,10 +584,23 @@ fn manifest_entries_name_their_depth_noise() {
         sigmas,
         footprints: octstore::inputs::DEFAULT_NOISE_FOOTPRINTS,
     };
-    assert_eq!(read(serde_json::json!({})).unwrap(), DepthNoise::STRUCTURED_LIGHT);
+    // Every kind measures its noise by default; the tables are there by name.
+    assert_eq!(read(serde_json::json!({})).unwrap(), DepthNoise::Auto { sigmas: None });
     assert_eq!(
         read(serde_json::json!({"kind": "photo"})).unwrap(),
-        DepthNoise::Footprint
+        DepthNoise::Auto { sigmas: None }
+    );
+    assert_eq!(
+        read(serde_json::json!({"depth_noise": "kinect"})).unwrap(),
+        DepthNoise::STRUCTURED_LIGHT
+    );
+    assert_eq!(
+        read(serde_json::json!({"depth_noise": "lidar", "noise_sigmas": 2.0})).unwrap(),
+        DepthNoise::TERRESTRIAL_LIDAR.with_sigmas(2.0)
+    );
+    assert_eq!(
+        read(serde_json::json!({"depth_noise": "auto", "noise_sigmas": 0.5})).unwrap(),
+        DepthNoise::Auto { sigmas: Some(0.5) }
     );
     assert_eq!(
         read(serde_json::json!({"depth_noise": "none"})).unwrap(),
@@ -603,7 +616,7 @@ fn manifest_entries_name_their_depth_noise() {
     );
     assert_eq!(
         read(serde_json::json!({"noise_sigmas": 3.0})).unwrap(),
-        DepthNoise::STRUCTURED_LIGHT.with_sigmas(3.0)
+        DepthNoise::Auto { sigmas: Some(3.0) }
     );
     for (bad, expected) in [
         (serde_json::json!({"depth_noise": "loud"}), "unknown depth_noise 'loud'"),

@@ -16,6 +16,7 @@ fn an_interior_capture_gives_the_room_not_a_box_around_it() {
     let dir = tempfile::tempdir().unwrap();
     let truth = GroundTruth::new(interior_room(), None).unwrap();
     let rig = Rig {
+        far: None,
         views: 24,
         layout: Layout::Interior,
         distance: 0.08,

@@ -20,6 +20,7 @@ fn bunny() -> octstore::Mesh {
 /// noise and 10 % outlier pixels.
 fn quality_bar_capture() -> (Rig, NoiseModel) {
     let rig = Rig {
+        far: None,
         views: 24,
         layout: Layout::Sphere,
         distance: 0.9,
@@ -112,6 +113,7 @@ fn noisy_bunny_reaches_f_score_0_9_at_one_percent() {
 #[test]
 fn bunny_with_a_fifth_of_its_pixels_wild_keeps_its_shape() {
     let rig = Rig {
+        far: None,
         views: 24,
         layout: Layout::Sphere,
         distance: 1.2,

@@ -492,7 +492,11 @@ fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
     use octstore::store::catalog::{self, META, UNIT_STATE};
     use redb::ReadableTable;
     let root = tempfile::tempdir().unwrap();
-    let (all, fixed) = sphere_maps(root.path(), 6);
+    let (mut all, fixed) = sphere_maps(root.path(), 6);
+    // Maps of the footprint rule, as every map of a catalog before version 3 was.
+    for map in &mut all {
+        map.noise = octstore::inputs::DepthNoise::Footprint;
+    }
     let path = root.path().join("store");
     let store = Store::create(&path).unwrap();
     let mut sets_after = Vec::new();

@@ -31,6 +31,17 @@ struct Args {
     /// the circle the cameras walk; default 0.08).
     #[arg(long)]
     distance: Option<f64>,
+    /// The farthest camera distance, in diagonals: views stand between `--distance` and this
+    /// (sphere and ring layouts).
+    #[arg(long)]
+    far: Option<f64>,
+    /// Scale the mesh (and so the whole scene) by this factor first.
+    #[arg(long, default_value_t = 1.0)]
+    scale: f64,
+    /// Write a 7-Scenes folder (16-bit PNG depths in thousandths of a unit, pose files,
+    /// camera-intrinsics.txt) instead of PFM files and a manifest.
+    #[arg(long)]
+    seven_scenes: bool,
     #[arg(long, default_value_t = 320)]
     width: u32,
     #[arg(long, default_value_t = 240)]
@@ -66,7 +77,13 @@ fn main() -> ExitCode {
         let distance = args.distance.unwrap_or(if interior { 0.08 } else { 1.2 });
         let truth = match (&args.mesh, interior) {
             (Some(path), false) => {
-                let mesh = read_mesh(path)?;
+                let mut mesh = read_mesh(path)?;
+                if !(args.scale.is_finite() && args.scale > 0.0) {
+                    return Err(format!("--scale {} must be a positive number", args.scale).into());
+                }
+                for p in &mut mesh.positions {
+                    *p = p.map(|c| (f64::from(c) * args.scale) as f32);
+                }
                 GroundTruth::new(mesh, (args.room > 0.0).then_some(args.room))
                     .map_err(|e| format!("{}: {e}", path.display()))?
             }
@@ -91,6 +108,7 @@ fn main() -> ExitCode {
             views: args.views,
             layout,
             distance,
+            far: args.far,
             width: args.width,
             height: args.height,
             fov_degrees: args.fov,
@@ -102,9 +120,12 @@ fn main() -> ExitCode {
             missing_radius: args.missing_radius,
             seed: args.seed,
         };
-        let manifest = truth
-            .write_dataset(&rig, &noise, &args.out)
-            .map_err(|e| format!("{}: {e}", args.out.display()))?;
+        let written = if args.seven_scenes {
+            truth.write_seven_scenes(&rig, &noise, &args.out)
+        } else {
+            truth.write_dataset(&rig, &noise, &args.out)
+        };
+        let manifest = written.map_err(|e| format!("{}: {e}", args.out.display()))?;
         let seen: String = truth
             .seen_faces(&rig)
             .iter()

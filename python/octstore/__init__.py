@@ -232,7 +232,8 @@ def ingest_arrays(
     `depth` is (H, W) or (N, H, W) float (metres; 0, NaN or negative marks a missing pixel),
     `K` the pinhole intrinsics (3, 3) or (N, 3, 3) in pixels with OpenCV axes, and
     `camera_to_world` the pose (4, 4) or (N, 4, 4). `kind` is 'rgbd', 'photo' or 'lidar' (it
-    picks the vote weight and depth-noise model). The maps are saved in the store's
+    picks the vote weight; the depth noise is measured from the maps unless ``depth_noise``
+    says otherwise). The maps are saved in the store's
     `arrays/` folder, named by their content (later stages read them again; the same map
     twice is ingested once), and ingested with `ingest`'s keywords."""
     depth = np.asarray(depth)

@@ -186,10 +186,11 @@ pub struct IngestArgs {
     /// without a camera-intrinsics.txt beside them; it replaces theirs where they have one.
     #[arg(long, value_name = "FILE")]
     pub intrinsics: Option<PathBuf>,
-    /// Depth noise of every map given, in place of its sensor's default (README, "Cube
-    /// sizes"): `none` (cubes follow the pixel footprint alone, as for photogrammetry), a
-    /// sigma, or `constant,quadratic,offset` for sigma(d) = constant + quadratic (d - offset)^2,
-    /// in scene units. Default: RGB-D 0.0012,0.0019,0.4 (metres), LIDAR 0.002, photo none.
+    /// Depth noise of every map given (README, "Cube sizes"): `auto` (the default: measured
+    /// from each map's own pixels, in its own units), `none` (cubes follow the pixel footprint
+    /// alone), `kinect` (0.0012,0.0019,0.4, metres), `lidar` (0.002, metres), a sigma, or
+    /// `constant,quadratic,offset` for sigma(d) = constant + quadratic (d - offset)^2, in scene
+    /// units.
     #[arg(long, value_name = "MODEL", value_parser = parse_depth_noise)]
     pub depth_noise: Option<crate::inputs::DepthNoise>,
     /// A sample's radius spans at least this many standard deviations of its depth noise
@@ -346,10 +347,16 @@ pub struct ExtractArgs {
     /// Mesh the whole zero set of u, closed at the root cube, instead of only the surface
     /// between cubes that depth maps saw. Without it (the default) an indoor capture gives the
     /// room's inside with open borders where the cameras stopped, and nothing is invented
-    /// behind walls or under furniture; use it for an object seen from all around when a
-    /// watertight mesh matters more than honest borders (hidden parts are then filled in).
-    #[arg(long)]
+    /// behind walls or under furniture, while an object seen from all around against empty
+    /// background (invalid pixels) comes out closed, its background voting free space around
+    /// it. Use it when a watertight mesh matters more than honest borders (hidden parts are
+    /// then filled in).
+    #[arg(long, conflicts_with = "open")]
     pub closed: bool,
+    /// Only the observed surface, with open borders where the cameras stopped: what the
+    /// default gives, stated explicitly.
+    #[arg(long)]
+    pub open: bool,
 }
 
 /// Arguments of `octstore divide`.

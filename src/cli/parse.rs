@@ -19,13 +19,15 @@ fn numbers(text: &str) -> Result<Vec<f64>, ArgumentError> {
         .collect()
 }
 
-/// `none`, a sigma, or `constant,quadratic,offset` (`DepthNoise::from_numbers`), spanning
-/// the default number of standard deviations.
+/// `auto`, `none`, `kinect`, `lidar`, a sigma, or `constant,quadratic,offset`
+/// (`DepthNoise::named`, `DepthNoise::from_numbers`), spanning the default number of standard
+/// deviations.
 pub(crate) fn parse_depth_noise(text: &str) -> Result<crate::inputs::DepthNoise, ArgumentError> {
-    let numbers = match text.trim() {
-        "none" => Vec::new(),
-        other => numbers(other)?,
-    };
+    let text = text.trim();
+    if let Some(noise) = crate::inputs::DepthNoise::named(text, None) {
+        return Ok(noise);
+    }
+    let numbers = numbers(text)?;
     crate::inputs::DepthNoise::from_numbers(&numbers, crate::inputs::DEFAULT_NOISE_SIGMAS).map_err(ArgumentError)
 }
 

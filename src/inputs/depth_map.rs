@@ -91,14 +91,11 @@ impl Kind {
         }
     }
 
-    /// Default depth noise: photogrammetry's depth error follows the pixel footprint already;
-    /// an RGB-D sensor's grows with the square of depth; a LIDAR's range noise is constant.
+    /// Default depth noise, whatever the kind: measured from each map's pixels when it is
+    /// ingested ([`DepthNoise::Auto`]). A kind says nothing of the sensor's noise at the
+    /// scene's scale and units; the sensor tables stay as explicit choices.
     pub fn default_noise(self) -> DepthNoise {
-        match self {
-            Kind::Photo => DepthNoise::Footprint,
-            Kind::Rgbd => DepthNoise::STRUCTURED_LIGHT,
-            Kind::Lidar => DepthNoise::TERRESTRIAL_LIDAR,
-        }
+        DepthNoise::Auto { sigmas: None }
     }
 }
 
@@ -141,10 +138,25 @@ pub enum DepthNoise {
         /// ... but that floor is at most this many times its footprint radius.
         footprints: f64,
     },
+    /// Measured from the map's own pixels at ingest (`stages::ingest::noise`), which records
+    /// the measured [`Axial`](Self::Axial) model (or [`Footprint`](Self::Footprint)) in its
+    /// place: a registered map never holds `Auto`.
+    Auto {
+        /// The measured model spans this many standard deviations; by default as many as the
+        /// kind of error measured needs (`stages::ingest::noise`).
+        sigmas: Option<f64>,
+    },
 }
 
 impl std::fmt::Display for DepthNoise {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            DepthNoise::Auto { sigmas: Some(sigmas) } => {
+                return write!(f, "auto (measured from the pixels, {sigmas} sigma)");
+            }
+            DepthNoise::Auto { sigmas: None } => return write!(f, "auto (measured from the pixels)"),
+            _ => {}
+        }
         match self.parts() {
             None => write!(f, "none (pixel footprint)"),
             Some([constant, 0.0, _, sigmas, footprints]) => {
@@ -182,7 +194,7 @@ impl DepthNoise {
     /// [constant, quadratic, offset, sigmas, footprints] of an axial model.
     fn parts(&self) -> Option<[f64; 5]> {
         match *self {
-            DepthNoise::Footprint => None,
+            DepthNoise::Footprint | DepthNoise::Auto { .. } => None,
             DepthNoise::Axial {
                 constant,
                 quadratic,
@@ -212,6 +224,9 @@ impl DepthNoise {
 
     /// The same model spanning `sigmas` standard deviations (no change to [`Footprint`](Self::Footprint)).
     pub fn with_sigmas(self, sigmas: f64) -> DepthNoise {
+        if let DepthNoise::Auto { .. } = self {
+            return DepthNoise::Auto { sigmas: Some(sigmas) };
+        }
         match self.parts() {
             None => DepthNoise::Footprint,
             Some([constant, quadratic, offset, _, footprints]) => {
@@ -244,8 +259,25 @@ impl DepthNoise {
         Ok(noise)
     }
 
+    /// A model by name: `auto`, `none`, `kinect` ([`STRUCTURED_LIGHT`](Self::STRUCTURED_LIGHT))
+    /// or `lidar` ([`TERRESTRIAL_LIDAR`](Self::TERRESTRIAL_LIDAR)), spanning `sigmas` (the
+    /// tables' default [`DEFAULT_NOISE_SIGMAS`] and auto's own choice when `None`).
+    pub fn named(name: &str, sigmas: Option<f64>) -> Option<DepthNoise> {
+        let table = |model: DepthNoise| model.with_sigmas(sigmas.unwrap_or(DEFAULT_NOISE_SIGMAS));
+        match name {
+            "auto" => Some(DepthNoise::Auto { sigmas }),
+            "none" => Some(DepthNoise::Footprint),
+            "kinect" => Some(table(DepthNoise::STRUCTURED_LIGHT)),
+            "lidar" => Some(table(DepthNoise::TERRESTRIAL_LIDAR)),
+            _ => None,
+        }
+    }
+
     /// Whether every number is finite and none negative.
     pub fn is_valid(&self) -> bool {
+        if let DepthNoise::Auto { sigmas } = self {
+            return sigmas.is_none_or(|sigmas| sigmas.is_finite() && sigmas >= 0.0);
+        }
         self.parts()
             .is_none_or(|parts| parts.iter().all(|v| v.is_finite() && *v >= 0.0))
     }

@@ -485,11 +485,15 @@ fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
             }
             let sigmas = entry.noise_sigmas.unwrap_or(DEFAULT_NOISE_SIGMAS);
             let noise = match &entry.depth_noise {
-                None => Ok(kind.default_noise().with_sigmas(sigmas)),
-                Some(ManifestNoise::Named(name)) if name == "none" => Ok(DepthNoise::Footprint),
-                Some(ManifestNoise::Named(other)) => {
-                    Err(format!("unknown depth_noise '{other}' (\"none\", a number, or three)"))
-                }
+                None => Ok(match entry.noise_sigmas {
+                    Some(sigmas) => kind.default_noise().with_sigmas(sigmas),
+                    None => kind.default_noise(),
+                }),
+                Some(ManifestNoise::Named(name)) => DepthNoise::named(name, entry.noise_sigmas).ok_or_else(|| {
+                    format!(
+                        "unknown depth_noise '{name}' (\"auto\", \"none\", \"kinect\", \"lidar\", a number, or three)"
+                    )
+                }),
                 Some(ManifestNoise::Sigma(sigma)) => DepthNoise::from_numbers(&[*sigma], sigmas),
                 Some(ManifestNoise::Numbers(numbers)) => DepthNoise::from_numbers(numbers, sigmas),
             }

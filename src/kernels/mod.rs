@@ -4,6 +4,7 @@
 //! inputs ([`random`]). The GPU engine (`gpu`) runs twins of `tgv` and `votes` and tests
 //! against them; stages call them on what they read from the store.
 
+pub mod background;
 pub mod halving;
 pub mod occlusion;
 pub mod random;

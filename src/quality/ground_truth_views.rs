@@ -34,6 +34,10 @@ pub struct Rig {
     pub layout: Layout,
     /// Camera distance from the centre, in bounding-box diagonals.
     pub distance: f64,
+    /// The farthest camera distance (ring and sphere): view i stands at a distance between
+    /// `distance` and this, spread evenly over the views in a scrambled order (golden-ratio
+    /// steps), so near and far views both see every side. `None`: all at `distance`.
+    pub far: Option<f64>,
     pub width: u32,
     pub height: u32,
     /// Horizontal field of view in degrees.
@@ -106,7 +110,11 @@ impl GroundTruth {
                         DVec3::new(r * angle.cos(), r * angle.sin(), z.clamp(-0.95, 0.95)).normalize()
                     }
                 };
-                look_at(self.center + direction * rig.distance * self.diagonal, self.center)
+                let distance = match rig.far {
+                    Some(far) => rig.distance + (far - rig.distance) * (i as f64 * 0.618_033_988_749_895).fract(),
+                    None => rig.distance,
+                };
+                look_at(self.center + direction * distance * self.diagonal, self.center)
             })
             .collect()
     }
@@ -263,6 +271,49 @@ impl GroundTruth {
             .map(|(index, pose)| (self.render(rig, pose, index, noise), *pose));
         write_pinhole_views(dir, views, self.focal(rig))
     }
+
+    /// Renders every view into `dir` as a 7-Scenes folder (`frame-XXXXXX.depth.png` in
+    /// thousandths of a scene unit, 0 where nothing is seen; `frame-XXXXXX.pose.txt`;
+    /// `camera-intrinsics.txt`), the layout an RGB-D capture comes in. Depths past 65.534 units
+    /// cannot be written and are refused.
+    pub fn write_seven_scenes(&self, rig: &Rig, noise: &NoiseModel, dir: &Path) -> std::io::Result<PathBuf> {
+        std::fs::create_dir_all(dir)?;
+        let f = self.focal(rig);
+        let (cx, cy) = (f64::from(rig.width) * 0.5, f64::from(rig.height) * 0.5);
+        std::fs::write(
+            dir.join("camera-intrinsics.txt"),
+            format!("{f} 0 {cx}\n0 {f} {cy}\n0 0 1\n"),
+        )?;
+        for (index, pose) in self.poses(rig).iter().enumerate() {
+            let image = self.render(rig, pose, index, noise);
+            let mut pixels = Vec::with_capacity(image.depth.len());
+            for d in &image.depth {
+                let millis = if d.is_finite() && *d > 0.0 {
+                    (f64::from(*d) * 1000.0).round()
+                } else {
+                    0.0
+                };
+                if millis >= 65535.0 {
+                    return Err(std::io::Error::other(format!(
+                        "view {index}: depth {d} is past a 16-bit PNG's 65.534 units"
+                    )));
+                }
+                pixels.push(millis as u16);
+            }
+            let png = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(image.width, image.height, pixels)
+                .ok_or_else(|| std::io::Error::other("image size"))?;
+            png.save(dir.join(format!("frame-{index:06}.depth.png")))
+                .map_err(std::io::Error::other)?;
+            let rows: String = (0..4)
+                .map(|r| {
+                    let row = pose.row(r);
+                    format!("{} {} {} {}\n", row.x, row.y, row.z, row.w)
+                })
+                .collect();
+            std::fs::write(dir.join(format!("frame-{index:06}.pose.txt")), rows)?;
+        }
+        Ok(dir.to_path_buf())
+    }
 }
 
 /// Axis-aligned bounds of the vertices that triangles use.
@@ -312,6 +363,7 @@ mod tests {
             views: 6,
             layout: Layout::Sphere,
             distance: 1.5,
+            far: None,
             width: 64,
             height: 48,
             fov_degrees: 50.0,
@@ -349,6 +401,7 @@ mod tests {
             views: 2,
             layout: Layout::Ring,
             distance: 1.5,
+            far: None,
             width: 100,
             height: 80,
             fov_degrees: 50.0,

@@ -4,6 +4,9 @@ Poisson on the same depth maps. Run through tools/bench/run.sh, which sets up th
 environment and builds octstore; this script writes BENCHMARKS.md and PNG plots.
 
 Sections:
+  objects      the bunny and the dragon seen from all around in empty space (background pixels 0)
+               at two scales, clean and noisy: octstore with no flags against TSDF at its best
+               voxel and truncation and Poisson with outlier removal
   groundtruth  the bunny and the dragon rendered by octstore-gt-render at several noise and
                outlier levels; accuracy, completeness, Chamfer and F-score from octstore-evaluate
   redkitchen   RedKitchen subsets: wall time, CPU time, peak RSS and output size for octstore and
@@ -104,7 +107,24 @@ def read_redkitchen(frames):
 # The other tools (run in a child process: `bench.py worker METHOD ...`)
 
 
-def tsdf(views, voxel, depth_max, out):
+def read_seven_scenes(folder):
+    """(depth in scene units with 0 for missing, K 3x3, camera-to-world 4x4) per frame of a
+    7-Scenes folder (16-bit PNG depths in thousandths of a unit)."""
+    import numpy as np
+    import open3d as o3d
+
+    folder = Path(folder)
+    intrinsic = np.loadtxt(folder / "camera-intrinsics.txt")
+    views = []
+    for png in sorted(folder.glob("frame-*.depth.png")):
+        depth = np.asarray(o3d.io.read_image(str(png))).astype(np.float32)
+        depth[depth >= 65535] = 0
+        pose = np.loadtxt(str(png).replace(".depth.png", ".pose.txt"))
+        views.append((depth / 1000.0, intrinsic, pose))
+    return views
+
+
+def tsdf(views, voxel, depth_max, out, truncation=8.0):
     import numpy as np
     import open3d as o3d
     import open3d.core as o3c
@@ -124,7 +144,7 @@ def tsdf(views, voxel, depth_max, out):
         k = o3c.Tensor(intrinsic, o3c.float64)
         extrinsic = o3c.Tensor(np.linalg.inv(pose), o3c.float64)
         blocks = grid.compute_unique_block_coordinates(image, k, extrinsic, 1.0, depth_max)
-        grid.integrate(blocks, image, k, extrinsic, 1.0, depth_max)
+        grid.integrate(blocks, image, k, extrinsic, 1.0, depth_max, truncation)
     mesh = grid.extract_triangle_mesh().to_legacy()
     o3d.io.write_triangle_mesh(str(out), mesh)
 
@@ -151,11 +171,15 @@ def back_project(views, step):
     return clouds
 
 
-def poisson(views, depth_level, out):
+def poisson(views, depth_level, out, remove_outliers=False):
     import numpy as np
     import open3d as o3d
 
     cloud = back_project(views, 2)
+    if remove_outliers:
+        # Open3D's statistical outlier removal: points whose mean distance to their 20
+        # neighbours is over 2 deviations above the cloud's.
+        cloud, _ = cloud.remove_statistical_outlier(nb_neighbors=20, std_ratio=2.0)
     mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth_level)
     # The usual trimming of unsupported surface: drop the 2 % least dense vertices.
     densities = np.asarray(densities)
@@ -165,11 +189,16 @@ def poisson(views, depth_level, out):
 
 def worker(argv):
     method, source, out = argv[0], argv[1], Path(argv[2])
-    views = read_manifest(source) if source.endswith(".json") else read_redkitchen(int(source))
+    if source.endswith(".json"):
+        views = read_manifest(source)
+    elif Path(source).is_dir():
+        views = read_seven_scenes(source)
+    else:
+        views = read_redkitchen(int(source))
     if method == "tsdf":
-        tsdf(views, float(argv[3]), float(argv[4]), out)
+        tsdf(views, float(argv[3]), float(argv[4]), out, *(float(a) for a in argv[5:6]))
     elif method == "poisson":
-        poisson(views, int(argv[3]), out)
+        poisson(views, int(argv[3]), out, remove_outliers=argv[4:5] == ["remove-outliers"])
     else:
         raise SystemExit(f"unknown method {method}")
     print(json.dumps({"peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}))
@@ -252,6 +281,104 @@ def evaluate(mesh, truth, extra=()):
 GT_MESHES = {"bunny": SHARED / "meshes" / "bunny00.off", "dragon": SHARED / "meshes" / "dragon_vrip_res3.ply.gz"}
 GT_NOISE = [0.002, 0.01]
 GT_OUTLIERS = [0.0, 0.05, 0.2]
+
+
+# Objects seen from all around in empty space (no room, no ground: background pixels 0), at
+# two scales: 0.3 m seen from 0.6 m in metres (PFM files and a manifest), and 3 units seen from
+# 4 to 8 units in a 7-Scenes folder (16-bit PNG, thousandths of a unit). Clean, and with 0.5 %
+# depth noise plus 10 % outlier pixels. 60 views of 320x240 from a sphere.
+OBJECT_SCALES = {
+    "0.3 m at 0.6 m": {"size": 0.3, "near": 0.6, "far": None, "seven_scenes": False},
+    "3 units at 4-8": {"size": 3.0, "near": 4.0, "far": 8.0, "seven_scenes": True},
+}
+OBJECT_NOISES = [(0.0, 0.0), (0.005, 0.1)]
+# TSDF's best of these voxels (fractions of the diagonal) and truncations (voxels) by F at 1 %.
+OBJECT_TSDF_VOXELS = [0.0025, 0.005, 0.01]
+OBJECT_TSDF_TRUNCATIONS = [4.0, 8.0]
+
+
+def mesh_topology(mesh):
+    """Connected components and boundary edges of a mesh."""
+    import numpy as np
+    import open3d as o3d
+
+    m = o3d.io.read_triangle_mesh(str(mesh))
+    triangles = np.asarray(m.triangles)
+    if len(triangles) == 0:
+        return {"components": 0, "boundary_edges": 0}
+    clusters, _, _ = m.cluster_connected_triangles()
+    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return {"components": int(len(np.unique(np.asarray(clusters)))), "boundary_edges": int((counts == 1).sum())}
+
+
+def objects(work, out_dir):
+    """octstore with no flags at all against TSDF at its best voxel and truncation and screened
+    Poisson with outlier removal, on the bunny and the dragon in empty space (OBJECT_SCALES,
+    OBJECT_NOISES); measured uncropped, with the meshes' components and boundary edges, and a
+    picture of each octstore mesh."""
+    import numpy as np
+    import open3d as o3d
+
+    rows = []
+    for name, source in GT_MESHES.items():
+        original = o3d.io.read_triangle_mesh(str(source)) if not str(source).endswith(".gz") else None
+        if original is None:
+            import gzip
+
+            plain = work / f"{name}.ply"
+            plain.write_bytes(gzip.decompress(Path(source).read_bytes()))
+            original = o3d.io.read_triangle_mesh(str(plain))
+        extent = np.asarray(original.get_max_bound()) - np.asarray(original.get_min_bound())
+        for scale_name, spec in OBJECT_SCALES.items():
+            factor = spec["size"] / extent.max()
+            diagonal = float(np.linalg.norm(extent)) * factor
+            truth = work / f"{name}-{spec['size']}.ply"
+            scaled = o3d.geometry.TriangleMesh(original)
+            scaled.scale(factor, center=(0.0, 0.0, 0.0))
+            o3d.io.write_triangle_mesh(str(truth), scaled)
+            for noise, outliers in OBJECT_NOISES:
+                case = work / f"object-{name}-{spec['size']}-{noise}"
+                views = case / "views"
+                render = [str(BIN / "octstore-gt-render"), str(source), "--out", str(views), "--views", "60",
+                          "--width", "320", "--height", "240", "--room", "0", "--scale", str(factor),
+                          "--distance", str(spec["near"] / diagonal), "--noise", str(noise), "--outliers",
+                          str(outliers)]
+                if spec["far"]:
+                    render += ["--far", str(spec["far"] / diagonal)]
+                if spec["seven_scenes"]:
+                    render += ["--seven-scenes"]
+                subprocess.run(render, check=True, capture_output=True)
+                source_path = views if spec["seven_scenes"] else views / "scene.json"
+                results = {}
+                mesh = case / "octstore.ply"
+                wall, cpu, peak, _ = octstore(case / "store", source_path, [], [], mesh)
+                results["octstore (no flags)"] = (mesh, wall, cpu, peak, {})
+                best = None
+                for fraction in OBJECT_TSDF_VOXELS:
+                    for truncation in OBJECT_TSDF_TRUNCATIONS:
+                        candidate = case / f"tsdf-{fraction}-{truncation}.ply"
+                        measured = run_worker("tsdf", source_path, candidate, fraction * diagonal, 1e6, truncation)
+                        f1 = evaluate(candidate, truth)["f_score"]
+                        if best is None or f1 > best[0]:
+                            best = (f1, candidate, measured, {"voxel": fraction, "truncation": truncation})
+                _, candidate, measured, chosen = best
+                results["tsdf (best voxel)"] = (candidate, *measured, chosen)
+                mesh = case / "poisson.ply"
+                results["poisson (outliers removed)"] = (mesh, *run_worker("poisson", source_path, mesh, 9,
+                                                                            "remove-outliers"), {})
+                for method, (mesh, wall, cpu, peak, extra) in results.items():
+                    row = {"mesh": name, "scale": scale_name, "noise": noise, "outliers": outliers,
+                           "method": method, "wall_s": wall, "cpu_s": cpu, "peak_mb": peak, **extra,
+                           **evaluate(mesh, truth), **mesh_topology(mesh)}
+                    if method.startswith("octstore"):
+                        png = out_dir / f"object-{name}-{spec['size']}-{noise}.png"
+                        subprocess.run([str(BIN / "octstore"), "--quiet", "render", str(mesh), "-o", str(png)],
+                                       check=True, capture_output=True)
+                        row["picture"] = png.name
+                    rows.append(row)
+                    print(json.dumps(row), flush=True)
+    return rows
 
 
 def interior(work, out_dir):
@@ -541,12 +668,14 @@ def redkitchen(work, frames_list, max_depth, out_dir, budget="512MiB", tsdf_voxe
 
 
 # Cube-size rules of RGB-D frames (README, "Cube sizes"): the footprint capped at --max-depth 10
-# (the rule before noise models), and k sigma of the sensor's noise for three k.
+# (the rule before noise models), k sigma of the Kinect table for three k, and the default,
+# the noise measured from each frame.
 CUBE_SIZE_RULES = (
     ("footprint, `--max-depth 10`", ["--depth-noise", "none", "--max-depth", "10"]),
-    ("k = 0.5", ["--noise-sigmas", "0.5"]),
-    ("k = 1 (default)", []),
-    ("k = 2", ["--noise-sigmas", "2"]),
+    ("Kinect table, k = 0.5", ["--depth-noise", "kinect", "--noise-sigmas", "0.5"]),
+    ("Kinect table, k = 1", ["--depth-noise", "kinect"]),
+    ("Kinect table, k = 2", ["--depth-noise", "kinect", "--noise-sigmas", "2"]),
+    ("measured (`auto`, the default)", []),
 )
 
 
@@ -583,7 +712,7 @@ def cube_sizes(work, frames, budget):
     info = json.loads(subprocess.run(
         [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
     ).stdout)
-    rows.append({"frames": frames, "rule": "k = 1, TUM-layout copy", "args": ["--intrinsics", "intrinsics.txt"],
+    rows.append({"frames": frames, "rule": "measured, TUM-layout copy", "args": ["--intrinsics", "intrinsics.txt"],
                  "wall_s": wall, "cpu_s": cpu, "peak_mb": peak, "budget": budget, "cubes": info["cubes"],
                  "finest_m": info["finest_cube_side"], "invented_area": invented_area(mesh, frames, 0.005),
                  "invented_area_3cm": invented_area(mesh, frames, 0.01),
@@ -887,6 +1016,34 @@ def write_markdown(results, out_dir, path):
     lines = ["# Benchmarks", "",
              "Written by `tools/bench/run.sh` (see the README); raw figures in `benchmarks/results-*.json`. "
              f"Machine: {machine()}. Generated {time.strftime('%Y-%m-%d')}.", ""]
+    object_rows = results.get("objects", [])
+    if object_rows:
+        lines += ["## Objects seen from all around in empty space, no flags", "",
+                  "The bunny and the dragon rendered by `octstore-gt-render --room 0` (no room, no ground: the "
+                  "background pixels are 0) from 60 views of 320x240 on a sphere, at two scales: 0.3 m seen from "
+                  "0.6 m (PFM files and a manifest, metres) and 3 units seen from 4 to 8 units (a 7-Scenes folder, "
+                  "16-bit PNG in thousandths of a unit); clean, and with 0.5 % depth noise plus 10 % outlier pixels. "
+                  "octstore: `ingest`, `solve`, `extract` with no flags at all. TSDF: Open3D's VoxelBlockGrid at the "
+                  "best of voxels 0.25, 0.5, 1 % of the diagonal and truncations 4 and 8 voxels by F at 1 %. "
+                  "Poisson: Open3D's screened Poisson at depth 9 after statistical outlier removal (20 neighbours, "
+                  "2 deviations), the 2 % least dense vertices trimmed. Measured uncropped (`tools/bench/run.sh "
+                  f"--sections objects`, octstore commit {commits(object_rows)}).", "",
+                  "| mesh | scale | noise / outliers | method | F@1 % | F@0.5 % | F@0.2 % | normal consistency | "
+                  "Chamfer | components | boundary edges | wall s |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in object_rows:
+            chosen = f" ({r['voxel'] * 100:g} %, {r['truncation']:g} voxels)" if "voxel" in r else ""
+            lines.append(
+                f"| {r['mesh']} | {r['scale']} | {100 * r['noise']:g} % / {100 * r['outliers']:g} % | "
+                f"{r['method']}{chosen} | {r['f_score']:.4f} | {fmt(r, 'f_score_0.005', 4)} | "
+                f"{fmt(r, 'f_score_0.002', 4)} | {r['normal_consistency']:.3f} | {r['chamfer']:.5f} | "
+                f"{r['components']} | {r['boundary_edges']} | {r['wall_s']:.1f} |")
+        lines += [""]
+        pictures = [r for r in object_rows if "picture" in r]
+        if pictures:
+            lines += ["octstore's meshes, no flags (clean, then noisy; 0.3 m, then 3 units):", ""]
+            lines += [f"![{r['mesh']} {r['scale']} noise {r['noise']}](benchmarks/{r['picture']})" for r in pictures]
+            lines += [""]
     interior_rows = results.get("interior", [])
     if interior_rows:
         lines += ["## Interior: a furnished room seen from inside", "",
@@ -1064,7 +1221,8 @@ def main():
     if len(sys.argv) > 1 and sys.argv[1] == "worker":
         return worker(sys.argv[2:])
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sections", nargs="*", default=["groundtruth", "interior", "redkitchen", "scale", "cube-sizes"],
+    parser.add_argument("--sections", nargs="*",
+                        default=["objects", "groundtruth", "interior", "redkitchen", "scale", "cube-sizes"],
                         help="sections to run; none (a bare --sections) only rewrites BENCHMARKS.md")
     parser.add_argument("--frames", nargs="+", type=int, default=[100, 300, 1000])
     parser.add_argument("--redkitchen-max-depth", type=int, default=10,
@@ -1100,6 +1258,8 @@ def main():
                 rows = groundtruth(work, args.quick, args.gt_noise, args.gt_outliers, args.gt_methods)
             elif section == "interior":
                 rows = interior(work, args.out)
+            elif section == "objects":
+                rows = objects(work, args.out)
             elif section == "redkitchen":
                 rows = redkitchen(work, args.frames, args.redkitchen_max_depth or None, args.out, args.redkitchen_budget,
                                   args.tsdf_voxel)
@@ -1148,7 +1308,7 @@ def main():
                 rows.sort(key=lambda r: (r.get("max_depth") or 99, r["frames"], r["method"] != "octstore"))
             path.write_text(json.dumps(rows, indent=1))
     results = {}
-    for section in ("groundtruth", "interior", "redkitchen", "scale", "cube-sizes", "divide"):
+    for section in ("objects", "groundtruth", "interior", "redkitchen", "scale", "cube-sizes", "divide"):
         path = args.out / f"results-{section}.json"
         results[section] = json.loads(path.read_text()) if path.exists() else []
     write_markdown(results, args.out, args.markdown)

@@ -681,11 +681,13 @@ impl HistogramsStage {
     fn load_pyramid(&self, id: u64, source: &DepthMapSource, unit: &str) -> Result<Arc<Pyramid>> {
         self.cache.get_or_load(id, || {
             self.check_unchanged(id, source, unit)?;
-            let image = source.load().map_err(|e| StoreError::Stage {
+            let mut image = source.load().map_err(|e| StoreError::Stage {
                 stage: HISTOGRAMS.into(),
                 unit: unit.to_string(),
                 message: e.to_string(),
             })?;
+            // A map that sees its content against nothing votes free space there.
+            crate::kernels::background::mark_background(&mut image, &source.projection);
             Ok(Pyramid::new(source.clone(), image))
         })
     }

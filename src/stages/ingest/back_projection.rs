@@ -14,6 +14,7 @@
 use glam::{DMat3, DVec3};
 
 use super::SampleStats;
+use super::noise::NoiseSurvey;
 use crate::inputs::{DepthImage, DepthMapSource, DepthRows, InputError, Projection};
 
 /// A depth is absurd when it exceeds this multiple of the map's median depth.
@@ -137,7 +138,7 @@ pub struct SampleStream<'r> {
 impl<'r> SampleStream<'r> {
     /// Measures the median depth of `rows` (two passes) and stands ready for the samples.
     pub fn new(source: &'r DepthMapSource, mut rows: Box<dyn DepthRowSource + 'r>) -> Result<Self, InputError> {
-        let median = exact_median(rows.as_mut())?;
+        let median = exact_median(rows.as_mut(), |_| ())?;
         rows.rewind()?;
         Ok(SampleStream::with_median(source, rows, median))
     }
@@ -332,12 +333,14 @@ impl<'r> SampleStream<'r> {
 /// The exact median (the element at index n / 2 of the sorted values) of a map's valid depths,
 /// and their count: positive finite floats order as their bits, so a histogram of the upper 16
 /// bits finds the median's bucket and one of the lower 16 bits within it finds the value.
-fn exact_median(rows: &mut dyn DepthRowSource) -> Result<(f32, u64), InputError> {
+/// `first_pass` sees every row of the first of its two passes.
+fn exact_median(rows: &mut dyn DepthRowSource, mut first_pass: impl FnMut(&[f32])) -> Result<(f32, u64), InputError> {
     let mut row = vec![f32::NAN; rows.width() as usize];
     let mut upper = vec![0u64; 1 << 16];
     let mut valid = 0u64;
     rows.rewind()?;
     while rows.next_row(&mut row)? {
+        first_pass(&row);
         for d in row.iter().filter(|d| d.is_finite() && **d > 0.0) {
             if let Some(count) = upper.get_mut((d.to_bits() >> 16) as usize) {
                 *count += 1;
@@ -368,6 +371,17 @@ fn exact_median(rows: &mut dyn DepthRowSource) -> Result<(f32, u64), InputError>
         return Ok((0.0, valid));
     };
     Ok((f32::from_bits(((bucket as u32) << 16) | low as u32), valid))
+}
+
+/// A map's median depth ([`SampleStream::median`]) and the second differences of its rows
+/// ([`NoiseSurvey`]), in the median's two passes over `rows` (the survey rides on the first).
+pub fn survey(
+    source: &DepthMapSource,
+    rows: &mut dyn DepthRowSource,
+) -> Result<(DepthMedian, NoiseSurvey), InputError> {
+    let mut noise = NoiseSurvey::new(source.pixel_angle());
+    let median = exact_median(rows, |row| noise.add_row(row))?;
+    Ok((median, noise))
 }
 
 /// The bucket holding the value of rank `rank` and the count before it.

@@ -12,7 +12,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 use redb::ReadableTable;
 
-use super::{DepthMedian, bounds_and_median, robust_bounds};
+use super::{DepthMedian, bounds_of, robust_bounds};
 use crate::format::{Column, ColumnValues, META_SCENE, Scene};
 use crate::inputs::DepthMapSource;
 use crate::store::catalog::{self, META};
@@ -63,33 +63,35 @@ pub fn root_is_fixed(store: &Store) -> Result<bool> {
     Ok(meta.get(META_ROOT_FIXED)?.is_some())
 }
 
-/// The root's doublings, and beside the new maps each one's median depth.
-pub type GrowthAndMedians = (Vec<[u32; 3]>, Vec<DepthMedian>);
-
 /// The doublings that let `scene` hold every new map's samples: the union of each map's robust
 /// box (0.1 % to 99.9 % per axis, spikes left out, as the first ingest sizes its root), so a
-/// map that sees a far corner is not trimmed away by the others. Also each map's median depth,
-/// which this pass measures anyway.
-pub fn growth_for(scene: &Scene, maps: &[(u64, DepthMapSource)], map_memory: u64) -> Result<GrowthAndMedians> {
-    let measured: Vec<(Option<(DVec3, DVec3)>, DepthMedian)> = maps
+/// map that sees a far corner is not trimmed away by the others. `medians` are the maps'
+/// median depths, which their surveys measured.
+pub fn growth_for(
+    scene: &Scene,
+    maps: &[(u64, DepthMapSource)],
+    medians: &[DepthMedian],
+    map_memory: u64,
+) -> Result<Vec<[u32; 3]>> {
+    let measured: Vec<Option<(DVec3, DVec3)>> = maps
         .par_iter()
-        .map(|(_, source)| {
-            let (sample, median) = bounds_and_median(source, map_memory, 20_000)?;
-            Ok((robust_bounds(&sample), median))
+        .zip(medians)
+        .map(|((_, source), median)| {
+            let sample = bounds_of(source, map_memory, 20_000, *median)?;
+            Ok(robust_bounds(&sample))
         })
         .collect::<Result<_>>()?;
-    let medians = measured.iter().map(|(_, median)| *median).collect();
-    let boxes: Vec<Option<(DVec3, DVec3)>> = measured.into_iter().map(|(b, _)| b).collect();
+    let boxes = measured;
     let Some((lo, hi)) = boxes
         .iter()
         .flatten()
         .copied()
         .reduce(|(lo, hi), (l, h)| (lo.min(l), hi.max(h)))
     else {
-        return Ok((Vec::new(), medians));
+        return Ok(Vec::new());
     };
     if let Some(octants) = scene.growth_to_hold(lo, hi, GROWTH_MARGIN, MAX_DOUBLINGS_PER_INGEST) {
-        return Ok((octants, medians));
+        return Ok(octants);
     }
     // Name the map that reaches farthest beyond the root.
     let beyond = |(l, h): (DVec3, DVec3)| {

@@ -17,10 +17,11 @@ use xxhash_rust::xxh3::Xxh3;
 mod back_projection;
 mod cube_runs;
 mod growth;
+pub mod noise;
 
 pub use back_projection::{
     DepthMedian, DepthRowSource, ImageRows, Sample, SampleStream, Samples, back_project, bounds_sample, open_rows,
-    robust_bounds,
+    robust_bounds, survey,
 };
 
 pub use growth::{
@@ -282,7 +283,11 @@ impl IngestStage {
         let other_noise = ids
             .iter()
             .zip(&sources)
-            .filter(|(id, source)| recorded.get(id).is_some_and(|noise| *noise != source.noise))
+            .filter(|(id, source)| {
+                // A measured model is the map's own: the same pixels measure the same.
+                !matches!(source.noise, DepthNoise::Auto { .. })
+                    && recorded.get(id).is_some_and(|noise| *noise != source.noise)
+            })
             .count();
         if other_noise > 0 {
             tracing::warn!(
@@ -308,8 +313,24 @@ impl IngestStage {
                 ),
             });
         }
-        // Each new map's median depth, where root sizing or growth measured it first.
-        let mut medians: Vec<DepthMedian> = Vec::new();
+        // One survey of each new map before anything reads its samples: its median depth
+        // (root sizing, growth and the units need it) and, where its noise is to be measured
+        // (`--depth-noise auto`), its noise model, which then sizes its cubes and is recorded
+        // with it.
+        let map_memory = memory_per_map(options.memory_budget);
+        let medians: Vec<DepthMedian> = maps
+            .par_iter_mut()
+            .map(|(_, source)| {
+                let (median, noise) = {
+                    let mut rows = open_rows(source, map_memory).map_err(input_error)?;
+                    survey(source, rows.as_mut()).map_err(input_error)?
+                };
+                if let DepthNoise::Auto { sigmas } = source.noise {
+                    source.noise = noise.model(sigmas);
+                }
+                Ok(median)
+            })
+            .collect::<Result<_>>()?;
         let (scene, scene_is_new) = match read_scene(store)? {
             Some(scene) => (scene, false),
             None => {
@@ -320,17 +341,16 @@ impl IngestStage {
                         max_depth: options.max_depth,
                     },
                     None => {
-                        let map_memory = memory_per_map(options.memory_budget);
-                        let per_map: Vec<(Vec<DVec3>, DepthMedian)> = maps
+                        let per_map: Vec<Vec<DVec3>> = maps
                             .par_iter()
-                            .map(|(_, source)| {
+                            .zip(&medians)
+                            .map(|((_, source), median)| {
                                 // At most ~200,000 points in total, whatever the number of maps.
                                 let per_map = (200_000 / maps.len().max(1)).max(64);
-                                bounds_and_median(source, map_memory, per_map)
+                                bounds_of(source, map_memory, per_map, *median)
                             })
                             .collect::<Result<_>>()?;
-                        medians = per_map.iter().map(|(_, median)| *median).collect();
-                        let points: Vec<DVec3> = per_map.into_iter().flat_map(|(points, _)| points).collect();
+                        let points: Vec<DVec3> = per_map.into_iter().flatten().collect();
                         let Some((lo, hi)) = robust_bounds(&points) else {
                             return Err(StoreError::Stage {
                                 stage: INGEST.into(),
@@ -365,8 +385,7 @@ impl IngestStage {
         let mut growth = None;
         let mut scene = scene;
         if !scene_is_new && !root_is_fixed && !maps.is_empty() {
-            let octants;
-            (octants, medians) = growth::growth_for(&scene, &maps, memory_per_map(options.memory_budget))?;
+            let octants = growth::growth_for(&scene, &maps, &medians, map_memory)?;
             if !octants.is_empty() {
                 let old = scene;
                 for octant in &octants {
@@ -390,7 +409,7 @@ impl IngestStage {
             growth,
             maps,
             medians,
-            map_memory: memory_per_map(options.memory_budget),
+            map_memory,
             scratch: store.scratch_path(INGEST),
         })
     }
@@ -579,12 +598,11 @@ impl IngestStage {
 }
 
 /// `source`'s samples, its rows in memory when they take at most `memory` bytes.
-/// The root-sizing sample of `count` points of `source` ([`bounds_sample`]) and its median
-/// depth, which that pass measures and the map's ingest then need not measure again.
-fn bounds_and_median(source: &DepthMapSource, memory: u64, count: usize) -> Result<(Vec<DVec3>, DepthMedian)> {
-    let stream = map_samples(source, memory, None)?;
-    let median = stream.median();
-    Ok((bounds_sample(stream, count).map_err(input_error)?, median))
+/// The root-sizing sample of `count` points of `source` ([`bounds_sample`]), whose median
+/// depth its survey measured.
+fn bounds_of(source: &DepthMapSource, memory: u64, count: usize, median: DepthMedian) -> Result<Vec<DVec3>> {
+    let stream = map_samples(source, memory, Some(median))?;
+    bounds_sample(stream, count).map_err(input_error)
 }
 
 fn map_samples(source: &DepthMapSource, memory: u64, median: Option<DepthMedian>) -> Result<SampleStream<'_>> {
