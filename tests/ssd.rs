@@ -72,17 +72,17 @@ fn ssd_options() -> SolveOptions {
     }
 }
 
-/// Sample sums are a store's choice at its first ingest: without them (the default) `--method
-/// ssd` is refused naming `--sample-sums`; later ingests keep the store's choice (asking for
-/// sums in a store without them is refused, the store unchanged; a store with them gathers
-/// them for new depth maps without being asked again, or its SSD solve would fail).
+/// Any solver on any store: a plain ingest (no `--sample-sums`, the default) solves with
+/// `--method ssd` too, its maps read again once to add the sums to its runs, and gives the
+/// mesh of a store that gathered them up front, byte for byte; the store records the sums from
+/// then on, so later ingests gather them without being asked. Asking for sums in a store
+/// without them at ingest is still refused, the store unchanged (`solve` adds them); a store
+/// with them gathers them for new depth maps without being asked again.
 #[test]
-fn sample_sums_are_chosen_at_the_first_ingest_and_kept() {
+fn ssd_solves_a_plain_store_by_adding_its_sample_sums_once() {
     let dir = tempfile::tempdir().unwrap();
     let closer = sphere_spec(1.8).write(&dir.path().join("closer")).unwrap();
     let plain = ingested_sphere_with(&dir.path().join("plain"), 5, false);
-    let error = solve(&plain, &ssd_options(), |_| {}).unwrap_err().to_string();
-    assert!(error.contains("samples") && error.contains("--sample-sums"), "{error}");
     let before = plain.current_version().unwrap();
     let error = ingest(
         &plain,
@@ -95,8 +95,35 @@ fn sample_sums_are_chosen_at_the_first_ingest_and_kept() {
     .to_string();
     assert!(error.contains("created without sample sums"), "{error}");
     assert_eq!(plain.current_version().unwrap(), before);
+    assert!(!octstore::stages::ingest::records_sample_sums(&plain).unwrap());
 
+    let mut reports = Vec::new();
+    solve(&plain, &ssd_options(), |report| reports.push(report.summary.clone())).unwrap();
+    assert!(
+        reports
+            .first()
+            .is_some_and(|summary| summary.contains("sample sums added: 16 depth map(s)")),
+        "{reports:?}"
+    );
+    assert!(octstore::stages::ingest::records_sample_sums(&plain).unwrap());
     let summed = ingested_sphere_with(&dir.path().join("summed"), 5, true);
+    solve(&summed, &ssd_options(), |_| {}).unwrap();
+    let mesh = |store: &Store| {
+        let scene = octstore::stages::ingest::read_scene(store).unwrap().unwrap();
+        let finest = octree_max_depth(store).unwrap();
+        extract(&store.latest().unwrap(), &scene, finest, &ExtractOptions::default()).unwrap()
+    };
+    let (a, b) = (mesh(&plain), mesh(&summed));
+    assert!(a.triangles.len() > 1000, "{} triangles", a.triangles.len());
+    assert_eq!((a.positions, a.triangles), (b.positions, b.triangles));
+    // A second SSD solve has nothing to add.
+    let mut again = Vec::new();
+    solve(&plain, &ssd_options(), |report| again.push(report.summary.clone())).unwrap();
+    assert!(
+        !again.iter().any(|summary| summary.contains("sample sums added")),
+        "{again:?}"
+    );
+
     let maps = |store: &Store| octstore::stages::ingest::registered_depth_maps(store).unwrap().len();
     ingest(
         &summed,

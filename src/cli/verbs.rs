@@ -273,9 +273,9 @@ pub(super) fn info_verb(args: InfoArgs) -> Result<()> {
     }
     match info.sample_sums {
         Some(true) => println!("sample sums    yes (solve --method tgv, ssd or hybrid)"),
-        Some(false) => println!(
-            "sample sums    no (solve --method tgv; for ssd or hybrid, ingest into a new store with --sample-sums)"
-        ),
+        Some(false) => {
+            println!("sample sums    no (solve --method ssd or hybrid reads the depth maps again once to add them)")
+        }
         None => {}
     }
     for (stage, digest) in &info.digest {

@@ -166,6 +166,18 @@ pub fn solve_with_gpu(
         threads: leaves_in_flight(leaf_cubes, options.memory_budget, options.run.threads),
         ..options.run.clone()
     };
+    if options.until >= SolveUntil::Solution
+        && options.method.ssd().is_some()
+        && !crate::stages::ingest::records_sample_sums(store)?
+    {
+        // SSD reads the samples' sums, which a plain ingest leaves out (they cost it about
+        // five times the time): read the store's maps again and add them to its runs, once.
+        tracing::info!(
+            "the store's runs carry no sample sums (ingest --sample-sums gathers them up front): reading its depth maps again to add them"
+        );
+        let stage = IngestStage::adding_sample_sums(store, options.memory_budget)?;
+        on_report(&store.run_stage(&stage, &run)?);
+    }
     if options.until >= SolveUntil::Octree {
         let scratch = store.scratch_dir(OCTREE)?;
         let stage = OctreeStage::new(scene, leaf_cubes, options.memory_budget / 4, scratch.clone());

@@ -219,6 +219,10 @@ pub struct IngestStage {
     /// Where maps too large for `map_memory` spill their runs (scratch files are unlinked at
     /// creation, so nothing outlives the process).
     scratch: std::path::PathBuf,
+    /// The store's own maps read again to add the SSD sample sums to its runs
+    /// ([`IngestStage::adding_sample_sums`]): every run is replaced, and the maps' records
+    /// stay as they are.
+    adding_sums: bool,
 }
 
 /// The error as the stage's, with the file as its unit (named once).
@@ -377,7 +381,7 @@ impl IngestStage {
                 return Err(StoreError::Stage {
                     stage: INGEST.into(),
                     unit: "options".into(),
-                    message: "--sample-sums: this store was created without sample sums, and its depth maps' runs lack them; ingest the depth maps into a new store with --sample-sums to solve with ssd or hybrid".into(),
+                    message: "--sample-sums: this store was created without sample sums, and its depth maps' runs lack them; ingest without --sample-sums (solve --method ssd or hybrid adds the sums to every run once, reading the maps again)".into(),
                 });
             }
             recorded
@@ -411,6 +415,42 @@ impl IngestStage {
             medians,
             map_memory,
             scratch: store.scratch_path(INGEST),
+            adding_sums: false,
+        })
+    }
+
+    /// The SSD solver's sample sums for a store ingested without them (`solve --method ssd`
+    /// or `hybrid` on a plain store): every registered depth map read again, with the noise
+    /// model recorded for it, in the current scene, and its cubes written as new runs that
+    /// carry the sums and replace all of the store's runs in one version. The cubes are the
+    /// ones the maps spawned before (a run re-keyed by the root's growth holds the cubes a map
+    /// spawns in the grown root), so the octree and everything after it come out the same; the
+    /// store records sample sums from then on, and later ingests gather them too.
+    pub fn adding_sample_sums(store: &Store, memory_budget: u64) -> Result<IngestStage> {
+        let scene = read_scene(store)?.ok_or_else(|| StoreError::Stage {
+            stage: INGEST.into(),
+            unit: "sample sums".into(),
+            message: "the store has no depth maps yet: ingest some first".into(),
+        })?;
+        // Registered maps come in id order, as a new ingest's do.
+        let maps: Vec<(u64, DepthMapSource)> = registered_depth_maps(store)?
+            .into_iter()
+            .map(|(id, record)| (id, record.source))
+            .collect();
+        let groups = group_maps(&scene, &maps, &[], MAPS_PER_RUN);
+        Ok(IngestStage {
+            groups,
+            radius_depths: RadiusDepths::new(&scene),
+            scene,
+            scene_is_new: false,
+            sample_sums: true,
+            root_is_fixed: root_is_fixed(store)?,
+            growth: None,
+            maps,
+            medians: Vec::new(),
+            map_memory: memory_per_map(memory_budget),
+            scratch: store.scratch_path(INGEST),
+            adding_sums: true,
         })
     }
 
@@ -632,6 +672,9 @@ impl Stage for IngestStage {
         // A resumed ingest with the other sample-sums setting starts over, so a store's runs
         // all carry the moments or none does; so does one whose units group the maps otherwise
         // (an ingest begun by a build that wrote a run per map).
+        if self.adding_sums {
+            return catalog::encode(&(maps, self.scene, self.sample_sums, &self.groups, "adding sample sums"));
+        }
         catalog::encode(&(maps, self.scene, self.sample_sums, &self.groups))
     }
 
@@ -645,6 +688,14 @@ impl Stage for IngestStage {
                 label: self.group_label(group),
             })
             .collect();
+        if self.adding_sums {
+            // The maps' new runs replace every run the store has.
+            let runs = base.segments(INGEST);
+            return Ok(Plan {
+                units,
+                replace: Replace::Names(runs.iter().map(|(name, _)| name.clone()).collect()),
+            });
+        }
         if self.growth.is_none() {
             return Ok(Plan {
                 units,
@@ -681,6 +732,18 @@ impl Stage for IngestStage {
     }
 
     fn finish(&self, txn: &WriteTransaction, base: &Snapshot<'_>, units: &[(u64, UnitRecord)]) -> Result<String> {
+        if self.adding_sums {
+            let mut meta = txn.open_table(META)?;
+            meta.insert(
+                META_SAMPLE_SUMS,
+                catalog::seal("meta", META_SAMPLE_SUMS, &[1u8]).as_slice(),
+            )?;
+            return Ok(format!(
+                "sample sums added: {} depth map(s) read again into {} run(s) that carry them",
+                self.maps.len(),
+                units.len()
+            ));
+        }
         let mut table = txn.open_table(DEPTH_MAPS)?;
         let mut total = SampleStats::default();
         let (mut rekeyed, mut maps, mut runs) = (0usize, 0usize, 0usize);
