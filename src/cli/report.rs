@@ -18,7 +18,8 @@ pub struct InfoJson {
     pub version: u64,
     /// Depth maps registered up to that version.
     pub depth_maps: u64,
-    /// Those depth maps by the noise model that sized their samples' cubes.
+    /// Those depth maps by the noise model that sized their samples' cubes (measured models
+    /// that differ in their numbers alone as one entry with their ranges).
     pub depth_noise: std::collections::BTreeMap<String, u64>,
     /// Cubes of the octree.
     pub cubes: u64,
@@ -74,10 +75,7 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
         store: store.root().display().to_string(),
         version: snapshot.version(),
         depth_maps: maps.len() as u64,
-        depth_noise: maps.iter().fold(Default::default(), |mut counts, record| {
-            *counts.entry(record.source.noise.to_string()).or_default() += 1;
-            counts
-        }),
+        depth_noise: noise_models(maps.iter().map(|record| record.source.noise)),
         cubes: snapshot.rows(stages::OCTREE),
         treetop_leaves: {
             // One segment per treetop leaf, plus one for the treetop's internal nodes when the
@@ -130,4 +128,57 @@ pub(crate) fn print_extract_summary(summary: &MeshSummary, output: &Path, starte
         started.elapsed().as_secs_f64(),
         peak_rss_bytes() as f64 / 1e6
     );
+}
+
+/// The maps' noise models as `info` lists them, with how many maps have each. Axial models
+/// that differ only in their constant and quadratic terms (each map's measured model differs
+/// a little from the next one's) share one entry that gives the range of both.
+fn noise_models(models: impl Iterator<Item = crate::inputs::DepthNoise>) -> std::collections::BTreeMap<String, u64> {
+    use crate::inputs::DepthNoise;
+    type Range = (f64, f64, f64, f64, u64);
+    let mut axial: std::collections::BTreeMap<(u64, u64, u64), Range> = Default::default();
+    let mut counts: std::collections::BTreeMap<String, u64> = Default::default();
+    for noise in models {
+        match noise {
+            DepthNoise::Axial {
+                constant,
+                quadratic,
+                offset,
+                sigmas,
+                footprints,
+            } => {
+                let entry = axial
+                    .entry((offset.to_bits(), sigmas.to_bits(), footprints.to_bits()))
+                    .or_insert((constant, constant, quadratic, quadratic, 0));
+                *entry = (
+                    entry.0.min(constant),
+                    entry.1.max(constant),
+                    entry.2.min(quadratic),
+                    entry.3.max(quadratic),
+                    entry.4 + 1,
+                );
+            }
+            other => *counts.entry(other.to_string()).or_default() += 1,
+        }
+    }
+    for ((offset, sigmas, footprints), (c_low, c_high, q_low, q_high, maps)) in axial {
+        let [offset, sigmas, footprints] = [offset, sigmas, footprints].map(f64::from_bits);
+        let model = |constant, quadratic| DepthNoise::Axial {
+            constant,
+            quadratic,
+            offset,
+            sigmas,
+            footprints,
+        };
+        let text = if (c_low, q_low) == (c_high, q_high) {
+            model(c_low, q_low).to_string()
+        } else {
+            format!(
+                "{} (measured per map: constant {c_low:.2e} to {c_high:.2e}, quadratic {q_low:.2e} to {q_high:.2e})",
+                model(f64::NAN, f64::NAN).to_string().replace("NaN", "_")
+            )
+        };
+        *counts.entry(text).or_default() += maps;
+    }
+    counts
 }
