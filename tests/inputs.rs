@@ -632,3 +632,99 @@ fn manifest_entries_name_their_depth_noise() {
         );
     }
 }
+
+/// The manifest's numbers pass the command line's checks (one rule for both), a pose that
+/// reflects (determinant -1) is refused naming the file, and a FIFO named as a depth map is
+/// refused before it is opened (opening it would wait for a writer forever).
+#[test]
+fn manifest_numbers_reflections_and_fifos_are_refused_by_name() {
+    let golden = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/golden-v2-ingest/input");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(golden.join("plane.pfm"), dir.path().join("plane.pfm")).unwrap();
+    let template: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(golden.join("scene.json")).unwrap()).unwrap();
+    let read = |fields: serde_json::Value| {
+        let mut manifest = template.clone();
+        for (key, value) in fields.as_object().unwrap() {
+            manifest["depth_maps"][0][key] = value.clone();
+        }
+        let path = dir.path().join("scene.json");
+        std::fs::write(&path, manifest.to_string()).unwrap();
+        discover(&[path], &DiscoverOptions::default()).map(|sources| sources.len())
+    };
+    assert_eq!(read(serde_json::json!({})).unwrap(), 1);
+    let mut reflected = template["depth_maps"][0]["pose"].clone();
+    let key = if reflected.get("camera_to_world").is_some() {
+        "camera_to_world"
+    } else {
+        "world_to_camera"
+    };
+    // Negate the rotation's first column: a mirror image of the camera.
+    for row in 0..3 {
+        let v = reflected[key][row * 4].as_f64().unwrap();
+        reflected[key][row * 4] = serde_json::json!(-v);
+    }
+    for (fields, expected) in [
+        (serde_json::json!({"depth_scale": 0.0}), "depth_scale 0"),
+        (serde_json::json!({"depth_scale": -1.0}), "depth_scale -1"),
+        (serde_json::json!({"depth_scale": 1e300}), "depth_scale 1"),
+        (serde_json::json!({"noise_sigmas": -1.0}), "standard deviations"),
+        (serde_json::json!({"pose": reflected}), "reflection"),
+    ] {
+        let error = read(fields.clone()).expect_err("accepted").to_string();
+        assert!(
+            error.contains("scene.json") && error.contains(expected),
+            "{fields}: {error}"
+        );
+    }
+
+    // A FIFO in place of the depth map: refused at once, naming it.
+    let fifo = dir.path().join("fifo.pfm");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status().unwrap();
+    assert!(made.success());
+    let (sender, receiver) = std::sync::mpsc::channel();
+    let manifest = {
+        let mut manifest = template.clone();
+        manifest["depth_maps"][0]["image"] = serde_json::json!("fifo.pfm");
+        let path = dir.path().join("fifo.json");
+        std::fs::write(&path, manifest.to_string()).unwrap();
+        path
+    };
+    std::thread::spawn(move || {
+        let _ = sender.send(discover(&[manifest], &DiscoverOptions::default()).map(|s| s.len()));
+    });
+    let error = receiver
+        .recv_timeout(std::time::Duration::from_secs(20))
+        .expect("discovery hung on a FIFO")
+        .expect_err("a FIFO was accepted")
+        .to_string();
+    assert!(
+        error.contains("fifo.pfm") && error.contains("not a regular file"),
+        "{error}"
+    );
+}
+
+/// Numbers of the command line that used to be taken as they came: each is refused before
+/// anything runs, saying what is allowed.
+#[test]
+fn command_line_counts_and_points_are_checked() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let s = store.to_str().unwrap();
+    for (args, expected) in [
+        (vec!["--threads", "100000", "info", s], "threads: give 1 to"),
+        (vec!["--threads", "0", "info", s], "threads: give 1 to"),
+        (vec!["ingest", s, "x", "--stride", "0"], "at least 1"),
+        (vec!["gc", s, "--keep", "0"], "at least 1"),
+        (vec!["query", s, "--point", "nan,0,0"], "must be finite"),
+        (vec!["divide", "x.ply", "-o", s, "--max-depth", "40"], "40"),
+        (vec!["divide", "x.ply", "-o", s, "--max-depth", "0"], "0"),
+        (vec!["extract", s, "-o", "mesh.stl"], "not .stl"),
+    ] {
+        let out = octstore(&args, &[]);
+        assert!(!out.status.success(), "{args:?} was accepted");
+        let err = stderr(&out);
+        assert!(err.contains(expected), "{args:?}: {err}");
+        assert!(!store.exists(), "{args:?} touched the store");
+    }
+}

@@ -5,9 +5,9 @@ use std::path::PathBuf;
 use clap::{Args, Parser, Subcommand};
 
 use super::parse::{
-    parse_depth_noise, parse_iterations, parse_margin, parse_memory_budget, parse_noise_sigmas, parse_overlap,
-    parse_point, parse_ratio, parse_region, parse_root, parse_ssd_tolerance, parse_ssd_weight, parse_tolerance,
-    parse_weight,
+    parse_depth_noise, parse_iterations, parse_margin, parse_memory_budget, parse_mesh_path, parse_noise_sigmas,
+    parse_overlap, parse_point, parse_positive, parse_ratio, parse_region, parse_root, parse_ssd_tolerance,
+    parse_ssd_weight, parse_threads, parse_tolerance, parse_weight,
 };
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
@@ -36,8 +36,8 @@ pub struct GlobalOptions {
     /// Memory the whole process may use, e.g. 512MiB, 1GiB.
     #[arg(long, global = true, default_value = "1GiB", value_parser = parse_memory_budget)]
     pub memory_budget: u64,
-    /// Worker threads (default: all cores).
-    #[arg(long, global = true)]
+    /// Worker threads (default: all cores; at most 4 times the cores).
+    #[arg(long, global = true, value_parser = parse_threads)]
     pub threads: Option<usize>,
     /// No progress bars and no informational log lines on stderr (warnings and errors still
     /// print; the OCTSTORE_LOG variable, when set, decides instead).
@@ -176,8 +176,8 @@ pub struct IngestArgs {
     pub inputs: Vec<PathBuf>,
     #[arg(long, value_enum, default_value = "auto")]
     pub format: InputFormat,
-    /// Take every n-th frame of a folder.
-    #[arg(long, default_value_t = 1)]
+    /// Take every n-th frame of a folder (at least 1).
+    #[arg(long, default_value_t = 1, value_parser = parse_positive::<usize>)]
     pub stride: usize,
     /// Take at most this many frames of a folder.
     #[arg(long)]
@@ -194,7 +194,8 @@ pub struct IngestArgs {
     #[arg(long, value_name = "MODEL", value_parser = parse_depth_noise)]
     pub depth_noise: Option<crate::inputs::DepthNoise>,
     /// A sample's radius spans at least this many standard deviations of its depth noise
-    /// [default: 1, or a manifest entry's noise_sigmas].
+    /// [default: auto's own choice (0.5 for independent noise, 2 for a quantized sensor), 1
+    /// for the tables and numbers, or a manifest entry's noise_sigmas].
     #[arg(long, value_name = "K", value_parser = parse_noise_sigmas)]
     pub noise_sigmas: Option<f64>,
     /// Root cube as minx,miny,minz,side (first ingest only; default: the samples' bounding
@@ -250,8 +251,8 @@ pub struct PlanArgs {
     pub chunks: u32,
     #[command(flatten)]
     pub solver: SolverArgs,
-    /// extract: the mesh file the commit writes.
-    #[arg(short, long, required_if_eq("stage", "extract"))]
+    /// extract: the mesh file the commit writes (.ply or .obj).
+    #[arg(short, long, required_if_eq("stage", "extract"), value_parser = parse_mesh_path)]
     pub output: Option<PathBuf>,
     /// extract: only what lies in this box.
     #[arg(long, value_parser = parse_region)]
@@ -304,8 +305,8 @@ pub struct SlurmArgs {
     /// Treetop leaves of the octree job hold fewer cubes than this.
     #[arg(long, default_value_t = octree::DEFAULT_LEAF_CUBES, value_parser = clap::value_parser!(u64).range(64..))]
     pub leaf_cubes: u64,
-    /// Also extract the mesh into this file, chunked like the other stages.
-    #[arg(short, long)]
+    /// Also extract the mesh into this file (.ply or .obj), chunked like the other stages.
+    #[arg(short, long, value_parser = parse_mesh_path)]
     pub output: Option<PathBuf>,
     #[command(flatten)]
     pub solver: SolverArgs,
@@ -332,7 +333,8 @@ pub struct DemoArgs {
 #[derive(Args, Debug)]
 pub struct ExtractArgs {
     pub store: PathBuf,
-    #[arg(short, long)]
+    /// The mesh file: binary PLY, or OBJ by the extension `.obj`.
+    #[arg(short, long, value_parser = parse_mesh_path)]
     pub output: PathBuf,
     /// Only what lies in this box: minx,miny,minz,maxx,maxy,maxz.
     #[arg(long, value_parser = parse_region)]
@@ -381,8 +383,8 @@ pub struct DivideArgs {
     pub overlap: Option<f64>,
     /// Octree levels counted in one pass (default: enough for the points and --max-points
     /// where they spread evenly, plus 3, within --memory-budget); nodes at that depth that
-    /// still hold too many points are divided again from their own points.
-    #[arg(long)]
+    /// still hold too many points are divided again from their own points. 1 to 10.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=10))]
     pub max_depth: Option<u32>,
     /// Divide a generated cloud of this many points instead of files (benchmarks: nothing is
     /// read from disk).
@@ -399,7 +401,7 @@ pub struct MergeArgs {
     #[arg(required = true)]
     pub meshes: Vec<PathBuf>,
     /// The merged mesh (PLY, or OBJ by extension).
-    #[arg(short, long)]
+    #[arg(short, long, value_parser = parse_mesh_path)]
     pub output: PathBuf,
 }
 
@@ -483,8 +485,8 @@ pub struct LogArgs {
 #[derive(Args, Debug)]
 pub struct GcArgs {
     pub store: PathBuf,
-    /// Versions to keep readable, counting the latest.
-    #[arg(long, default_value_t = 1)]
+    /// Versions to keep readable, counting the latest (at least 1).
+    #[arg(long, default_value_t = 1, value_parser = parse_positive::<u64>)]
     pub keep: u64,
 }
 

@@ -356,6 +356,60 @@ impl DepthImage {
     }
 }
 
+/// The most standard deviations a sample's radius may span (`--noise-sigmas`, a manifest's
+/// `noise_sigmas`).
+pub const MAX_NOISE_SIGMAS: f64 = 100.0;
+
+/// The largest depth scale (scene units per PNG unit) a 16-bit depth image may have: a unit
+/// of more than a kilometre is no depth scale but a mistake.
+pub const MAX_DEPTH_SCALE: f64 = 1000.0;
+
+/// Checks a number of standard deviations (the command line's and the manifest's one rule):
+/// finite, in [0, [`MAX_NOISE_SIGMAS`]].
+pub fn check_noise_sigmas(sigmas: f64) -> Result<f64, String> {
+    if (0.0..=MAX_NOISE_SIGMAS).contains(&sigmas) {
+        Ok(sigmas)
+    } else {
+        Err(format!(
+            "{sigmas} is not a number of standard deviations in [0, {MAX_NOISE_SIGMAS}] (0: cubes follow the pixel footprint alone)"
+        ))
+    }
+}
+
+/// Checks a 16-bit image's depth scale: finite, positive, at most [`MAX_DEPTH_SCALE`].
+pub fn check_depth_scale(scale: f64) -> Result<f64, String> {
+    if scale > 0.0 && scale <= MAX_DEPTH_SCALE {
+        Ok(scale)
+    } else {
+        Err(format!(
+            "depth_scale {scale} is not a positive number of scene units per PNG unit of at most {MAX_DEPTH_SCALE} (0.001: millimetres to metres)"
+        ))
+    }
+}
+
+/// Checks that `path` is a regular file (or a link to one) before it is opened: opening a FIFO
+/// blocks until something writes to it, and a device or a folder is no depth map.
+pub fn check_regular_file(path: &Path) -> Result<(), InputError> {
+    match std::fs::metadata(path) {
+        Ok(metadata) if metadata.is_file() => Ok(()),
+        Ok(metadata) => Err(bad(
+            path,
+            format!(
+                "not a regular file ({}): name the file itself",
+                if metadata.is_dir() {
+                    "a folder"
+                } else {
+                    "a FIFO, socket or device"
+                }
+            ),
+        )),
+        Err(source) => Err(InputError::Io {
+            file: path.to_path_buf(),
+            source,
+        }),
+    }
+}
+
 /// Checks a camera-to-world matrix: finite, affine, with an invertible, near-orthonormal
 /// rotation part (scale is not allowed: depth is metric).
 pub fn check_pose(file: &Path, m: &DMat4) -> Result<(), InputError> {
@@ -372,6 +426,14 @@ pub fn check_pose(file: &Path, m: &DMat4) -> Result<(), InputError> {
         return Err(bad(
             file,
             format!("pose is not invertible (rotation determinant {det:.3e})"),
+        ));
+    }
+    if det < 0.0 {
+        return Err(bad(
+            file,
+            format!(
+                "pose's rotation is a reflection (determinant {det:.3}): a camera-to-world pose is a rotation and a translation; check the axes convention (one axis flipped)"
+            ),
         ));
     }
     let err = (r.transpose() * r - DMat3::IDENTITY)

@@ -8,7 +8,8 @@ use serde::Deserialize;
 
 use super::colmap;
 use super::depth_map::{
-    DEFAULT_NOISE_SIGMAS, DepthMapSource, DepthNoise, ImageFormat, InputError, Kind, Projection, bad, check_pose,
+    DEFAULT_NOISE_SIGMAS, DepthMapSource, DepthNoise, ImageFormat, InputError, Kind, Projection, bad,
+    check_depth_scale, check_noise_sigmas, check_pose, check_regular_file,
 };
 use super::image_files::{npy_layout, pfm_layout};
 use super::lidar;
@@ -170,6 +171,7 @@ fn lidar_file(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
 }
 
 fn read_text(path: &Path) -> Result<String, InputError> {
+    check_regular_file(path)?;
     std::fs::read_to_string(path).map_err(|source| InputError::Io {
         file: path.to_path_buf(),
         source,
@@ -422,6 +424,9 @@ fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
                 .extension()
                 .map(|e| e.to_string_lossy().to_lowercase())
                 .unwrap_or_default();
+            if let Some(scale) = entry.depth_scale {
+                check_depth_scale(scale).map_err(at)?;
+            }
             let format = match entry.format.as_deref().unwrap_or(ext.as_str()) {
                 "png" | "png16" => ImageFormat::Png16 {
                     scale: entry.depth_scale.unwrap_or(0.001),
@@ -483,6 +488,9 @@ fn manifest(path: &Path) -> Result<Vec<DepthMapSource>, InputError> {
             if !(0.0..=MAX_WEIGHT).contains(&weight) {
                 return Err(at(format!("weight {weight} is not in [0, {MAX_WEIGHT}]")));
             }
+            if let Some(sigmas) = entry.noise_sigmas {
+                check_noise_sigmas(sigmas).map_err(at)?;
+            }
             let sigmas = entry.noise_sigmas.unwrap_or(DEFAULT_NOISE_SIGMAS);
             let noise = match &entry.depth_noise {
                 None => Ok(match entry.noise_sigmas {
@@ -528,6 +536,8 @@ fn check16(m: &[f64], at: impl Fn(String) -> InputError) -> Result<Vec<f64>, Inp
 
 /// Size of a depth image from its header alone (cheap validation before any work).
 fn image_size(path: &Path, format: &ImageFormat) -> Result<(u32, u32), InputError> {
+    // Before any header is read: opening a FIFO would wait for a writer forever.
+    check_regular_file(path)?;
     match format {
         ImageFormat::Png16 { .. } => {
             image::image_dimensions(path).map_err(|e| bad(path, format!("unreadable PNG: {e}")))

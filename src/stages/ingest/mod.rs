@@ -117,6 +117,8 @@ pub fn depth_map_id(source: &DepthMapSource) -> std::result::Result<u64, InputEr
         file: source.path.clone(),
         source: e,
     };
+    // Before opening: a FIFO would block the open until something wrote to it.
+    crate::inputs::check_regular_file(&source.path)?;
     let mut file = std::fs::File::open(&source.path).map_err(io)?;
     let mut hasher = Xxh3::new();
     let mut buffer = vec![0u8; 1 << 20];
