@@ -594,6 +594,23 @@ fn frames_without_their_own_intrinsics_take_them_from_intrinsics_file() {
         err.contains("intrinsics-7.txt") && err.contains("found 7 values"),
         "{err}"
     );
+    // A skewed matrix, or one whose last row is not 0 0 1, is refused naming the file: the
+    // pinhole has no place for them.
+    for (name, matrix, expected) in [
+        ("skewed.txt", "585 2 320\n0 585 240\n0 0 1\n", "skew 2"),
+        (
+            "projective.txt",
+            "585 0 320\n0 585 240\n0.1 0 1\n",
+            "last row is 0.1 0 1",
+        ),
+    ] {
+        let file = root.path().join(name);
+        std::fs::write(&file, matrix).unwrap();
+        let out = ingest(&format!("store-{name}"), &["--intrinsics", file.to_str().unwrap()]);
+        assert!(!out.status.success(), "{name} was accepted");
+        let err = stderr(&out);
+        assert!(err.contains(name) && err.contains(expected), "{err}");
+    }
 }
 
 /// RGB-D frames measure their noise by default: the Kinect's depths are a staircase of

@@ -213,7 +213,7 @@ fn seven_scenes_intrinsics(dir: &Path, options: &DiscoverOptions) -> Result<Proj
             ));
         }
         let k = numbers(&path, &read_text(&path)?, 9, "3x3 intrinsics matrix")?;
-        return with_positive_focal_lengths(&path, pinhole_of_matrix(&k));
+        return with_positive_focal_lengths(&path, pinhole_of_matrix(&path, &k)?);
     };
     intrinsics_file(path)
 }
@@ -262,7 +262,7 @@ fn intrinsics_file(path: &Path) -> Result<Projection, InputError> {
             cy: k[3],
         }
     } else if count == 9 {
-        pinhole_of_matrix(&numbers(path, &text, 9, "3x3 intrinsics matrix")?)
+        pinhole_of_matrix(path, &numbers(path, &text, 9, "3x3 intrinsics matrix")?)?
     } else {
         return Err(bad(
             path,
@@ -286,15 +286,39 @@ fn with_positive_focal_lengths(path: &Path, projection: Projection) -> Result<Pr
     Ok(projection)
 }
 
-/// A pinhole from a row-major 3x3 camera matrix.
-fn pinhole_of_matrix(k: &[f64]) -> Projection {
+/// A pinhole from a row-major 3x3 camera matrix of the file `path`: [fx 0 cx; 0 fy cy; 0 0 1].
+/// A skew, or a last row other than 0 0 1, is the file's error: the pinhole has no place for
+/// them, and leaving them out would move every sample without a word.
+fn pinhole_of_matrix(path: &Path, k: &[f64]) -> Result<Projection, InputError> {
     let at = |i: usize| k.get(i).copied().unwrap_or(f64::NAN);
-    Projection::Pinhole {
-        fx: at(0),
+    let (fx, skew) = (at(0), at(1));
+    if skew.is_nan() || skew.abs() > 1e-9 * fx.abs().max(1.0) {
+        return Err(bad(
+            path,
+            format!(
+                "intrinsics: skew {skew} (the matrix's first row, second value): only an unskewed pinhole [fx 0 cx; 0 fy cy; 0 0 1] is read"
+            ),
+        ));
+    }
+    let last = [at(3), at(6), at(7), at(8) - 1.0];
+    if !last.iter().all(|v| v.abs() <= 1e-9) {
+        return Err(bad(
+            path,
+            format!(
+                "intrinsics: the matrix is not [fx 0 cx; 0 fy cy; 0 0 1] (its second row starts {}, its last row is {} {} {})",
+                at(3),
+                at(6),
+                at(7),
+                at(8)
+            ),
+        ));
+    }
+    Ok(Projection::Pinhole {
+        fx,
         fy: at(4),
         cx: at(2),
         cy: at(5),
-    }
+    })
 }
 
 fn seven_scenes_source(depth: &Path, projection: Projection) -> Result<DepthMapSource, InputError> {
