@@ -557,25 +557,37 @@ fn tum_sequences_read_as_the_same_frames_in_seven_scenes_layout() {
     assert!(err.contains("quaternion has length 0"), "{err}");
 }
 
+/// The golden version-2 store's one-map manifest copied into `dir` with its image, and a
+/// writer of variants of it: the entry's fields replaced by those given, written to
+/// `dir/scene.json`, whose path it returns.
+fn golden_manifest(dir: &Path) -> (serde_json::Value, impl Fn(serde_json::Value) -> PathBuf + '_) {
+    let golden = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/golden-v2-ingest/input");
+    std::fs::copy(golden.join("plane.pfm"), dir.join("plane.pfm")).unwrap();
+    let template: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(golden.join("scene.json")).unwrap()).unwrap();
+    let entry = template.clone();
+    let write = move |fields: serde_json::Value| {
+        let mut manifest = entry.clone();
+        for (key, value) in fields.as_object().unwrap() {
+            manifest["depth_maps"][0][key] = value.clone();
+        }
+        let path = dir.join("scene.json");
+        std::fs::write(&path, manifest.to_string()).unwrap();
+        path
+    };
+    (template, write)
+}
+
 /// A manifest entry may name its depth noise: "none", a sigma, or [constant, quadratic,
 /// offset], with `noise_sigmas`; without one it takes its kind's; a malformed one is refused
 /// with the entry named.
 #[test]
 fn manifest_entries_name_their_depth_noise() {
     use octstore::inputs::DepthNoise;
-    let golden = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/golden-v2-ingest/input");
     let dir = tempfile::tempdir().unwrap();
-    std::fs::copy(golden.join("plane.pfm"), dir.path().join("plane.pfm")).unwrap();
-    let template: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(golden.join("scene.json")).unwrap()).unwrap();
+    let (_, manifest) = golden_manifest(dir.path());
     let read = |fields: serde_json::Value| {
-        let mut manifest = template.clone();
-        for (key, value) in fields.as_object().unwrap() {
-            manifest["depth_maps"][0][key] = value.clone();
-        }
-        let path = dir.path().join("scene.json");
-        std::fs::write(&path, manifest.to_string()).unwrap();
-        discover(&[path], &DiscoverOptions::default()).map(|sources| sources[0].noise)
+        discover(&[manifest(fields)], &DiscoverOptions::default()).map(|sources| sources[0].noise)
     };
     let axial = |constant, quadratic, offset, sigmas| DepthNoise::Axial {
         constant,
@@ -638,19 +650,10 @@ fn manifest_entries_name_their_depth_noise() {
 /// refused before it is opened (opening it would wait for a writer forever).
 #[test]
 fn manifest_numbers_reflections_and_fifos_are_refused_by_name() {
-    let golden = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/golden-v2-ingest/input");
     let dir = tempfile::tempdir().unwrap();
-    std::fs::copy(golden.join("plane.pfm"), dir.path().join("plane.pfm")).unwrap();
-    let template: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(golden.join("scene.json")).unwrap()).unwrap();
+    let (template, manifest) = golden_manifest(dir.path());
     let read = |fields: serde_json::Value| {
-        let mut manifest = template.clone();
-        for (key, value) in fields.as_object().unwrap() {
-            manifest["depth_maps"][0][key] = value.clone();
-        }
-        let path = dir.path().join("scene.json");
-        std::fs::write(&path, manifest.to_string()).unwrap();
-        discover(&[path], &DiscoverOptions::default()).map(|sources| sources.len())
+        discover(&[manifest(fields)], &DiscoverOptions::default()).map(|sources| sources.len())
     };
     assert_eq!(read(serde_json::json!({})).unwrap(), 1);
     let mut reflected = template["depth_maps"][0]["pose"].clone();
