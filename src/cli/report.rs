@@ -135,47 +135,31 @@ pub(crate) fn print_extract_summary(summary: &MeshSummary, output: &Path, starte
 /// a little from the next one's) share one entry that gives the range of both.
 fn noise_models(models: impl Iterator<Item = crate::inputs::DepthNoise>) -> std::collections::BTreeMap<String, u64> {
     use crate::inputs::DepthNoise;
-    type Range = (f64, f64, f64, f64, u64);
-    let mut axial: std::collections::BTreeMap<(u64, u64, u64), Range> = Default::default();
+    /// The lowest and highest constant and quadratic terms, and the maps.
+    type Ranges = ([f64; 2], [f64; 2], u64);
+    let mut axial: std::collections::BTreeMap<[u64; 3], Ranges> = Default::default();
     let mut counts: std::collections::BTreeMap<String, u64> = Default::default();
     for noise in models {
-        match noise {
-            DepthNoise::Axial {
-                constant,
-                quadratic,
-                offset,
-                sigmas,
-                footprints,
-            } => {
-                let entry = axial
-                    .entry((offset.to_bits(), sigmas.to_bits(), footprints.to_bits()))
-                    .or_insert((constant, constant, quadratic, quadratic, 0));
-                *entry = (
-                    entry.0.min(constant),
-                    entry.1.max(constant),
-                    entry.2.min(quadratic),
-                    entry.3.max(quadratic),
-                    entry.4 + 1,
-                );
-            }
-            other => *counts.entry(other.to_string()).or_default() += 1,
-        }
-    }
-    for ((offset, sigmas, footprints), (c_low, c_high, q_low, q_high, maps)) in axial {
-        let [offset, sigmas, footprints] = [offset, sigmas, footprints].map(f64::from_bits);
-        let model = |constant, quadratic| DepthNoise::Axial {
-            constant,
-            quadratic,
-            offset,
-            sigmas,
-            footprints,
+        let Some([constant, quadratic, offset, sigmas, footprints]) = noise.parts() else {
+            *counts.entry(noise.to_string()).or_default() += 1;
+            continue;
         };
-        let text = if (c_low, q_low) == (c_high, q_high) {
-            model(c_low, q_low).to_string()
+        let (c, q, maps) =
+            axial
+                .entry([offset, sigmas, footprints].map(f64::to_bits))
+                .or_insert(([constant; 2], [quadratic; 2], 0));
+        *c = [c[0].min(constant), c[1].max(constant)];
+        *q = [q[0].min(quadratic), q[1].max(quadratic)];
+        *maps += 1;
+    }
+    for (shape, (c, q, maps)) in axial {
+        let [offset, sigmas, footprints] = shape.map(f64::from_bits);
+        let text = if c[0] == c[1] && q[0] == q[1] {
+            DepthNoise::from_parts([c[0], q[0], offset, sigmas, footprints]).to_string()
         } else {
             format!(
-                "{} (measured per map: constant {c_low:.2e} to {c_high:.2e}, quadratic {q_low:.2e} to {q_high:.2e})",
-                model(f64::NAN, f64::NAN).to_string().replace("NaN", "_")
+                "radius >= min({sigmas} x (c + q (d - {offset})^2), {footprints} footprints), measured per map: c {:.2e} to {:.2e}, q {:.2e} to {:.2e}",
+                c[0], c[1], q[0], q[1]
             )
         };
         *counts.entry(text).or_default() += maps;

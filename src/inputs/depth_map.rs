@@ -181,7 +181,7 @@ impl DepthNoise {
         DepthNoise::from_parts([0.002, 0.0, 0.0, DEFAULT_NOISE_SIGMAS, DEFAULT_NOISE_FOOTPRINTS]);
 
     /// An axial model from [constant, quadratic, offset, sigmas, footprints].
-    const fn from_parts([constant, quadratic, offset, sigmas, footprints]: [f64; 5]) -> DepthNoise {
+    pub(crate) const fn from_parts([constant, quadratic, offset, sigmas, footprints]: [f64; 5]) -> DepthNoise {
         DepthNoise::Axial {
             constant,
             quadratic,
@@ -192,7 +192,7 @@ impl DepthNoise {
     }
 
     /// [constant, quadratic, offset, sigmas, footprints] of an axial model.
-    fn parts(&self) -> Option<[f64; 5]> {
+    pub(crate) fn parts(&self) -> Option<[f64; 5]> {
         match *self {
             DepthNoise::Footprint | DepthNoise::Auto { .. } => None,
             DepthNoise::Axial {

@@ -73,7 +73,7 @@ pub fn growth_for(
     medians: &[DepthMedian],
     map_memory: u64,
 ) -> Result<Vec<[u32; 3]>> {
-    let measured: Vec<Option<(DVec3, DVec3)>> = maps
+    let boxes: Vec<Option<(DVec3, DVec3)>> = maps
         .par_iter()
         .zip(medians)
         .map(|((_, source), median)| {
@@ -81,7 +81,6 @@ pub fn growth_for(
             Ok(robust_bounds(&sample))
         })
         .collect::<Result<_>>()?;
-    let boxes = measured;
     let Some((lo, hi)) = boxes
         .iter()
         .flatten()
