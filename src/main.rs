@@ -34,10 +34,15 @@ fn main() -> ExitCode {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("OCTSTORE_LOG").unwrap_or_else(|_| level.into()))
         .without_time()
         .init();
-    match octstore::cli::run(cli) {
-        Ok(code) => code,
-        Err(e) => {
+    // A damaged catalog page makes redb panic; it is reported as the damage it is.
+    match octstore::store::catalog::contain_redb_panics(|| octstore::cli::run(cli)) {
+        Ok(Ok(code)) => code,
+        Ok(Err(e)) => {
             eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
+        Err(damaged) => {
+            eprintln!("error: {damaged} (`octstore verify` names what it can still read)");
             ExitCode::FAILURE
         }
     }

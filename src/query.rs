@@ -136,6 +136,24 @@ pub fn ensure_solution_is_current(snapshot: &Snapshot<'_>) -> Result<()> {
     })
 }
 
+/// `(finest solved level, the octree's deepest level)` when a solve stopped part way: the
+/// first below the second. Reads then see the finest solved level, which is a complete,
+/// coarser solution; the user must be told that it is not the finished one.
+pub fn unfinished_solve(snapshot: &Snapshot<'_>) -> Result<Option<(u8, u8)>> {
+    let Some(solved) = snapshot.finest_level() else {
+        return Ok(None);
+    };
+    let deepest = crate::stages::octree_max_depth(snapshot.store())?;
+    Ok((solved < deepest).then_some((solved, deepest)))
+}
+
+/// What `extract`, `query` and `info` say of an [`unfinished_solve`].
+pub fn unfinished_solve_note(solved: u8, deepest: u8) -> String {
+    format!(
+        "the solution reaches level {solved} of the octree's {deepest}: a solve stopped part way, and reads see level {solved}; `octstore solve --resume` finishes it"
+    )
+}
+
 fn scene_of(snapshot: &Snapshot<'_>) -> Result<Scene> {
     scene_at(snapshot.store(), snapshot.version())?.ok_or_else(|| StoreError::Stage {
         stage: "query".into(),

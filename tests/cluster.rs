@@ -289,3 +289,84 @@ fn an_ssd_cluster_run_equals_a_single_process_solve() {
         "{chain}"
     );
 }
+
+/// Every `.mesh` piece a cluster extract's workers wrote under `store`.
+fn mesh_pieces(store: &Path) -> Vec<std::path::PathBuf> {
+    let mut pieces = Vec::new();
+    let mut folders = vec![store.to_path_buf()];
+    while let Some(folder) = folders.pop() {
+        for entry in std::fs::read_dir(&folder).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                folders.push(path);
+            } else if path.extension().is_some_and(|e| e == "mesh") {
+                pieces.push(path);
+            }
+        }
+    }
+    pieces.sort();
+    pieces
+}
+
+/// A commit that finds a damaged piece names its file and leaves the mesh already at the output
+/// path as it was (it used to delete it); a cluster extract of a version whose solve has not
+/// caught up with its latest ingest is refused, as `extract` refuses it (it used to mesh the
+/// older solution).
+#[test]
+fn cluster_extract_keeps_the_old_mesh_and_refuses_a_stale_solution() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = scene().write(&dir.path().join("input")).unwrap();
+    let store = dir.path().join("store");
+    let s = store.to_str().unwrap();
+    run(&["ingest", s, manifest.to_str().unwrap(), "--max-depth", "5", "--quiet"]);
+    run(&["solve", s, "--leaf-cubes", "200", "--quiet"]);
+    let mesh = dir.path().join("mesh.ply");
+    let m = mesh.to_str().unwrap();
+    let cluster_extract = || {
+        run(&["plan", s, "--stage", "extract", "--chunks", "2", "-o", m]);
+        for chunk in ["0", "1"] {
+            run(&["work", s, "--stage", "extract", "--chunk", chunk]);
+        }
+    };
+    cluster_extract();
+    run(&["commit", s, "--stage", "extract"]);
+    let committed = std::fs::read(&mesh).unwrap();
+
+    cluster_extract();
+    let pieces = mesh_pieces(&store);
+    assert!(pieces.len() >= 2, "{pieces:?}");
+    let damaged = &pieces[pieces.len() / 2];
+    let mut bytes = std::fs::read(damaged).unwrap();
+    let middle = bytes.len() / 2;
+    bytes[middle] ^= 0x10;
+    std::fs::write(damaged, &bytes).unwrap();
+    let out = octstore(&["commit", s, "--stage", "extract"], &[]);
+    assert!(!out.status.success(), "a damaged piece was committed");
+    let name = damaged.file_name().unwrap().to_str().unwrap();
+    assert!(
+        stderr(&out).contains(name),
+        "the damaged file is not named: {}",
+        stderr(&out)
+    );
+    assert!(
+        std::fs::read(&mesh).unwrap() == committed,
+        "the mesh at the output path changed"
+    );
+
+    // More views, then only the histograms: the latest version's solution is stale.
+    let more = SceneSpec { cameras: 11, ..scene() }
+        .write(&dir.path().join("more"))
+        .unwrap();
+    run(&["ingest", s, more.to_str().unwrap(), "--quiet"]);
+    run(&["solve", s, "--until", "histograms", "--leaf-cubes", "200", "--quiet"]);
+    let single = octstore(&["extract", s, "-o", m], &[]);
+    assert!(!single.status.success(), "extract meshed a stale solution");
+    let planned = octstore(&["plan", s, "--stage", "extract", "--chunks", "2", "-o", m], &[]);
+    assert!(!planned.status.success(), "plan accepted a stale solution");
+    assert!(
+        stderr(&planned).contains("older than its octree or histograms"),
+        "{}",
+        stderr(&planned)
+    );
+    assert!(std::fs::read(&mesh).unwrap() == committed);
+}

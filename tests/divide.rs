@@ -201,3 +201,69 @@ fn a_truncated_ply_is_an_error_that_names_it() {
         "a manifest was written for a failed division"
     );
 }
+
+/// A change made to a manifest's JSON.
+type Damage = fn(&mut serde_json::Value);
+
+/// `merge` checks the manifest before trusting it: two subspaces sharing a core, a core of
+/// negative side, or a node outside the root are refused naming the manifest, where they used
+/// to drop thousands of triangles without a word.
+#[test]
+fn merge_refuses_a_manifest_whose_cores_do_not_tile_the_root() {
+    let dir = tempfile::tempdir().expect("a temporary folder");
+    let cloud = dir.path().join("cloud.xyz");
+    std::fs::write(&cloud, cloud_xyz(3000)).expect("write the cloud");
+    let parts = dir.path().join("parts");
+    let (cloud, parts_arg) = (
+        cloud.to_string_lossy().into_owned(),
+        parts.to_string_lossy().into_owned(),
+    );
+    let manifest = divide(&["--quiet", "divide", &cloud, "-o", &parts_arg, "--max-points", "700"]);
+    assert!(manifest.subspaces.len() >= 3, "{} subspaces", manifest.subspaces.len());
+    manifest.check().expect("the written manifest passes");
+    let path = parts.join("subspaces.json");
+    let original: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).expect("the manifest")).expect("JSON");
+    let damages: [(&str, Damage); 3] = [
+        ("overlap", |m| {
+            m["subspaces"][1]["node"] = m["subspaces"][0]["node"].clone()
+        }),
+        ("is not its node's cube", |m| {
+            m["subspaces"][0]["core"]["size"] = (-1.0).into()
+        }),
+        ("is not inside the root", |m| {
+            m["subspaces"][0]["node"]["index"][0] = (1u64 << 20).into()
+        }),
+    ];
+    for (expected, damage) in damages {
+        let mut damaged = original.clone();
+        damage(&mut damaged);
+        // The core of a copied node must still be that node's cube: copy it too.
+        if expected == "overlap" {
+            damaged["subspaces"][1]["core"] = damaged["subspaces"][0]["core"].clone();
+            damaged["subspaces"][1]["grown"] = damaged["subspaces"][0]["grown"].clone();
+        }
+        std::fs::write(&path, damaged.to_string()).expect("write the damaged manifest");
+        let mesh = dir.path().join("merged.ply");
+        // The manifest is read first: the piece need not be a mesh.
+        let piece = dir.path().join(manifest.subspaces[0].file.replace(".ply", ".mesh.ply"));
+        std::fs::write(&piece, b"ply").expect("write a piece");
+        let out = octstore(
+            &[
+                "merge",
+                path.to_str().expect("UTF-8"),
+                piece.to_str().expect("UTF-8"),
+                "-o",
+                mesh.to_str().expect("UTF-8"),
+            ],
+            &[],
+        );
+        let text = stderr(&out);
+        assert!(!out.status.success(), "{expected}: merged anyway");
+        assert!(
+            text.contains("subspaces.json") && text.contains(expected),
+            "{expected}: {text}"
+        );
+        assert!(!mesh.exists(), "{expected}: wrote a mesh");
+    }
+}

@@ -11,6 +11,8 @@
 //! `OCTSTORE_FUZZ_SECONDS=600 cargo test --release --locked --config
 //! 'profile.release.package.octstore.overflow-checks=true' --test fuzz -- --test-threads 2`.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -452,6 +454,133 @@ fn mesh_files() {
             let _ = octstore::mesh::read_mesh(path);
         }
     });
+}
+
+/// A small real store (ingest, solve, extract of a sphere seen by six views) made by the CLI.
+fn small_real_store(dir: &Path) -> PathBuf {
+    let spec = octstore::SceneSpec {
+        shapes: vec![octstore::quality::synthetic_scenes::Shape::Sphere {
+            center: DVec3::new(0.1, -0.2, 0.3),
+            radius: 0.5,
+        }],
+        cameras: 6,
+        distance: 2.0,
+        target: DVec3::new(0.1, -0.2, 0.3),
+        width: 48,
+        height: 36,
+        fov_degrees: 45.0,
+        noise: None,
+        room: None,
+    };
+    let manifest = spec.write(&dir.join("views")).unwrap();
+    let store = dir.join("store");
+    let (s, m) = (store.to_str().unwrap(), manifest.to_str().unwrap());
+    for args in [
+        vec!["ingest", s, m, "--max-depth", "6"],
+        vec!["solve", s],
+        vec!["extract", s, "-o", dir.join("mesh.ply").to_str().unwrap()],
+    ] {
+        let out = common::octstore(&args, &[]);
+        assert!(out.status.success(), "{args:?}: {}", common::stderr(&out));
+    }
+    store
+}
+
+/// Where a flipped bit of `catalog.redb` leaves a reader: it must never panic, and the flip is
+/// either reported (an open or `verify` error, or a `verify` problem) or harmless (the
+/// catalog's canonical content unchanged).
+#[derive(Debug, PartialEq, Eq)]
+enum FlipOutcome {
+    Reported,
+    Harmless,
+    SilentlyChanged,
+}
+
+fn read_flipped(store: &Path, original_dump: &[u8]) -> FlipOutcome {
+    let Ok(opened) = octstore::Store::open_read_only(store) else {
+        return FlipOutcome::Reported;
+    };
+    match opened.verify(&[octstore::stages::octree::verify_octree]) {
+        Ok(report) if report.is_ok() => {}
+        _ => return FlipOutcome::Reported,
+    }
+    match opened.canonical_dump() {
+        Ok(dump) if dump == original_dump => FlipOutcome::Harmless,
+        Ok(_) => FlipOutcome::SilentlyChanged,
+        Err(_) => FlipOutcome::Reported,
+    }
+}
+
+/// Bit flips in a real store's `catalog.redb`, one at a time: first at every byte that is
+/// printable text (table names, type names, segment names, meta keys and stage names, where a
+/// flip used to panic inside redb), then at the other nonzero bytes (page headers, offsets,
+/// numbers, checksums), then at the zeros (mostly free pages), each group in a shuffled order,
+/// until the budget is spent (a long run reaches every position; README, "Fuzzing").
+#[test]
+fn catalog_bit_flips() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = small_real_store(dir.path());
+    let catalog_path = store.join("catalog.redb");
+    let original = std::fs::read(&catalog_path).unwrap();
+    let original_dump = octstore::Store::open_read_only(&store)
+        .unwrap()
+        .canonical_dump()
+        .unwrap();
+    let mut state = 0x00ca_7a10_9f11_b175_u64;
+    let mut order = |positions: Vec<usize>| {
+        let mut positions = positions;
+        for i in (1..positions.len()).rev() {
+            positions.swap(i, below(&mut state, i + 1));
+        }
+        positions
+    };
+    let tier = |byte: u8| match byte {
+        b if b.is_ascii_graphic() => 0,
+        0 => 2,
+        _ => 1,
+    };
+    let tiers: Vec<Vec<usize>> = (0..3)
+        .map(|t| (0..original.len()).filter(|&i| tier(original[i]) == t).collect())
+        .collect();
+    let sizes: Vec<usize> = tiers.iter().map(Vec::len).collect();
+    let positions: Vec<usize> = tiers.into_iter().flat_map(&mut order).collect();
+    let started = Instant::now();
+    let mut counts = std::collections::BTreeMap::new();
+    let mut silent = Vec::new();
+    let mut tries = 0usize;
+    for (n, &at) in positions.iter().enumerate() {
+        if started.elapsed() >= budget() && tries >= 200 {
+            break;
+        }
+        let bit = (n * 5 + at) % 8;
+        let mut flipped = original.clone();
+        flipped[at] ^= 1 << bit;
+        std::fs::write(&catalog_path, &flipped).unwrap();
+        let outcome = std::panic::catch_unwind(|| read_flipped(&store, &original_dump));
+        std::fs::write(&catalog_path, &original).unwrap();
+        tries += 1;
+        match outcome {
+            Ok(outcome) => {
+                if outcome == FlipOutcome::SilentlyChanged {
+                    silent.push(format!("byte {at} bit {bit}"));
+                }
+                *counts.entry(format!("{outcome:?}")).or_insert(0usize) += 1;
+            }
+            Err(_) => panic!("catalog: flipping bit {bit} of byte {at} of catalog.redb panicked a reader"),
+        }
+    }
+    println!(
+        "catalog: {tries} of {} positions ({} text, {} other nonzero, {} zero) in {:.1} s: {counts:?}",
+        positions.len(),
+        sizes[0],
+        sizes[1],
+        sizes[2],
+        started.elapsed().as_secs_f64()
+    );
+    assert!(
+        silent.is_empty(),
+        "flips that changed the content without a report: {silent:?}"
+    );
 }
 
 /// The fuzzer's first find, kept as a regression: a catalog record whose string length

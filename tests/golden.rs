@@ -217,7 +217,10 @@ fn catalogs_newer_than_this_build_are_refused() {
         let txn = db.begin_write().unwrap();
         txn.open_table(META)
             .unwrap()
-            .insert("format_version", (CATALOG_FORMAT_VERSION + 1).to_le_bytes().as_slice())
+            .insert(
+                "format_version".as_bytes(),
+                (CATALOG_FORMAT_VERSION + 1).to_le_bytes().as_slice(),
+            )
             .unwrap();
         txn.commit().unwrap();
     }

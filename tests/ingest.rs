@@ -861,3 +861,57 @@ fn bad_focal_lengths_name_the_intrinsics_file() {
         );
     }
 }
+
+/// One depth map whose pose is off by 10^4 (a translation in other units) among six: the root
+/// is sized by the others, and the far one is refused by name, where it used to stretch the
+/// root until the whole scene was a few cubes and every command succeeded with an empty mesh.
+#[test]
+fn a_far_off_pose_is_named_and_does_not_collapse_the_root() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest_path = small_scene().write(&dir.path().join("views")).unwrap();
+    let mut manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&manifest_path).unwrap()).unwrap();
+    let pose = &mut manifest["depth_maps"][2]["pose"]["camera_to_world"];
+    pose[3] = serde_json::json!(pose[3].as_f64().unwrap() + 1e4);
+    std::fs::write(&manifest_path, manifest.to_string()).unwrap();
+    let store = dir.path().join("store");
+    let out = octstore(
+        &[
+            "ingest",
+            store.to_str().unwrap(),
+            manifest_path.to_str().unwrap(),
+            "--max-depth",
+            "7",
+        ],
+        &[],
+    );
+    let text = stderr(&out);
+    assert!(
+        !out.status.success(),
+        "the far map's samples were dropped silently: {text}"
+    );
+    assert!(
+        text.contains("view-002.pfm") && text.contains("far from every other depth map"),
+        "{text}"
+    );
+    assert!(text.contains("outside the store's root cube"), "{text}");
+    // Without the far map, the same scene's root fits the sphere.
+    let mut kept = manifest.clone();
+    kept["depth_maps"].as_array_mut().unwrap().remove(2);
+    std::fs::write(&manifest_path, kept.to_string()).unwrap();
+    let out = octstore(
+        &[
+            "ingest",
+            store.to_str().unwrap(),
+            manifest_path.to_str().unwrap(),
+            "--max-depth",
+            "7",
+        ],
+        &[],
+    );
+    assert!(out.status.success(), "{}", stderr(&out));
+    let scene = octstore::stages::ingest::read_scene(&Store::open_read_only(&store).unwrap())
+        .unwrap()
+        .unwrap();
+    assert!(scene.root_side < 3.0, "root side {}", scene.root_side);
+}

@@ -96,3 +96,73 @@ fn kill_trials_of(trials: u64, args: &dyn Fn(&std::path::Path, bool) -> Vec<Stri
     }
     .run();
 }
+
+/// A first solve that crashed after some of its levels leaves a store whose finest solved level
+/// is a complete, coarser solution: `extract` and `query` read it and say so, `info` names the
+/// level reached and the octree's, and `solve --resume` finishes the rest.
+#[test]
+fn a_solve_stopped_part_way_is_named_by_every_reader() {
+    let root = tempfile::tempdir().unwrap();
+    let center = DVec3::new(0.0, 0.0, 0.2);
+    let spec = SceneSpec {
+        shapes: vec![Shape::Sphere { center, radius: 0.4 }],
+        cameras: 6,
+        distance: 2.0,
+        target: center,
+        width: 40,
+        height: 30,
+        fov_degrees: 45.0,
+        noise: None,
+        room: None,
+    };
+    let manifest = spec.write(&root.path().join("input")).unwrap();
+    let store = root.path().join("store");
+    let s = store.to_str().unwrap();
+    let out = octstore(&["ingest", s, manifest.to_str().unwrap(), "--max-depth", "6"], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    // The octree, the histograms and levels 0 to 2 finish; the process dies after the fifth.
+    let out = octstore(&["solve", s], &[("OCTSTORE_FAILPOINT", "stage.after_finish:5")]);
+    assert!(!out.status.success(), "the failpoint did not stop the solve");
+    let mesh = root.path().join("mesh.ply");
+    let out = octstore(&["extract", s, "-o", mesh.to_str().unwrap()], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let said = stderr(&out);
+    assert!(
+        said.contains("reaches level 2 of the octree's ") && said.contains("solve --resume"),
+        "{said}"
+    );
+    let out = octstore(&["info", s], &[]);
+    assert!(stdout(&out).contains("a solve stopped part way"), "{}", stdout(&out));
+    let out = octstore(&["query", s, "--point", "0,0,0.2"], &[]);
+    assert!(stderr(&out).contains("solve --resume"), "{}", stderr(&out));
+
+    let out = octstore(&["solve", s, "--resume"], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let out = octstore(&["extract", s, "-o", mesh.to_str().unwrap()], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(!stderr(&out).contains("part way"), "{}", stderr(&out));
+    assert!(!stdout(&octstore(&["info", s], &[])).contains("part way"));
+
+    // Outputs: a symbolic link stays a link and its target gets the mesh; a FIFO is refused
+    // and stays a FIFO (both used to become regular files).
+    let link = root.path().join("link.ply");
+    std::os::unix::fs::symlink("mesh.ply", &link).unwrap();
+    std::fs::write(&mesh, b"old").unwrap();
+    let out = octstore(&["extract", s, "-o", link.to_str().unwrap()], &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink());
+    assert!(std::fs::read(&mesh).unwrap().starts_with(b"ply\n"));
+    let fifo = root.path().join("fifo.ply");
+    assert!(
+        std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success()
+    );
+    let out = octstore(&["extract", s, "-o", fifo.to_str().unwrap()], &[]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("not a regular file"), "{}", stderr(&out));
+    use std::os::unix::fs::FileTypeExt;
+    assert!(std::fs::symlink_metadata(&fifo).unwrap().file_type().is_fifo());
+}

@@ -209,3 +209,159 @@ fn a_truncated_large_png_is_a_clear_error_and_changes_nothing() {
     assert_same_store(&before, &fingerprint(&store), "after the failed ingest");
     assert!(!store.join("tmp").exists(), "scratch left behind");
 }
+
+/// CRC-32 (IEEE) of `bytes`, as PNG chunks carry it.
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = !0u32;
+    for &byte in bytes {
+        crc ^= u32::from(byte);
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 {
+                (crc >> 1) ^ 0xEDB8_8320
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    !crc
+}
+
+/// `image` as an Adam7-interlaced 16-bit grey PNG (values `depth / scale`), written by hand:
+/// the image crate's encoder does not interlace. The zlib stream uses stored blocks.
+fn write_interlaced_png16(path: &Path, image: &DepthImage, scale: f64) {
+    const PASSES: [(usize, usize, usize, usize); 7] = [
+        (0, 0, 8, 8),
+        (4, 0, 8, 8),
+        (0, 4, 4, 8),
+        (2, 0, 4, 4),
+        (0, 2, 2, 4),
+        (1, 0, 2, 2),
+        (0, 1, 1, 2),
+    ];
+    let (width, height) = (image.width as usize, image.height as usize);
+    let value = |x: usize, y: usize| -> u16 {
+        let d = image.depth[y * width + x];
+        if d.is_finite() {
+            (f64::from(d) / scale).round() as u16
+        } else {
+            0
+        }
+    };
+    let mut raw = Vec::new();
+    for (x0, y0, dx, dy) in PASSES {
+        if x0 >= width || y0 >= height {
+            continue;
+        }
+        for y in (y0..height).step_by(dy) {
+            raw.push(0); // filter: none
+            for x in (x0..width).step_by(dx) {
+                raw.extend_from_slice(&value(x, y).to_be_bytes());
+            }
+        }
+    }
+    let mut zlib = vec![0x78, 0x01];
+    let blocks: Vec<&[u8]> = raw.chunks(65_535).collect();
+    for (i, block) in blocks.iter().enumerate() {
+        zlib.push(u8::from(i + 1 == blocks.len()));
+        let len = block.len() as u16;
+        zlib.extend_from_slice(&len.to_le_bytes());
+        zlib.extend_from_slice(&(!len).to_le_bytes());
+        zlib.extend_from_slice(block);
+    }
+    let (mut a, mut b) = (1u32, 0u32);
+    for &byte in &raw {
+        a = (a + u32::from(byte)) % 65_521;
+        b = (b + a) % 65_521;
+    }
+    zlib.extend_from_slice(&((b << 16) | a).to_be_bytes());
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut chunk = |kind: &[u8], data: &[u8]| {
+        png.extend_from_slice(&(data.len() as u32).to_be_bytes());
+        let mut body = kind.to_vec();
+        body.extend_from_slice(data);
+        png.extend_from_slice(&body);
+        png.extend_from_slice(&crc32(&body).to_be_bytes());
+    };
+    let mut header = Vec::new();
+    header.extend_from_slice(&image.width.to_be_bytes());
+    header.extend_from_slice(&image.height.to_be_bytes());
+    header.extend_from_slice(&[16, 0, 0, 0, 1]); // 16 bits, grey, deflate, filter 0, Adam7
+    chunk(b"IHDR", &header);
+    chunk(b"IDAT", &zlib);
+    chunk(b"IEND", &[]);
+    std::fs::write(path, png).unwrap();
+}
+
+/// An interlaced PNG comes in seven passes and is decoded whole: too large for the budget's
+/// share of one map, it is refused naming the file (it used to take 1.5 GB at 256 MiB); where
+/// the budget holds it whole, it ingests into the same store as the plain PNG.
+#[test]
+fn an_interlaced_png_beyond_the_budget_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = large_view(&dir.path().join("input"));
+    let png = as_png(&manifest);
+    let folder = manifest.parent().unwrap();
+    let plain = read_png16(&folder.join("view-000.png"), 1e-4).unwrap();
+    write_interlaced_png16(&folder.join("view-000-adam7.png"), &plain, 1e-4);
+    assert_eq!(
+        read_png16(&folder.join("view-000-adam7.png"), 1e-4)
+            .unwrap()
+            .depth
+            .iter()
+            .map(|d| d.to_bits())
+            .collect::<Vec<_>>(),
+        plain.depth.iter().map(|d| d.to_bits()).collect::<Vec<_>>(),
+        "the hand-written interlaced PNG decodes to the plain one"
+    );
+    let interlaced = folder.join("adam7.json");
+    std::fs::write(
+        &interlaced,
+        std::fs::read_to_string(&png)
+            .unwrap()
+            .replace("view-000.png", "view-000-adam7.png"),
+    )
+    .unwrap();
+    let store = dir.path().join("refused");
+    let out = octstore(
+        &[
+            "ingest",
+            store.to_str().unwrap(),
+            interlaced.to_str().unwrap(),
+            "--max-depth",
+            "10",
+            "--memory-budget",
+            "32MiB",
+        ],
+        &[],
+    );
+    let message = stderr(&out);
+    assert!(!out.status.success(), "an interlaced map beyond the budget was read");
+    assert!(
+        message.contains("view-000-adam7.png") && message.contains("interlaced"),
+        "{message}"
+    );
+    // The same pixels give the same samples and cubes (the stores differ in the maps' ids,
+    // which hash the files' bytes).
+    let counts = |input: &Path, name: &str| -> String {
+        let store = dir.path().join(name);
+        let out = octstore(
+            &[
+                "ingest",
+                store.to_str().unwrap(),
+                input.to_str().unwrap(),
+                "--max-depth",
+                "10",
+            ],
+            &[],
+        );
+        assert!(out.status.success(), "{name}: {}", stderr(&out));
+        let report = stdout(&out);
+        report
+            .split("depth map(s): ")
+            .nth(1)
+            .and_then(|s| s.split(" in ").next())
+            .unwrap_or_else(|| panic!("{report}"))
+            .to_string()
+    };
+    assert_eq!(counts(&interlaced, "whole"), counts(&png, "reference"));
+}

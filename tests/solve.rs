@@ -464,7 +464,7 @@ fn histogram_catalog(path: &std::path::Path) -> (RawStates, MapSets) {
     let states = txn.open_table(UNIT_STATE).unwrap();
     let (low, high) = (octstore::CubeKey::from_raw(0), octstore::CubeKey::from_raw(u128::MAX));
     let states = states
-        .range(("histograms", low)..=("histograms", high))
+        .range(("histograms".as_bytes(), low)..=("histograms".as_bytes(), high))
         .unwrap()
         .map(|e| {
             let (k, v) = e.unwrap();
@@ -474,11 +474,11 @@ fn histogram_catalog(path: &std::path::Path) -> (RawStates, MapSets) {
         .collect();
     let meta = txn.open_table(META).unwrap();
     let sets = meta
-        .range(catalog::META_MAP_SET_PREFIX..)
+        .range(catalog::META_MAP_SET_PREFIX.as_bytes()..)
         .unwrap()
         .map(|e| e.unwrap())
         .map_while(|(k, v)| {
-            let digest = catalog::map_set_of_key(k.value())?;
+            let digest = catalog::map_set_of_key(std::str::from_utf8(k.value()).ok()?)?;
             let ids = catalog::unseal_decode::<_, Vec<u64>>("meta", k.value(), v.value()).unwrap();
             Some((digest, ids))
         })
@@ -536,11 +536,12 @@ fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
             for (key, value) in &states {
                 let state: HistogramState = catalog::decode("unit_state", value).unwrap();
                 let v1 = catalog::encode(&(state.octree_digest, registered.clone()));
-                table.insert(("histograms", *key), v1.as_slice()).unwrap();
+                table.insert(("histograms".as_bytes(), *key), v1.as_slice()).unwrap();
             }
             let mut meta = txn.open_table(META).unwrap();
-            meta.remove(catalog::map_set_key(digest).as_str()).unwrap();
-            meta.insert("format_version", 1u32.to_le_bytes().as_slice()).unwrap();
+            meta.remove(catalog::map_set_key(digest).as_bytes()).unwrap();
+            meta.insert("format_version".as_bytes(), 1u32.to_le_bytes().as_slice())
+                .unwrap();
             // Depth map sources before version 3 end at `weight`: drop the noise model (these
             // photo maps have `Footprint`, the u32 tag 0 before the record's last 64 bytes).
             let mut maps = txn.open_table(catalog::DEPTH_MAPS).unwrap();

@@ -40,6 +40,9 @@ pub struct InfoJson {
     pub finest_level: Option<u8>,
     /// The side of the finest level's cubes, in world units.
     pub finest_cube_side: Option<f64>,
+    /// The octree's deepest level (absent before the octree is built). A `finest_level` below
+    /// it means a solve stopped part way: `octstore solve --resume` finishes it.
+    pub octree_deepest_level: Option<u8>,
     /// The solver of the finest level: `tgv`, `ssd` or `hybrid` (absent before a solve).
     pub solver: Option<String>,
     /// Whether the store's ingests gather the sample sums `--method ssd|hybrid` needs (`ingest
@@ -70,6 +73,11 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
         root_side: scene.map(|s| s.root_side),
         finest_level,
         finest_cube_side: scene.zip(finest_level).map(|(s, level)| s.cube_side(level)),
+        octree_deepest_level: if snapshot.segments(stages::OCTREE).is_empty() {
+            None
+        } else {
+            Some(stages::octree_max_depth(store)?)
+        },
         solver: snapshot.method()?.map(str::to_string),
         sample_sums: scene.map(|_| stages::ingest::records_sample_sums(store)).transpose()?,
         store: store.root().display().to_string(),
@@ -128,6 +136,11 @@ pub(crate) fn print_extract_summary(summary: &MeshSummary, output: &Path, starte
         started.elapsed().as_secs_f64(),
         peak_rss_bytes() as f64 / 1e6
     );
+    if summary.triangles == 0 {
+        tracing::warn!(
+            "the mesh is empty: no surface was found in the region extracted (`octstore info` shows the scene's root and the depth maps' samples; a region outside the scene, or a root far larger than the samples, gives nothing to mesh)"
+        );
+    }
 }
 
 /// The maps' noise models as `info` lists them, with how many maps have each. Axial models

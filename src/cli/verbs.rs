@@ -149,6 +149,9 @@ pub(super) fn query(args: QueryArgs) -> Result<()> {
             problem: "give --point x,y,z (or --levels / --leaves)",
         });
     };
+    if let Some((solved, deepest)) = crate::query::unfinished_solve(&snapshot)? {
+        tracing::warn!("{}", crate::query::unfinished_solve_note(solved, deepest));
+    }
     let u = snapshot.indicator_at(glam::DVec3::from_array(point))?;
     let seen = snapshot.seen_at(glam::DVec3::from_array(point))?;
     let method = snapshot.method()?;
@@ -267,6 +270,9 @@ pub(super) fn info_verb(args: InfoArgs) -> Result<()> {
     }
     if let (Some(level), Some(side)) = (info.finest_level, info.finest_cube_side) {
         println!("finest level   {level} (cubes of side {side})");
+        if let Some(deepest) = info.octree_deepest_level.filter(|&deepest| deepest > level) {
+            println!("               {}", crate::query::unfinished_solve_note(level, deepest));
+        }
     }
     if let Some(solver) = &info.solver {
         println!("solver         {solver}");

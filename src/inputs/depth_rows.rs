@@ -26,12 +26,23 @@ pub struct DepthRows<'a> {
 }
 
 impl<'a> DepthRows<'a> {
-    /// Opens `source` and checks that its size is the registered one.
+    /// Opens `source` to read it whole ([`DepthMapSource::load`]), and checks that its size is
+    /// the registered one.
     pub fn open(source: &'a DepthMapSource) -> Result<DepthRows<'a>, InputError> {
+        DepthRows::open_as(source, false)
+    }
+
+    /// Opens `source`, too large for the memory it may use, to read it a row at a time: a file
+    /// that cannot be decoded that way (an interlaced PNG) is refused by name.
+    pub fn open_streaming(source: &'a DepthMapSource) -> Result<DepthRows<'a>, InputError> {
+        DepthRows::open_as(source, true)
+    }
+
+    fn open_as(source: &'a DepthMapSource, streaming: bool) -> Result<DepthRows<'a>, InputError> {
         let path = source.path.as_path();
         let (reader, (width, height)) = match &source.format {
             ImageFormat::Png16 { scale } => {
-                let rows = PngRows::open(path, *scale)?;
+                let rows = PngRows::open(path, *scale, streaming)?;
                 let size = rows.size();
                 (Reader::Png(Box::new(rows)), size)
             }
@@ -83,7 +94,8 @@ impl<'a> DepthRows<'a> {
                 let ImageFormat::Png16 { scale } = self.source.format else {
                     return Err(bad(&self.source.path, "PNG reader for a file that is not a PNG"));
                 };
-                self.reader = Reader::Png(Box::new(PngRows::open(&self.source.path, scale)?));
+                // A rewind opens the file again; the first open refused what streaming cannot read.
+                self.reader = Reader::Png(Box::new(PngRows::open(&self.source.path, scale, false)?));
             }
         }
         self.next = 0;

@@ -119,7 +119,10 @@ fn png_error(path: &Path) -> impl Fn(png::DecodingError) -> InputError + '_ {
 }
 
 impl PngRows {
-    pub(super) fn open(path: &Path, scale: f64) -> Result<PngRows, InputError> {
+    /// Opens the PNG at `path`. An interlaced one is decoded whole here (its rows come in
+    /// seven passes); `streaming` callers read a map too large for their memory a row at a
+    /// time, and such a file is refused for them, naming what its decode would take.
+    pub(super) fn open(path: &Path, scale: f64, streaming: bool) -> Result<PngRows, InputError> {
         let file = File::open(path).map_err(io_error(path))?;
         let mut reader = png::Decoder::new(BufReader::new(file))
             .read_info()
@@ -139,6 +142,15 @@ impl PngRows {
             let size = reader
                 .output_buffer_size()
                 .ok_or_else(|| bad(path, "PNG too large to decode"))?;
+            if streaming {
+                return Err(bad(
+                    path,
+                    format!(
+                        "an interlaced {width}x{height} PNG is decoded whole ({:.0} MB), more than the memory budget leaves for one depth map; save it without interlacing (for example `convert IN -interlace none OUT`), or give a larger --memory-budget",
+                        size as f64 / 1e6
+                    ),
+                ));
+            }
             let mut buffer = vec![0; size];
             reader.next_frame(&mut buffer).map_err(png_error(path))?;
             Some(buffer)
@@ -199,7 +211,7 @@ fn collect_rows(
 
 /// Reads a 16-bit grey PNG; depth = value * `scale`, 0 and 65535 invalid.
 pub fn read_png16(path: &Path, scale: f64) -> Result<DepthImage, InputError> {
-    let mut rows = PngRows::open(path, scale)?;
+    let mut rows = PngRows::open(path, scale, false)?;
     let (width, height) = rows.size();
     collect_rows(width, height, |row, out| rows.read_row(path, row, out))
 }

@@ -17,7 +17,7 @@ pub use clip::clip;
 pub use decimate::{DECIMATE_MAX_ERROR, decimate_units};
 pub use io::{MeshReadError, read_mesh};
 pub use preview::{View, render, render_view};
-pub use write::{ply_header, remove_leftovers, temporary_beside, write_atomically, write_mesh};
+pub use write::{output_target, ply_header, remove_leftovers, temporary_beside, write_atomically, write_mesh};
 
 /// Identity of a dual-cell corner, as extraction names it: a leaf key, or a virtual exterior
 /// cell (bit 127 set, bits 124..127 the mirrored axes, then the key of the leaf it mirrors).

@@ -49,13 +49,54 @@ pub fn remove_leftovers(path: &Path) -> std::io::Result<()> {
     Ok(())
 }
 
+/// Where a write of `path` goes: `path` itself, or the file a symbolic link at `path` leads to,
+/// so that the link stays a link and its target is what is replaced. A path that exists and is
+/// not a regular file (a folder, a FIFO, a device) is refused: the atomic rename would replace
+/// it with a regular file.
+pub fn output_target(path: &Path) -> std::io::Result<std::path::PathBuf> {
+    /// Links followed before giving up, as the kernel's `ELOOP` limit.
+    const MAX_LINKS: usize = 40;
+    let mut target = path.to_path_buf();
+    for _ in 0..MAX_LINKS {
+        match std::fs::symlink_metadata(&target) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(target),
+            Err(e) => return Err(e),
+            Ok(meta) if meta.file_type().is_symlink() => {
+                let link = std::fs::read_link(&target)?;
+                // `join` keeps an absolute link as it is and resolves a relative one from the
+                // link's folder.
+                target = match target.parent() {
+                    Some(dir) => dir.join(link),
+                    None => link,
+                };
+            }
+            Ok(meta) if meta.is_file() => return Ok(target),
+            Ok(_) => {
+                return Err(std::io::Error::new(
+                    std::io::ErrorKind::InvalidInput,
+                    format!(
+                        "{} is not a regular file (a folder, FIFO or device): outputs are written to a new or regular file only",
+                        target.display()
+                    ),
+                ));
+            }
+        }
+    }
+    Err(std::io::Error::new(
+        std::io::ErrorKind::InvalidInput,
+        format!("{}: more than {MAX_LINKS} symbolic links in a row", path.display()),
+    ))
+}
+
 /// Writes `path` atomically: `write` fills a temporary file beside it, which is flushed,
 /// synced and renamed over `path`, so a reader (or a killed run) sees the old file or the whole
 /// new one, never a part. On an error the temporary file is removed and `path` is untouched.
+/// A symbolic link at `path` stays, and its target is replaced ([`output_target`]).
 pub fn write_atomically(
     path: &Path,
     write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
 ) -> std::io::Result<()> {
+    let path = &output_target(path)?;
     let temporary = temporary_beside(path, &format!("{}.out", std::process::id()));
     let result = (|| {
         let mut out = std::io::BufWriter::new(std::fs::File::create(&temporary)?);
@@ -73,6 +114,7 @@ pub fn write_atomically(
 /// ([`write_atomically`]). A mesh without normals gets zero normals in PLY (whose header always
 /// has them) and none in OBJ.
 pub fn write_mesh(path: &Path, mesh: &Mesh) -> std::io::Result<()> {
+    let path = &output_target(path)?;
     remove_leftovers(path)?;
     write_atomically(path, |out| write_mesh_to(path, mesh, out))
 }
@@ -126,6 +168,44 @@ fn write_mesh_to(path: &Path, mesh: &Mesh, out: &mut impl Write) -> std::io::Res
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A symbolic link stays a link and its target gets the new bytes; a FIFO and a folder are
+    /// refused and stay what they were.
+    #[test]
+    fn outputs_go_through_links_and_never_replace_what_is_not_a_file() {
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("real.ply");
+        std::fs::write(&target, b"old").unwrap();
+        let link = dir.path().join("link.ply");
+        std::os::unix::fs::symlink("real.ply", &link).unwrap();
+        write_atomically(&link, |out| out.write_all(b"new")).unwrap();
+        assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink());
+        assert_eq!(std::fs::read(&target).unwrap(), b"new");
+        // A dangling link creates its target.
+        let dangling = dir.path().join("dangling.ply");
+        std::os::unix::fs::symlink(dir.path().join("later.ply"), &dangling).unwrap();
+        write_atomically(&dangling, |out| out.write_all(b"made")).unwrap();
+        assert_eq!(std::fs::read(dir.path().join("later.ply")).unwrap(), b"made");
+
+        let fifo = dir.path().join("fifo.ply");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status().unwrap();
+        assert!(made.success());
+        let folder = dir.path().join("folder.ply");
+        std::fs::create_dir(&folder).unwrap();
+        for refused in [&fifo, &folder] {
+            let error = write_atomically(refused, |out| out.write_all(b"x")).unwrap_err();
+            assert!(error.to_string().contains("not a regular file"), "{error}");
+        }
+        assert!(std::fs::symlink_metadata(&fifo).unwrap().file_type().is_fifo());
+        assert!(std::fs::symlink_metadata(&folder).unwrap().is_dir());
+        let leftovers: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".tmp"))
+            .collect();
+        assert!(leftovers.is_empty(), "{leftovers:?}");
+    }
 
     /// A writer that fails half-way leaves the old file whole and nothing beside it; one that
     /// succeeds replaces it whole.

@@ -237,6 +237,8 @@ fn extract_fingerprint(snapshot: &crate::Snapshot<'_>, finest: u8, args: &Extrac
 pub fn plan_extract(store: &Store, chunks: u32, options: ExtractOptions, output: PathBuf) -> Result<ClusterPlan> {
     let scene = required_scene(store, EXTRACT)?;
     let snapshot = store.latest()?;
+    // As `octstore extract`: a solution older than the latest ingest is refused, not meshed.
+    crate::query::ensure_solution_is_current(&snapshot)?;
     let finest = octree_max_depth(store)?;
     let units = extract_units(&snapshot, &scene, finest, options.region)?;
     let args = ExtractPlanArgs { options, output };
@@ -258,11 +260,20 @@ fn checked_extract_plan(store: &Store) -> Result<(ClusterPlan, ExtractPlanArgs, 
     let plan = store.recorded_plan(EXTRACT)?;
     let args: ExtractPlanArgs = crate::store::catalog::decode("cluster plan args", &plan.args)?;
     let snapshot = store.latest()?;
+    crate::query::ensure_solution_is_current(&snapshot)?;
     let finest = octree_max_depth(store)?;
     if snapshot.version() != plan.base_version || extract_fingerprint(&snapshot, finest, &args) != plan.fingerprint {
         return Err(PipelineError::StalePlan);
     }
     Ok((plan, args, finest))
+}
+
+/// The error naming the chunks of `units`, whose mesh pieces in `dir` do not decode, and the
+/// pieces' files.
+fn damaged_units_error(plan: &ClusterPlan, dir: &Path, units: &[u64]) -> crate::store::StoreError {
+    let chunks = units.iter().map(|&unit| plan.chunk_of(unit)).collect();
+    let files: Vec<PathBuf> = units.iter().map(|&unit| dir.join(unit_mesh_name(unit))).collect();
+    plan.missing_chunks_error(&chunks, &files)
 }
 
 fn unit_mesh_name(unit: u64) -> String {
@@ -310,14 +321,16 @@ pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
             .ok()
             .and_then(|b| decode_chunk_file::<UnitMesh>(UNIT_MESH_MAGIC, &b))
     };
-    let missing: std::collections::BTreeSet<_> = plan
+    let absent: Vec<u64> = plan
         .units
         .iter()
-        .filter(|&&unit| !dir.join(unit_mesh_name(unit)).is_file())
-        .map(|&unit| plan.chunk_of(unit))
+        .copied()
+        .filter(|&unit| !dir.join(unit_mesh_name(unit)).is_file())
         .collect();
-    if !missing.is_empty() {
-        return Err(plan.missing_chunks_error(&missing).into());
+    if !absent.is_empty() {
+        let chunks = absent.iter().map(|&unit| plan.chunk_of(unit)).collect();
+        let files: Vec<PathBuf> = absent.iter().map(|&unit| dir.join(unit_mesh_name(unit))).collect();
+        return Err(plan.missing_chunks_error(&chunks, &files).into());
     }
     let summary = if args.options.region.is_none() && args.options.decimate.is_none() {
         // Streamed one piece at a time, like `octstore extract`.
@@ -331,31 +344,37 @@ pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
             match (key, usize::try_from(unit), read(unit)) {
                 (Some(key), Ok(index), Some(mesh)) => Some(Ok((index, key, mesh))),
                 _ => {
-                    damaged.borrow_mut().insert(plan.chunk_of(unit));
+                    damaged.borrow_mut().insert(unit);
                     None
                 }
             }
         });
-        let streamed = stream_to_file(pieces, &treetop, &args.output);
-        let damaged = damaged.into_inner();
+        // A damaged piece ends the stream with an error after the last piece, so the mesh file
+        // is abandoned before its rename: whatever the output path held stays as it was.
+        let refuse_if_damaged = std::iter::once(()).filter(|()| !damaged.borrow().is_empty()).map(|()| {
+            Err(crate::store::StoreError::Stage {
+                stage: "extract".into(),
+                unit: "-".into(),
+                message: "damaged chunks".into(),
+            })
+        });
+        let streamed = stream_to_file(pieces.chain(refuse_if_damaged), &treetop, &args.output);
+        let damaged: Vec<u64> = damaged.into_inner().into_iter().collect();
         if !damaged.is_empty() {
-            let _ = std::fs::remove_file(&args.output);
-            return Err(plan.missing_chunks_error(&damaged).into());
+            return Err(damaged_units_error(&plan, &dir, &damaged).into());
         }
         streamed?
     } else {
         let mut meshes = Vec::with_capacity(plan.units.len());
-        let mut damaged = std::collections::BTreeSet::new();
+        let mut damaged = Vec::new();
         for &unit in &plan.units {
             match read(unit) {
                 Some(mesh) => meshes.push(mesh),
-                None => {
-                    damaged.insert(plan.chunk_of(unit));
-                }
+                None => damaged.push(unit),
             }
         }
         if !damaged.is_empty() {
-            return Err(plan.missing_chunks_error(&damaged).into());
+            return Err(damaged_units_error(&plan, &dir, &damaged).into());
         }
         write_assembled(&args.output, &assemble(meshes, &args.options))?
     };

@@ -83,14 +83,16 @@ impl From<StoreError> for PipelineError {
 /// The result of pipeline calls.
 pub type Result<T, E = PipelineError> = std::result::Result<T, E>;
 
-/// Writes `image` as a PNG at `path`; the image crate's error becomes an I/O error on the file.
-/// Writes `image` as PNG at `path`, atomically (`mesh::write_atomically`).
+/// Writes `image` as PNG at `path`, atomically (`mesh::write_atomically`); the image crate's
+/// error becomes an I/O error on the file.
 pub(crate) fn save_png(image: &image::RgbImage, path: &std::path::Path) -> Result<()> {
     let mut encoded = std::io::Cursor::new(Vec::new());
     image
         .write_to(&mut encoded, image::ImageFormat::Png)
         .map_err(|e| io_error("encode image", path)(std::io::Error::other(e.to_string())))?;
-    crate::mesh::remove_leftovers(path).map_err(io_error("write image", path))?;
+    crate::mesh::output_target(path)
+        .and_then(|target| crate::mesh::remove_leftovers(&target))
+        .map_err(io_error("write image", path))?;
     crate::mesh::write_atomically(path, |out| std::io::Write::write_all(out, encoded.get_ref()))
         .map_err(io_error("write image", path))
 }

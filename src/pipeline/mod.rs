@@ -263,6 +263,9 @@ pub fn extract(
         None => store.latest()?,
     };
     crate::query::ensure_solution_is_current(&snapshot)?;
+    if let Some((solved, deepest)) = crate::query::unfinished_solve(&snapshot)? {
+        tracing::warn!("{}", crate::query::unfinished_solve_note(solved, deepest));
+    }
     // The snapshot's own scene and finest level: a later ingest may have grown the root.
     let scene =
         scene_at(store, snapshot.version())?.ok_or_else(|| PipelineError::NotIngested { step: "extract".into() })?;

@@ -9,6 +9,66 @@ use serde::{Deserialize, Serialize, de::DeserializeOwned};
 use super::StoreError;
 use crate::format::key::CubeKeyColumn;
 
+/// The key type of the catalog's name-keyed tables. On disk it is redb's `&str` (the same type
+/// name, bytes, order and separators, so catalogs of every version open unchanged), but it
+/// reads back as bytes: redb's `&str` panics on a key that is not UTF-8, which a flipped bit in
+/// a name makes. Callers turn a key into text with [`key_text`], which reports such a key as
+/// corruption naming its table.
+#[derive(Debug)]
+pub enum TextKey {}
+
+impl redb::Value for TextKey {
+    type SelfType<'a> = &'a [u8];
+    type AsBytes<'a> = &'a [u8];
+
+    fn fixed_width() -> Option<usize> {
+        None
+    }
+
+    fn from_bytes<'a>(data: &'a [u8]) -> &'a [u8]
+    where
+        Self: 'a,
+    {
+        data
+    }
+
+    fn as_bytes<'a, 'b: 'a>(value: &'a &'b [u8]) -> &'a [u8]
+    where
+        Self: 'b,
+    {
+        value
+    }
+
+    fn type_name() -> redb::TypeName {
+        <&str as redb::Value>::type_name()
+    }
+}
+
+impl redb::Key for TextKey {
+    /// Byte order: for valid UTF-8 the order of `str`, and a total order for any bytes.
+    fn compare(data1: &[u8], data2: &[u8]) -> std::cmp::Ordering {
+        data1.cmp(data2)
+    }
+
+    /// `&str`'s separators (they cut only at character boundaries and read no bytes as text), so
+    /// the tree's pages are those an `&str` table would have.
+    fn separator<'a>(left: &'a [u8], right: &'a [u8]) -> std::borrow::Cow<'a, [u8]> {
+        <&str as redb::Key>::separator(left, right)
+    }
+
+    fn min_encoded_key() -> Option<std::borrow::Cow<'static, [u8]>> {
+        <&str as redb::Key>::min_encoded_key()
+    }
+}
+
+/// A [`TextKey`] of `table` as text; a key that is not UTF-8 is corruption.
+pub fn key_text<'k>(table: &'static str, key: &'k [u8]) -> Result<&'k str, StoreError> {
+    std::str::from_utf8(key).map_err(|_| StoreError::CatalogCorruption {
+        table,
+        reason: format!("a key is not UTF-8: '{}'", String::from_utf8_lossy(key)),
+    })
+}
+
 /// Version of the catalog schema written by this build.
 pub const CATALOG_FORMAT_VERSION: u32 = 4;
 /// The oldest catalog version this build opens; a writable open migrates it (`migrate`).
@@ -16,21 +76,21 @@ pub const OLDEST_CATALOG_FORMAT_VERSION: u32 = 1;
 
 /// Scalar settings: `format_version` (u32 LE), `current_version` (u64 LE), `gc_horizon` (u64 LE),
 /// and stage-specific entries (`scene`, ...).
-pub const META: TableDefinition<&str, &[u8]> = TableDefinition::new("meta");
+pub const META: TableDefinition<TextKey, &[u8]> = TableDefinition::new("meta");
 /// Version number -> [`VersionRecord`].
 pub const VERSIONS: TableDefinition<u64, &[u8]> = TableDefinition::new("versions");
 /// Version number -> wall-clock commit time (ms since the Unix epoch). Not part of the
 /// canonical content: two runs at different times hold the same store otherwise.
 pub const VERSION_TIMES: TableDefinition<u64, u64> = TableDefinition::new("version_times");
 /// Segment file name -> [`SegmentRecord`].
-pub const SEGMENTS: TableDefinition<&str, &[u8]> = TableDefinition::new("segments");
+pub const SEGMENTS: TableDefinition<TextKey, &[u8]> = TableDefinition::new("segments");
 /// Stage name -> [`StageRun`] of the run in progress (absent when none is).
-pub const STAGE_RUNS: TableDefinition<&str, &[u8]> = TableDefinition::new("stage_runs");
+pub const STAGE_RUNS: TableDefinition<TextKey, &[u8]> = TableDefinition::new("stage_runs");
 /// (stage name, unit id) -> [`UnitRecord`]: units of the run in progress that are committed.
-pub const UNITS_DONE: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("units_done");
+pub const UNITS_DONE: TableDefinition<(TextKey, u64), &[u8]> = TableDefinition::new("units_done");
 /// (stage name, first key of a unit) -> [`UnitState`]: per-unit state a stage keeps between
 /// runs (the treetop index, dirty marks).
-pub const UNIT_STATE: TableDefinition<(&str, CubeKeyColumn), &[u8]> = TableDefinition::new("unit_state");
+pub const UNIT_STATE: TableDefinition<(TextKey, CubeKeyColumn), &[u8]> = TableDefinition::new("unit_state");
 
 /// Depth map id (content hash) -> bincode `DepthMapRecord` (see `stages::ingest`).
 pub const DEPTH_MAPS: TableDefinition<u64, &[u8]> = TableDefinition::new("depth_maps");
@@ -78,7 +138,7 @@ pub(crate) fn migrate_v1(txn: &redb::WriteTransaction) -> Result<(), StoreError>
     let mut converted = Vec::new();
     let low = crate::format::CubeKey::from_raw(0);
     let high = crate::format::CubeKey::from_raw(u128::MAX);
-    for entry in states.range((HISTOGRAMS, low)..=(HISTOGRAMS, high))? {
+    for entry in states.range((HISTOGRAMS.as_bytes(), low)..=(HISTOGRAMS.as_bytes(), high))? {
         let (key, value) = entry?;
         let (octree_digest, ids): (u64, Vec<u64>) = decode("unit_state", value.value())?;
         let mut sorted = ids.clone();
@@ -95,10 +155,13 @@ pub(crate) fn migrate_v1(txn: &redb::WriteTransaction) -> Result<(), StoreError>
     }
     for (key, octree_digest, digest, ids) in converted {
         let set_key = map_set_key(digest);
-        if meta.get(set_key.as_str())?.is_none() {
-            meta.insert(set_key.as_str(), encode(&ids).as_slice())?;
+        if meta.get(set_key.as_bytes())?.is_none() {
+            meta.insert(set_key.as_bytes(), encode(&ids).as_slice())?;
         }
-        states.insert((HISTOGRAMS, key), encode(&(octree_digest, digest)).as_slice())?;
+        states.insert(
+            (HISTOGRAMS.as_bytes(), key),
+            encode(&(octree_digest, digest)).as_slice(),
+        )?;
     }
     Ok(())
 }
@@ -171,6 +234,16 @@ impl CatalogKey for str {
     }
 }
 
+/// A [`TextKey`] as read back, which may be damaged: its bytes as they are, named lossily.
+impl CatalogKey for [u8] {
+    fn key_bytes(&self) -> Vec<u8> {
+        self.to_vec()
+    }
+    fn describe(&self) -> String {
+        format!("'{}'", String::from_utf8_lossy(self))
+    }
+}
+
 impl<T: CatalogKey + ?Sized> CatalogKey for &T {
     fn key_bytes(&self) -> Vec<u8> {
         (**self).key_bytes()
@@ -200,8 +273,8 @@ impl CatalogKey for u64 {
 }
 
 /// A (name, number) key's bytes: the name, a zero byte, the number big-endian.
-fn pair_key_bytes(name: &str, big_endian: &[u8]) -> Vec<u8> {
-    let mut bytes = name.as_bytes().to_vec();
+fn pair_key_bytes(name: &[u8], big_endian: &[u8]) -> Vec<u8> {
+    let mut bytes = name.to_vec();
     bytes.push(0);
     bytes.extend_from_slice(big_endian);
     bytes
@@ -209,16 +282,34 @@ fn pair_key_bytes(name: &str, big_endian: &[u8]) -> Vec<u8> {
 
 impl CatalogKey for (&str, u64) {
     fn key_bytes(&self) -> Vec<u8> {
-        pair_key_bytes(self.0, &self.1.to_be_bytes())
+        pair_key_bytes(self.0.as_bytes(), &self.1.to_be_bytes())
     }
     fn describe(&self) -> String {
         format!("('{}', {})", self.0, self.1)
     }
 }
 
-impl CatalogKey for (&str, crate::format::CubeKey) {
+impl CatalogKey for (&[u8], u64) {
     fn key_bytes(&self) -> Vec<u8> {
         pair_key_bytes(self.0, &self.1.to_be_bytes())
+    }
+    fn describe(&self) -> String {
+        format!("('{}', {})", String::from_utf8_lossy(self.0), self.1)
+    }
+}
+
+impl CatalogKey for (&[u8], crate::format::CubeKey) {
+    fn key_bytes(&self) -> Vec<u8> {
+        pair_key_bytes(self.0, &self.1.to_be_bytes())
+    }
+    fn describe(&self) -> String {
+        format!("('{}', {:?})", String::from_utf8_lossy(self.0), self.1)
+    }
+}
+
+impl CatalogKey for (&str, crate::format::CubeKey) {
+    fn key_bytes(&self) -> Vec<u8> {
+        pair_key_bytes(self.0.as_bytes(), &self.1.to_be_bytes())
     }
     fn describe(&self) -> String {
         format!("('{}', {:?})", self.0, self.1)
@@ -302,10 +393,10 @@ pub fn check_sealed<K: CatalogKey + ?Sized>(table: &'static str, key: &K, value:
 
 /// The payload of META's entry `key`, unsealed.
 pub fn meta_bytes(
-    table: &impl ReadableTable<&'static str, &'static [u8]>,
+    table: &impl ReadableTable<TextKey, &'static [u8]>,
     key: &str,
 ) -> Result<Option<Vec<u8>>, StoreError> {
-    match table.get(key)? {
+    match table.get(key.as_bytes())? {
         None => Ok(None),
         Some(guard) => Ok(Some(unseal("meta", key, guard.value())?.to_vec())),
     }
@@ -333,17 +424,17 @@ pub(crate) fn migrate_v3(txn: &redb::WriteTransaction) -> Result<(), StoreError>
             }
         }};
     }
-    seal_table!(META, "meta", |k| k.to_string(), |k| k.as_str());
+    seal_table!(META, "meta", |k| k.to_vec(), |k| k.as_slice());
     seal_table!(VERSIONS, "versions", |k| k, |k| *k);
     seal_table!(DEPTH_MAPS, "depth_maps", |k| k, |k| *k);
-    seal_table!(SEGMENTS, "segments", |k| k.to_string(), |k| k.as_str());
-    seal_table!(STAGE_RUNS, "stage_runs", |k| k.to_string(), |k| k.as_str());
-    seal_table!(UNITS_DONE, "units_done", |k| (k.0.to_string(), k.1), |k| (
-        k.0.as_str(),
+    seal_table!(SEGMENTS, "segments", |k| k.to_vec(), |k| k.as_slice());
+    seal_table!(STAGE_RUNS, "stage_runs", |k| k.to_vec(), |k| k.as_slice());
+    seal_table!(UNITS_DONE, "units_done", |k| (k.0.to_vec(), k.1), |k| (
+        k.0.as_slice(),
         k.1
     ));
-    seal_table!(UNIT_STATE, "unit_state", |k| (k.0.to_string(), k.1), |k| (
-        k.0.as_str(),
+    seal_table!(UNIT_STATE, "unit_state", |k| (k.0.to_vec(), k.1), |k| (
+        k.0.as_slice(),
         k.1
     ));
     Ok(())
@@ -458,8 +549,8 @@ pub struct UnitRecord {
 }
 
 /// Reads a little-endian u64 scalar from META.
-pub fn meta_u64(table: &impl ReadableTable<&'static str, &'static [u8]>, key: &str) -> Result<Option<u64>, StoreError> {
-    match table.get(key)? {
+pub fn meta_u64(table: &impl ReadableTable<TextKey, &'static [u8]>, key: &str) -> Result<Option<u64>, StoreError> {
+    match table.get(key.as_bytes())? {
         None => Ok(None),
         Some(guard) => {
             let payload = unseal("meta", key, guard.value())?;
@@ -469,6 +560,89 @@ pub fn meta_u64(table: &impl ReadableTable<&'static str, &'static [u8]>, key: &s
             })?;
             Ok(Some(u64::from_le_bytes(bytes)))
         }
+    }
+}
+
+/// Reads redb's table directory (every table's name and key and value type names) and opens
+/// every catalog table, once per open of the catalog: redb decodes those names as UTF-8 with
+/// `unwrap`, so a flipped bit in one panics inside redb, which [`contain_redb_panics`] turns into
+/// corruption here. The rest of the process reads the names checked here (the catalog's own
+/// keys are [`TextKey`]s and never panic).
+pub fn check_directory(db: &impl ReadableDatabase) -> Result<(), StoreError> {
+    contain_redb_panics(|| -> Result<(), StoreError> {
+        let txn = db.begin_read()?;
+        for table in txn.list_tables()? {
+            std::hint::black_box(redb::TableHandle::name(&table).len());
+        }
+        macro_rules! open {
+            ($($def:expr),*) => {$(
+                match txn.open_table($def) {
+                    Ok(_) | Err(redb::TableError::TableDoesNotExist(_)) => {}
+                    Err(e) => return Err(e.into()),
+                }
+            )*};
+        }
+        open!(
+            META,
+            VERSIONS,
+            VERSION_TIMES,
+            SEGMENTS,
+            STAGE_RUNS,
+            UNITS_DONE,
+            UNIT_STATE,
+            DEPTH_MAPS
+        );
+        Ok(())
+    })?
+}
+
+/// The message of the last panic raised inside redb's code, which [`contain_redb_panics`]
+/// reports instead of the panic hook.
+static REDB_PANIC: std::sync::Mutex<Option<String>> = std::sync::Mutex::new(None);
+
+/// Calls of [`contain_redb_panics`] under way, on any thread: while there are any, a panic inside
+/// redb is recorded for them instead of printed (it may be raised on a worker thread that `f`
+/// waits for). Outside them redb's panics print as any other.
+static ACTIVE_GUARDS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+/// Runs `f`; a panic raised inside redb (on any thread `f` waits for) becomes
+/// [`StoreError::CatalogCorruption`], printed by no panic hook. redb trusts its pages: a damaged
+/// page of `catalog.redb` (a flipped bit in an offset, a name that is not UTF-8) makes it index
+/// out of bounds or unwrap, and a reader must report that as damage, not abort. Other panics
+/// pass through unchanged. A write transaction interrupted this way was never committed, so the
+/// catalog stays at its last commit.
+pub fn contain_redb_panics<T>(f: impl FnOnce() -> T) -> Result<T, StoreError> {
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            let in_redb = info
+                .location()
+                .is_some_and(|at| at.file().replace('\\', "/").contains("/redb-"));
+            if in_redb && ACTIVE_GUARDS.load(std::sync::atomic::Ordering::SeqCst) > 0 {
+                let message = info
+                    .payload()
+                    .downcast_ref::<&str>()
+                    .map(|m| (*m).to_string())
+                    .or_else(|| info.payload().downcast_ref::<String>().cloned())
+                    .unwrap_or_default();
+                if let Ok(mut last) = REDB_PANIC.lock() {
+                    *last = Some(message);
+                }
+            } else {
+                previous(info);
+            }
+        }));
+    });
+    ACTIVE_GUARDS.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    ACTIVE_GUARDS.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+    match outcome {
+        Ok(value) => Ok(value),
+        Err(payload) => match REDB_PANIC.lock().ok().and_then(|mut last| last.take()) {
+            Some(detail) => Err(StoreError::DamagedCatalog { detail }),
+            None => std::panic::resume_unwind(payload),
+        },
     }
 }
 
@@ -499,11 +673,21 @@ pub fn sealing_problems(db: &impl ReadableDatabase) -> Result<Vec<String>, Store
         ($def:expr, $name:literal) => {{
             match txn.open_table($def) {
                 Ok(table) => {
+                    let mut entries = 0u64;
                     for entry in table.iter()? {
                         let (k, v) = entry?;
+                        entries += 1;
                         if let Err(error) = check_sealed($name, &k.value(), v.value()) {
                             problems.push(format!("catalog: {error}"));
                         }
+                    }
+                    // The directory keeps each table's length apart from its entries.
+                    let recorded = table.len()?;
+                    if recorded != entries {
+                        problems.push(format!(
+                            "catalog: table '{}' records {recorded} entries but holds {entries}",
+                            $name
+                        ));
                     }
                 }
                 Err(redb::TableError::TableDoesNotExist(_)) => {}
@@ -548,13 +732,13 @@ pub fn canonical_dump(db: &impl ReadableDatabase) -> Result<Vec<u8>, StoreError>
             }
         }};
     }
-    dump!(META, |k: &str| k.key_bytes());
+    dump!(META, |k: &[u8]| k.key_bytes());
     dump!(VERSIONS, |k: u64| k.key_bytes());
     dump!(DEPTH_MAPS, |k: u64| k.key_bytes());
-    dump!(SEGMENTS, |k: &str| k.key_bytes());
-    dump!(STAGE_RUNS, |k: &str| k.key_bytes());
-    dump!(UNITS_DONE, |k: (&str, u64)| k.key_bytes());
-    dump!(UNIT_STATE, |k: (&str, crate::format::CubeKey)| k.key_bytes());
+    dump!(SEGMENTS, |k: &[u8]| k.key_bytes());
+    dump!(STAGE_RUNS, |k: &[u8]| k.key_bytes());
+    dump!(UNITS_DONE, |k: (&[u8], u64)| k.key_bytes());
+    dump!(UNIT_STATE, |k: (&[u8], crate::format::CubeKey)| k.key_bytes());
     Ok(out)
 }
 

@@ -63,15 +63,23 @@ impl ClusterPlan {
     }
 
     /// The error of a commit that found chunks missing or damaged.
-    pub fn missing_chunks_error(&self, missing: &std::collections::BTreeSet<u32>) -> StoreError {
+    /// The error of a commit that found chunks `missing` or damaged: names them and the first of
+    /// the `files` at fault (missing, or not decoding).
+    pub fn missing_chunks_error(&self, missing: &std::collections::BTreeSet<u32>, files: &[PathBuf]) -> StoreError {
         let list: Vec<String> = missing.iter().map(u32::to_string).collect();
+        const NAMED: usize = 3;
+        let mut named: Vec<String> = files.iter().take(NAMED).map(|f| f.display().to_string()).collect();
+        if files.len() > NAMED {
+            named.push(format!("and {} more", files.len() - NAMED));
+        }
         cluster_error(
             &self.stage,
             "commit",
             format!(
-                "chunk(s) {} of {} are missing or damaged: run `octstore work STORE --stage {} --chunk N` for each, then commit again",
+                "chunk(s) {} of {} are missing or damaged ({}): run `octstore work STORE --stage {} --chunk N` for each, then commit again",
                 list.join(", "),
                 self.chunks,
+                named.join(", "),
                 self.stage
             ),
         )
@@ -178,7 +186,7 @@ impl Store {
     pub fn cluster_plan(&self, stage: &str) -> Result<Option<ClusterPlan>> {
         let txn = self.catalog().begin_read()?;
         let meta = txn.open_table(META)?;
-        let value = meta.get(plan_key(stage).as_str())?;
+        let value = meta.get(plan_key(stage).as_bytes())?;
         let key = plan_key(stage);
         value
             .map(|v| catalog::unseal_decode("meta", key.as_str(), v.value()))
@@ -234,7 +242,7 @@ impl Store {
         fs::create_dir_all(&current).map_err(io_error("create directory", &current))?;
         let txn = db.begin_write()?;
         txn.open_table(META)?.insert(
-            plan_key(name).as_str(),
+            plan_key(name).as_bytes(),
             catalog::seal_encode("meta", plan_key(name).as_str(), plan).as_slice(),
         )?;
         txn.commit()?;
@@ -244,7 +252,7 @@ impl Store {
     /// Forgets the plan of `stage` and its chunk folder (after its commit).
     pub fn remove_cluster_plan(&self, plan: &ClusterPlan) -> Result<()> {
         let txn = self.writable()?.begin_write()?;
-        txn.open_table(META)?.remove(plan_key(&plan.stage).as_str())?;
+        txn.open_table(META)?.remove(plan_key(&plan.stage).as_bytes())?;
         txn.commit()?;
         // The files are spent; a failure to remove them costs only disk.
         let _ = fs::remove_dir_all(self.chunk_dir(plan));
@@ -307,7 +315,7 @@ impl Store {
         let mut skipped = 0;
         let units = plan.chunk_units(chunk);
         for &unit in units {
-            if self.read_unit_manifest(&dir, unit).is_some() {
+            if self.read_unit_manifest(&dir, unit).is_ok() {
                 skipped += 1;
                 continue;
             }
@@ -340,14 +348,23 @@ impl Store {
     }
 
     /// A unit's manifest, if it is intact and every segment it lists is too.
-    fn read_unit_manifest(&self, dir: &Path, unit: u64) -> Option<UnitManifest> {
-        let bytes = fs::read(dir.join(manifest_name(unit))).ok()?;
-        let manifest = decode_manifest(&bytes).filter(|m| m.unit == unit)?;
-        manifest
+    /// A unit's worker output, or the file at fault: its manifest, missing or not decoding, or
+    /// the first segment it lists that is missing or damaged.
+    fn read_unit_manifest(&self, dir: &Path, unit: u64) -> std::result::Result<UnitManifest, PathBuf> {
+        let path = dir.join(manifest_name(unit));
+        let manifest = fs::read(&path)
+            .ok()
+            .and_then(|bytes| decode_manifest(&bytes))
+            .filter(|m| m.unit == unit)
+            .ok_or_else(|| path.clone())?;
+        match manifest
             .segments
             .iter()
-            .all(|(file, record)| segment_is_intact(&dir.join(file), record))
-            .then_some(manifest)
+            .find(|(file, record)| !segment_is_intact(&dir.join(file), record))
+        {
+            Some((file, _)) => Err(dir.join(file)),
+            None => Ok(manifest),
+        }
     }
 
     /// Records the recorded plan's chunk outputs as one version. Fails, changing nothing, when
@@ -366,18 +383,20 @@ impl Store {
         };
         let mut manifests = BTreeMap::new();
         let mut missing = std::collections::BTreeSet::new();
+        let mut at_fault = Vec::new();
         for &unit in plan.units.iter().filter(|u| !adopted.contains(u)) {
             match self.read_unit_manifest(&dir, unit) {
-                Some(m) => {
+                Ok(m) => {
                     manifests.insert(unit, m);
                 }
-                None => {
+                Err(file) => {
                     missing.insert(plan.chunk_of(unit));
+                    at_fault.push(file);
                 }
             }
         }
         if !missing.is_empty() {
-            return Err(plan.missing_chunks_error(&missing));
+            return Err(plan.missing_chunks_error(&missing, &at_fault));
         }
         let adopt = |_: &super::Snapshot<'_>, target: u64, unit: &UnitSpec| -> Result<ProducedUnit> {
             let manifest = manifests

@@ -114,6 +114,13 @@ pub enum StoreError {
         /// What does not decode.
         reason: String,
     },
+    /// redb cannot read the catalog's pages: it panicked on them (see
+    /// [`catalog::contain_redb_panics`]).
+    #[error("catalog.redb is damaged: redb cannot read it ({detail})")]
+    DamagedCatalog {
+        /// redb's panic message.
+        detail: String,
+    },
     /// A segment's bytes do not decode.
     #[error("corrupt segment {file}: {detail}")]
     Corruption {
@@ -247,7 +254,7 @@ pub(crate) fn sync_dir(path: &Path) -> Result<()> {
 /// How processes share the catalog: one writer, and any number of read-only processes that open
 /// it while the writer runs and read the versions they pin. Readers and the writer must agree on
 /// the mode: it is part of the on-disk protocol (format-spec.md, "Catalog").
-fn catalog_builder() -> redb::Builder {
+pub(crate) fn catalog_builder() -> redb::Builder {
     let mut builder = redb::Builder::new();
     builder.set_concurrency_mode(redb::ConcurrencyMode::SingleWriter);
     builder.set_cache_size(CATALOG_CACHE_BYTES);
@@ -309,7 +316,7 @@ impl Store {
                     (META_CURRENT_VERSION, 0u64.to_le_bytes().to_vec()),
                     (META_GC_HORIZON, 0u64.to_le_bytes().to_vec()),
                 ] {
-                    meta.insert(key, catalog::seal("meta", key, &value).as_slice())?;
+                    meta.insert(key.as_bytes(), catalog::seal("meta", key, &value).as_slice())?;
                 }
                 let record = VersionRecord {
                     parent: 0,
@@ -348,11 +355,17 @@ impl Store {
 
     /// [`Store::open`] with injected storage faults (tests of failure handling).
     pub fn open_with_faults(path: impl AsRef<Path>, faults: IoFaults) -> Result<Store> {
-        let root = path.as_ref().to_path_buf();
+        // redb panics on some damaged pages of the header and directory.
+        catalog::contain_redb_panics(|| Store::open_with_faults_unguarded(path.as_ref(), faults))?
+    }
+
+    fn open_with_faults_unguarded(path: &Path, faults: IoFaults) -> Result<Store> {
+        let root = path.to_path_buf();
         let catalog_path = Store::catalog_path_checked(&root)?;
         let db = catalog_builder()
             .open(&catalog_path)
             .map_err(|e| map_open_error(&root, e))?;
+        catalog::check_directory(&db)?;
         let store = Store {
             root,
             catalog: Catalog::Writable(db),
@@ -374,11 +387,17 @@ impl Store {
     /// Opens a store for reading only. Any number of readers may share it, also while a writer
     /// runs: a snapshot pins its version, whose segments stay until `gc` retires the version.
     pub fn open_read_only(path: impl AsRef<Path>) -> Result<Store> {
-        let root = path.as_ref().to_path_buf();
+        // redb panics on some damaged pages of the header and directory.
+        catalog::contain_redb_panics(|| Store::open_read_only_unguarded(path.as_ref()))?
+    }
+
+    fn open_read_only_unguarded(path: &Path) -> Result<Store> {
+        let root = path.to_path_buf();
         let catalog_path = Store::catalog_path_checked(&root)?;
         let db = catalog_builder()
             .open_read_only(&catalog_path)
             .map_err(|e| map_open_error(&root, e))?;
+        catalog::check_directory(&db)?;
         let store = Store {
             root,
             catalog: Catalog::ReadOnly(db),
@@ -414,9 +433,13 @@ impl Store {
         let db = self.writable()?;
         let txn = db.begin_write()?;
         if found < 2 {
-            if txn.open_table(STAGE_RUNS)?.get(catalog::HISTOGRAMS)?.is_some() {
+            if txn
+                .open_table(STAGE_RUNS)?
+                .get(catalog::HISTOGRAMS.as_bytes())?
+                .is_some()
+            {
                 runner::discard_run(&txn, catalog::HISTOGRAMS)?;
-                txn.open_table(STAGE_RUNS)?.remove(catalog::HISTOGRAMS)?;
+                txn.open_table(STAGE_RUNS)?.remove(catalog::HISTOGRAMS.as_bytes())?;
             }
             catalog::migrate_v1(&txn)?;
         }
@@ -427,7 +450,7 @@ impl Store {
             catalog::migrate_v3(&txn)?;
         }
         txn.open_table(META)?.insert(
-            META_FORMAT_VERSION,
+            META_FORMAT_VERSION.as_bytes(),
             catalog::seal("meta", META_FORMAT_VERSION, &CATALOG_FORMAT_VERSION.to_le_bytes()).as_slice(),
         )?;
         txn.commit()?;
@@ -569,12 +592,13 @@ impl Store {
         Ok(out)
     }
 
-    /// The catalog's canonical content (see [`catalog::canonical_dump`]).
+    /// The catalog's canonical content (see [`catalog::canonical_dump`]); a page redb cannot
+    /// read is [`StoreError::DamagedCatalog`].
     pub fn canonical_dump(&self) -> Result<Vec<u8>> {
-        match &self.catalog {
+        catalog::contain_redb_panics(|| match &self.catalog {
             Catalog::Writable(db) => catalog::canonical_dump(db),
             Catalog::ReadOnly(db) => catalog::canonical_dump(db),
-        }
+        })?
     }
 
     /// Writes one segment through the commit protocol's file steps: temporary name, fsync,
@@ -698,7 +722,7 @@ impl Store {
             let segments = txn.open_table(SEGMENTS)?;
             let mut names = std::collections::BTreeSet::new();
             for entry in segments.iter()? {
-                names.insert(entry?.0.value().to_string());
+                names.insert(catalog::key_text("segments", entry?.0.value())?.to_string());
             }
             names
         };
@@ -757,15 +781,15 @@ impl Store {
                 let dead = record.dropped.is_some_and(|d| d <= horizon);
                 let abandoned = record.created > current && !pending_targets.contains(&record.created);
                 if dead || abandoned {
-                    doomed.push((name.value().to_string(), record.bytes));
+                    doomed.push((catalog::key_text("segments", name.value())?.to_string(), record.bytes));
                 }
             }
             for (name, _) in &doomed {
-                segments.remove(name.as_str())?;
+                segments.remove(name.as_bytes())?;
             }
             let mut meta = txn.open_table(META)?;
             meta.insert(
-                META_GC_HORIZON,
+                META_GC_HORIZON.as_bytes(),
                 catalog::seal("meta", META_GC_HORIZON, &horizon.to_le_bytes()).as_slice(),
             )?;
         }

@@ -214,10 +214,8 @@ impl Store {
                     .iter()?
                     .map(|e| {
                         let (k, v) = e?;
-                        Ok((
-                            k.value().to_string(),
-                            catalog::unseal_decode("stage_runs", k.value(), v.value())?,
-                        ))
+                        let run = catalog::unseal_decode("stage_runs", k.value(), v.value())?;
+                        Ok((catalog::key_text("stage_runs", k.value())?.to_string(), run))
                     })
                     .collect::<Result<_>>()?;
                 for (other, run) in existing {
@@ -237,20 +235,23 @@ impl Store {
                     }
                     discard_run(&txn, &other)?;
                     discarded = true;
-                    runs.remove(other.as_str())?;
+                    runs.remove(other.as_bytes())?;
                 }
-                if runs.get(name)?.is_none() {
+                if runs.get(name.as_bytes())?.is_none() {
                     let run = StageRun {
                         target_version: target,
                         params: params.clone(),
                         units: plan.units.len() as u64,
                     };
-                    runs.insert(name, catalog::seal_encode("stage_runs", name, &run).as_slice())?;
+                    runs.insert(
+                        name.as_bytes(),
+                        catalog::seal_encode("stage_runs", name, &run).as_slice(),
+                    )?;
                 }
             }
             {
                 let units_done = txn.open_table(UNITS_DONE)?;
-                for entry in units_done.range((name, 0)..=(name, u64::MAX))? {
+                for entry in units_done.range((name.as_bytes(), 0)..=(name.as_bytes(), u64::MAX))? {
                     done.insert(entry?.0.value().1);
                 }
             }
@@ -394,7 +395,7 @@ impl Store {
             let mut table = txn.open_table(SEGMENTS)?;
             for (name, record) in &segments {
                 table.insert(
-                    name.as_str(),
+                    name.as_bytes(),
                     catalog::seal_encode("segments", name.as_str(), record).as_slice(),
                 )?;
             }
@@ -403,7 +404,7 @@ impl Store {
                 extra,
             };
             txn.open_table(UNITS_DONE)?.insert(
-                (stage, unit),
+                (stage.as_bytes(), unit),
                 catalog::seal_encode("units_done", &(stage, unit), &record).as_slice(),
             )?;
         }
@@ -426,7 +427,7 @@ impl Store {
         let units: Vec<(u64, UnitRecord)> = {
             let table = txn.open_table(UNITS_DONE)?;
             table
-                .range((name, 0)..=(name, u64::MAX))?
+                .range((name.as_bytes(), 0)..=(name.as_bytes(), u64::MAX))?
                 .map(|e| {
                     let (k, v) = e?;
                     Ok((
@@ -445,6 +446,7 @@ impl Store {
             for entry in segments.iter()? {
                 let (file, value) = entry?;
                 let mut record: SegmentRecord = catalog::unseal_decode("segments", file.value(), value.value())?;
+                let file = catalog::key_text("segments", file.value())?;
                 if record.stage != name {
                     continue;
                 }
@@ -453,32 +455,32 @@ impl Store {
                     continue;
                 }
                 let replaced = match &plan.replace {
-                    Replace::Names(names) => names.contains(file.value()),
+                    Replace::Names(names) => names.contains(file),
                     Replace::All => true,
                     Replace::SameUnits => replaced_units.contains(&record.unit),
                     Replace::Nothing => false,
                 };
                 if replaced && record.visible_at(base.version()) {
                     record.dropped = Some(target);
-                    updates.push((file.value().to_string(), record));
+                    updates.push((file.to_string(), record));
                 }
             }
             dropped = dropped.max(updates.len());
             for (file, record) in updates {
                 segments.insert(
-                    file.as_str(),
+                    file.as_bytes(),
                     catalog::seal_encode("segments", file.as_str(), &record).as_slice(),
                 )?;
             }
         }
         let fingerprint_key = stage_fingerprint_key(name);
         txn.open_table(META)?.insert(
-            fingerprint_key.as_str(),
+            fingerprint_key.as_bytes(),
             catalog::seal("meta", fingerprint_key.as_str(), fingerprint).as_slice(),
         )?;
         if units.is_empty() && dropped == 0 {
             // Nothing changed: no new version.
-            txn.open_table(STAGE_RUNS)?.remove(name)?;
+            txn.open_table(STAGE_RUNS)?.remove(name.as_bytes())?;
             txn.commit()?;
             return Ok(RunReport {
                 stage: name.to_string(),
@@ -494,9 +496,9 @@ impl Store {
         {
             let mut done = txn.open_table(UNITS_DONE)?;
             for (unit, _) in &units {
-                done.remove((name, *unit))?;
+                done.remove((name.as_bytes(), *unit))?;
             }
-            txn.open_table(STAGE_RUNS)?.remove(name)?;
+            txn.open_table(STAGE_RUNS)?.remove(name.as_bytes())?;
             let record = VersionRecord {
                 parent: base.version(),
                 kind: name.to_string(),
@@ -506,7 +508,7 @@ impl Store {
                 .insert(target, catalog::seal_encode("versions", &target, &record).as_slice())?;
             txn.open_table(VERSION_TIMES)?.insert(target, super::unix_millis())?;
             txn.open_table(META)?.insert(
-                META_CURRENT_VERSION,
+                META_CURRENT_VERSION.as_bytes(),
                 catalog::seal("meta", META_CURRENT_VERSION, &target.to_le_bytes()).as_slice(),
             )?;
         }
@@ -539,7 +541,7 @@ impl Store {
     pub fn abandon_run(&self, stage: &str) -> Result<()> {
         let txn = self.writable()?.begin_write()?;
         discard_run(&txn, stage)?;
-        txn.open_table(STAGE_RUNS)?.remove(stage)?;
+        txn.open_table(STAGE_RUNS)?.remove(stage.as_bytes())?;
         txn.commit()?;
         self.remove_debris()?;
         Ok(())
@@ -550,7 +552,7 @@ impl Store {
         let txn = self.catalog().begin_read()?;
         let done = txn.open_table(UNITS_DONE)?;
         let mut units = BTreeSet::new();
-        for entry in done.range((stage, 0)..=(stage, u64::MAX))? {
+        for entry in done.range((stage.as_bytes(), 0)..=(stage.as_bytes(), u64::MAX))? {
             units.insert(entry?.0.value().1);
         }
         Ok(units)
@@ -560,7 +562,7 @@ impl Store {
     pub fn run_in_progress(&self, stage: &str) -> Result<bool> {
         let txn = self.catalog().begin_read()?;
         let runs = txn.open_table(STAGE_RUNS)?;
-        Ok(runs.get(stage)?.is_some())
+        Ok(runs.get(stage.as_bytes())?.is_some())
     }
 }
 
@@ -573,7 +575,7 @@ pub(crate) fn discard_run(txn: &WriteTransaction, stage: &str) -> Result<()> {
     let mut done = txn.open_table(UNITS_DONE)?;
     let mut segments = txn.open_table(SEGMENTS)?;
     let units: Vec<(u64, UnitRecord)> = done
-        .range((stage, 0)..=(stage, u64::MAX))?
+        .range((stage.as_bytes(), 0)..=(stage.as_bytes(), u64::MAX))?
         .map(|e| {
             let (k, v) = e?;
             Ok((
@@ -584,9 +586,9 @@ pub(crate) fn discard_run(txn: &WriteTransaction, stage: &str) -> Result<()> {
         .collect::<Result<_>>()?;
     for (unit, record) in units {
         for file in &record.segments {
-            segments.remove(file.as_str())?;
+            segments.remove(file.as_bytes())?;
         }
-        done.remove((stage, unit))?;
+        done.remove((stage.as_bytes(), unit))?;
     }
     Ok(())
 }

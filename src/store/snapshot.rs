@@ -52,7 +52,7 @@ impl<'s> Snapshot<'s> {
                 stages
                     .entry(record.stage.clone())
                     .or_default()
-                    .push((name.value().to_string(), record));
+                    .push((catalog::key_text("segments", name.value())?.to_string(), record));
             }
         }
         for segments in stages.values_mut() {

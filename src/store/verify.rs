@@ -113,13 +113,83 @@ fn check_segment(store: &Store, name: &str, record: &SegmentRecord) -> std::resu
     Ok(())
 }
 
+/// Segment records by name, and the pin that keeps their files.
+type PinnedSegments = (Vec<(String, SegmentRecord)>, Option<super::ReaderPin>);
+
 impl Store {
     /// Checks every segment the catalog references (all kept versions and runs in progress),
     /// then the stage checks on the latest version.
+    /// A catalog page that redb cannot read is a finding like a broken seal, not an abort.
     pub fn verify(&self, checks: &[StageCheck]) -> Result<VerifyReport> {
+        match super::catalog::contain_redb_panics(|| self.verify_pages_intact(checks)) {
+            Ok(report) => report,
+            Err(damaged) => Ok(VerifyReport {
+                problems: vec![format!("catalog: {damaged}")],
+                ..VerifyReport::default()
+            }),
+        }
+    }
+
+    /// The segment records of every version from the gc horizon on, and a reader pin on that
+    /// horizon. Records of versions `gc` already retired are left out: their files may go at
+    /// any moment.
+    fn segments_pinned(&self) -> Result<PinnedSegments> {
+        /// Tries before checking without a pin (a `gc` moved the horizon every time).
+        const ATTEMPTS: usize = 5;
+        let mut attempt = 0;
+        loop {
+            attempt += 1;
+            let horizon = self.gc_horizon()?;
+            let pin = super::pins::pin(self.root(), horizon);
+            let txn = self.catalog().begin_read()?;
+            let meta = txn.open_table(super::catalog::META)?;
+            let horizon_now = catalog::meta_u64(&meta, super::catalog::META_GC_HORIZON)?.unwrap_or(0);
+            if horizon_now != horizon && attempt < ATTEMPTS {
+                continue;
+            }
+            let table = txn.open_table(SEGMENTS)?;
+            let mut records = Vec::new();
+            for entry in table.iter()? {
+                let (k, v) = entry?;
+                let record: SegmentRecord = catalog::unseal_decode("segments", k.value(), v.value())?;
+                if record.dropped.is_some_and(|d| d <= horizon_now) {
+                    continue;
+                }
+                records.push((catalog::key_text("segments", k.value())?.to_string(), record));
+            }
+            return Ok((records, pin));
+        }
+    }
+
+    /// redb's own check of `catalog.redb`'s page checksums, run on a copy (the check repairs
+    /// what it checks, and a reader must not write): a flipped bit that leaves every entry
+    /// readable (a table's root pointer cleared, so the table reads as empty) fails there.
+    fn catalog_pages_problem(&self) -> Result<Option<String>> {
+        let original = self.root().join(super::CATALOG_FILE);
+        let copy_dir = tempfile::tempdir().map_err(super::io_error("make a folder for", &original))?;
+        let copy = copy_dir.path().join(super::CATALOG_FILE);
+        {
+            // A read transaction keeps the pages of the version it reads from reuse meanwhile.
+            let _held = self.catalog().begin_read()?;
+            std::fs::copy(&original, &copy).map_err(super::io_error("copy", &original))?;
+        }
+        let checked = super::catalog_builder()
+            .open(&copy)
+            .map_err(redb::Error::from)
+            .and_then(|mut db| db.check_integrity().map_err(redb::Error::from));
+        Ok(match checked {
+            Ok(true) => None,
+            Ok(false) => Some("catalog: redb's page checksums do not match: pages of catalog.redb are damaged".into()),
+            Err(e) => Some(format!("catalog: redb cannot check catalog.redb: {e}")),
+        })
+    }
+
+    /// [`Store::verify`], where a damaged catalog page panics inside redb.
+    fn verify_pages_intact(&self, checks: &[StageCheck]) -> Result<VerifyReport> {
         // Catalog values first: nothing else can be trusted past a damaged one.
         if self.catalog_format_version()? >= 4 {
-            let problems = self.catalog().sealing_problems()?;
+            let mut problems = self.catalog().sealing_problems()?;
+            problems.extend(self.catalog_pages_problem()?);
             if !problems.is_empty() {
                 return Ok(VerifyReport {
                     problems,
@@ -127,20 +197,9 @@ impl Store {
                 });
             }
         }
-        let records: Vec<(String, SegmentRecord)> = {
-            let txn = self.catalog().begin_read()?;
-            let table = txn.open_table(SEGMENTS)?;
-            table
-                .iter()?
-                .map(|e| {
-                    let (k, v) = e?;
-                    Ok((
-                        k.value().to_string(),
-                        catalog::unseal_decode("segments", k.value(), v.value())?,
-                    ))
-                })
-                .collect::<Result<_>>()?
-        };
+        // The oldest kept version is pinned, as a reader pins its own, so that a `gc` running
+        // beside this check keeps every segment it is about to read.
+        let (records, _pin) = self.segments_pinned()?;
         let mut problems: Vec<String> = records
             .par_iter()
             .filter_map(|(name, record)| segment_problem(self, name, record))

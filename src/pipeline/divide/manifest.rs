@@ -84,6 +84,88 @@ pub struct Manifest {
     pub division: Division,
 }
 
+/// The deepest node level a manifest may name: node indices are u32.
+const DEEPEST_LEVEL: u32 = 32;
+
+/// A node's Morton interval at [`DEEPEST_LEVEL`]: the codes of the deepest nodes inside it,
+/// `[start, end)`. Octree nodes are disjoint exactly when their intervals are.
+fn morton_interval(node: &Node) -> (u128, u128) {
+    let shift = DEEPEST_LEVEL - node.level;
+    let mut start = 0u128;
+    for bit in 0..DEEPEST_LEVEL {
+        for (axis, &index) in node.index.iter().enumerate() {
+            let deep = u128::from(index) << shift;
+            start |= ((deep >> bit) & 1) << (3 * bit + axis as u32);
+        }
+    }
+    (start, start + (1u128 << (3 * shift)))
+}
+
+impl Manifest {
+    /// What `merge` and a later `divide` rely on, checked: the root is a finite cube; every
+    /// subspace's node lies in it and its core is that node's cube; its grown cube holds its
+    /// core; no two nodes overlap. (Together the cores tile the part of the root that holds
+    /// points; nodes without points have no subspace, so a missing one cannot be told from an
+    /// empty one.) A damaged or hand-edited manifest fails here naming the subspace, instead
+    /// of dropping triangles in `merge`.
+    pub fn check(&self) -> Result<(), String> {
+        let root = self.division.root;
+        if !(root.size.is_finite() && root.size > 0.0 && root.min.iter().all(|v| v.is_finite())) {
+            return Err(format!(
+                "the root (min {:?}, side {}) is not a finite cube",
+                root.min, root.size
+            ));
+        }
+        let tolerance = root.size * 1e-9;
+        let mut intervals = Vec::with_capacity(self.subspaces.len());
+        for subspace in &self.subspaces {
+            let node = subspace.node;
+            let name = &subspace.file;
+            if node.level > DEEPEST_LEVEL || node.index.iter().any(|&i| u64::from(i) >= 1u64 << node.level) {
+                return Err(format!("subspace {name}: node {node:?} is not inside the root"));
+            }
+            let side = root.size / f64::from(node.level).exp2();
+            let expected_min: Vec<f64> = (0..3)
+                .map(|a| {
+                    root.min.get(a).copied().unwrap_or(0.0) + f64::from(node.index.get(a).copied().unwrap_or(0)) * side
+                })
+                .collect();
+            let core = subspace.core;
+            let core_matches = (core.size - side).abs() <= tolerance
+                && core
+                    .min
+                    .iter()
+                    .zip(&expected_min)
+                    .all(|(m, e)| (m - e).abs() <= tolerance);
+            if !core_matches {
+                return Err(format!(
+                    "subspace {name}: its core (min {:?}, side {}) is not its node's cube (min {expected_min:?}, side {side})",
+                    core.min, core.size
+                ));
+            }
+            let grown = subspace.grown;
+            let holds_core = grown.size.is_finite()
+                && (0..3).all(|a| {
+                    let (g, c) = (grown.min.get(a).copied(), core.min.get(a).copied());
+                    matches!((g, c), (Some(g), Some(c)) if g <= c + tolerance && c + core.size <= g + grown.size + tolerance)
+                });
+            if !holds_core {
+                return Err(format!("subspace {name}: its grown cube does not hold its core"));
+            }
+            intervals.push((morton_interval(&node), name));
+        }
+        intervals.sort_by_key(|((start, _), _)| *start);
+        for pair in intervals.windows(2) {
+            if let [((_, end), a), ((start, _), b)] = pair
+                && start < end
+            {
+                return Err(format!("subspaces {a} and {b} overlap"));
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Division {
     /// The record layout its properties describe.
     pub fn layout(&self) -> Result<PointLayout, String> {
@@ -125,13 +207,16 @@ pub fn read_manifest(dir: &Path) -> Result<Option<Manifest>, String> {
             manifest.division.version
         ));
     }
+    manifest.check().map_err(|e| format!("{}: {e}", path.display()))?;
     Ok(Some(manifest))
 }
 
 /// Reads the manifest at `path` (for `merge`, which may name it anywhere).
 pub fn read_manifest_file(path: &Path) -> Result<Manifest, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    serde_json::from_slice(&bytes).map_err(|e| format!("{}: {e}", path.display()))
+    let manifest: Manifest = serde_json::from_slice(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+    manifest.check().map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(manifest)
 }
 
 /// Writes the manifest atomically.

@@ -8,7 +8,7 @@ use glam::DVec3;
 
 use super::MeshSummary;
 use super::weld::MeshWriter;
-use crate::mesh::{ply_header, remove_leftovers, temporary_beside, write_atomically};
+use crate::mesh::{output_target, ply_header, remove_leftovers, temporary_beside, write_atomically};
 
 /// Writes a mesh file in two passes over temporary files beside it: fixed-size vertex records
 /// (so that normals can be fixed in place) and face records, joined under the header at the end.
@@ -27,6 +27,8 @@ const FACE_RECORD: usize = 1 + 3 * std::mem::size_of::<u32>();
 
 impl MeshFile {
     pub(super) fn create(path: &Path) -> std::io::Result<MeshFile> {
+        // The parts lie beside the file that will be replaced: a link's target.
+        let path = &output_target(path)?;
         remove_leftovers(path)?;
         let (vertices_path, faces_path) = (temporary_beside(path, "vertices"), temporary_beside(path, "faces"));
         let open = |p: &Path| -> std::io::Result<std::io::BufWriter<std::fs::File>> {

@@ -170,7 +170,7 @@ impl MapSets {
         let txn = base.store().catalog().begin_read()?;
         let meta = txn.open_table(META)?;
         let key = catalog::map_set_key(digest);
-        let ids: Vec<u64> = match meta.get(key.as_str())? {
+        let ids: Vec<u64> = match meta.get(key.as_bytes())? {
             Some(v) => catalog::unseal_decode("meta", key.as_str(), v.value())?,
             None => {
                 return Err(StoreError::CatalogCorruption {
@@ -194,7 +194,7 @@ impl MapSets {
 fn unit_state(base: &Snapshot<'_>, key: CubeKey) -> Result<Option<HistogramState>> {
     let txn = base.store().catalog().begin_read()?;
     let table = txn.open_table(UNIT_STATE)?;
-    match table.get((HISTOGRAMS, key))? {
+    match table.get((HISTOGRAMS.as_bytes(), key))? {
         Some(v) => Ok(Some(catalog::unseal_decode(
             "unit_state",
             &(HISTOGRAMS, key),
@@ -429,16 +429,16 @@ impl Stage for HistogramsStage {
             let extra: UnitExtra = catalog::decode("units_done", &record.extra)?;
             for (digest, ids) in extra.map_sets {
                 let key = catalog::map_set_key(digest);
-                if meta.get(key.as_str())?.is_none() {
+                if meta.get(key.as_bytes())?.is_none() {
                     meta.insert(
-                        key.as_str(),
+                        key.as_bytes(),
                         catalog::seal_encode("meta", key.as_str(), &ids).as_slice(),
                     )?;
                 }
             }
             for (key, state, unit_votes) in extra.members {
                 table.insert(
-                    (HISTOGRAMS, key),
+                    (HISTOGRAMS.as_bytes(), key),
                     catalog::seal_encode("unit_state", &(HISTOGRAMS, key), &state).as_slice(),
                 )?;
                 votes += unit_votes;
@@ -453,7 +453,9 @@ impl Stage for HistogramsStage {
             .map(|plans| plans.iter().map(|plan| plan.key).collect());
         let mut referenced = BTreeSet::new();
         let mut orphans = Vec::new();
-        for entry in table.range((HISTOGRAMS, CubeKey::from_raw(0))..=(HISTOGRAMS, CubeKey::from_raw(u128::MAX)))? {
+        for entry in table.range(
+            (HISTOGRAMS.as_bytes(), CubeKey::from_raw(0))..=(HISTOGRAMS.as_bytes(), CubeKey::from_raw(u128::MAX)),
+        )? {
             let (key, value) = entry?;
             let key = key.value().1;
             if leaves.as_ref().is_none_or(|leaves| leaves.contains(&key)) {
@@ -464,12 +466,12 @@ impl Stage for HistogramsStage {
             }
         }
         for key in orphans {
-            table.remove((HISTOGRAMS, key))?;
+            table.remove((HISTOGRAMS.as_bytes(), key))?;
         }
         let mut unreferenced = Vec::new();
-        for entry in meta.range(catalog::META_MAP_SET_PREFIX..)? {
+        for entry in meta.range(catalog::META_MAP_SET_PREFIX.as_bytes()..)? {
             let (key, _) = entry?;
-            let key = key.value();
+            let key = catalog::key_text("meta", key.value())?;
             let Some(digest) = catalog::map_set_of_key(key) else {
                 break;
             };
@@ -478,7 +480,7 @@ impl Stage for HistogramsStage {
             }
         }
         for key in unreferenced {
-            meta.remove(key.as_str())?;
+            meta.remove(key.as_bytes())?;
         }
         // Logged, not recorded: the counts depend on scheduling, and the catalog must not.
         let (hits, misses) = self.cache.counts();

@@ -105,7 +105,7 @@ pub fn open_rows(source: &DepthMapSource, memory: u64) -> Result<Box<dyn DepthRo
     if bytes <= memory {
         Ok(Box::new(ImageRows::new(source.load()?)))
     } else {
-        Ok(Box::new(DepthRows::open(source)?))
+        Ok(Box::new(DepthRows::open_streaming(source)?))
     }
 }
 
@@ -735,6 +735,50 @@ pub fn bounds_sample(stream: SampleStream<'_>, count: usize) -> Result<Vec<DVec3
         }
     })?;
     Ok(if consistent.is_empty() { all } else { consistent })
+}
+
+/// How many times the typical spread a map's centre may lie from the others' before
+/// [`far_off_maps`] leaves it out of the root: far beyond any scene's own extent.
+pub const FAR_OFF_SPREADS: f64 = 20.0;
+
+/// The maps (indices into `per_map`, each a map's root-sizing sample) that lie far off the
+/// rest: a map's centre is its per-axis median point, the scene's centre the per-axis median of
+/// those, and the typical spread the larger of the median distance of the maps' centres from
+/// the scene's and the median of each map's median distance from its own centre. A map whose
+/// centre is more than [`FAR_OFF_SPREADS`] typical spreads from the scene's is far off: a pose
+/// in other units or with a wrong translation, which would otherwise stretch the root's
+/// quantiles (a third of the samples of three maps) until the scene is a few cubes. With fewer
+/// than three maps there is no majority to tell which is off, and none is.
+pub fn far_off_maps(per_map: &[Vec<DVec3>]) -> Vec<usize> {
+    fn median(mut values: Vec<f64>) -> f64 {
+        values.sort_by(f64::total_cmp);
+        values.get(values.len() / 2).copied().unwrap_or(0.0)
+    }
+    fn median_point(points: &[DVec3]) -> DVec3 {
+        let axis = |a: usize| median(points.iter().map(|p| p[a]).collect());
+        DVec3::new(axis(0), axis(1), axis(2))
+    }
+    let centres: Vec<(usize, DVec3, f64)> = per_map
+        .iter()
+        .enumerate()
+        .filter(|(_, points)| !points.is_empty())
+        .map(|(i, points)| {
+            let centre = median_point(points);
+            (i, centre, median(points.iter().map(|p| p.distance(centre)).collect()))
+        })
+        .collect();
+    if centres.len() < 3 {
+        return Vec::new();
+    }
+    let points: Vec<DVec3> = centres.iter().map(|(_, c, _)| *c).collect();
+    let scene_centre = median_point(&points);
+    let spread = median(points.iter().map(|c| c.distance(scene_centre)).collect())
+        .max(median(centres.iter().map(|(_, _, r)| *r).collect()));
+    centres
+        .iter()
+        .filter(|(_, c, _)| c.distance(scene_centre) > FAR_OFF_SPREADS * spread)
+        .map(|(i, _, _)| *i)
+        .collect()
 }
 
 /// A box robust to stray points: per axis, the 0.1 % and 99.9 % quantiles. None without points.

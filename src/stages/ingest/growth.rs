@@ -44,13 +44,13 @@ pub fn scene_at(store: &Store, version: u64) -> Result<Option<Scene>> {
     let txn = store.catalog().begin_read()?;
     let meta = txn.open_table(META)?;
     let from = scene_until_key(version.saturating_add(1));
-    if let Some(entry) = meta.range(from.as_str()..)?.next() {
+    if let Some(entry) = meta.range(from.as_bytes()..)?.next() {
         let (key, value) = entry?;
-        if key.value().starts_with(META_SCENE_UNTIL_PREFIX) {
+        if key.value().starts_with(META_SCENE_UNTIL_PREFIX.as_bytes()) {
             return Ok(Some(catalog::unseal_decode("meta", key.value(), value.value())?));
         }
     }
-    match meta.get(META_SCENE)? {
+    match meta.get(META_SCENE.as_bytes())? {
         Some(v) => Ok(Some(catalog::unseal_decode("meta", META_SCENE, v.value())?)),
         None => Ok(None),
     }
@@ -60,7 +60,7 @@ pub fn scene_at(store: &Store, version: u64) -> Result<Option<Scene>> {
 pub fn root_is_fixed(store: &Store) -> Result<bool> {
     let txn = store.catalog().begin_read()?;
     let meta = txn.open_table(META)?;
-    Ok(meta.get(META_ROOT_FIXED)?.is_some())
+    Ok(meta.get(META_ROOT_FIXED.as_bytes())?.is_some())
 }
 
 /// The doublings that let `scene` hold every new map's samples: the union of each map's robust

@@ -183,7 +183,7 @@ pub const META_SAMPLE_SUMS: &str = "sample_sums";
 pub fn records_sample_sums(store: &Store) -> Result<bool> {
     let txn = store.catalog().begin_read()?;
     let meta = txn.open_table(META)?;
-    match meta.get(META_SAMPLE_SUMS)? {
+    match meta.get(META_SAMPLE_SUMS.as_bytes())? {
         Some(v) => match catalog::unseal("meta", META_SAMPLE_SUMS, v.value())? {
             [0] => Ok(false),
             [1] => Ok(true),
@@ -243,7 +243,7 @@ fn input_error(e: InputError) -> StoreError {
 pub fn read_scene(store: &Store) -> Result<Option<Scene>> {
     let txn = store.catalog().begin_read()?;
     let meta = txn.open_table(META)?;
-    match meta.get(META_SCENE)? {
+    match meta.get(META_SCENE.as_bytes())? {
         Some(v) => Ok(Some(catalog::unseal_decode("meta", META_SCENE, v.value())?)),
         None => Ok(None),
     }
@@ -356,7 +356,21 @@ impl IngestStage {
                                 bounds_of(source, map_memory, per_map, *median)
                             })
                             .collect::<Result<_>>()?;
-                        let points: Vec<DVec3> = per_map.into_iter().flatten().collect();
+                        let far_off = back_projection::far_off_maps(&per_map);
+                        for &i in &far_off {
+                            if let Some((_, source)) = maps.get(i) {
+                                tracing::warn!(
+                                    "{}: its samples lie far from every other depth map's (a pose in other units, or a wrong translation?); the root is sized without them, and those outside it are left out",
+                                    source.path.display()
+                                );
+                            }
+                        }
+                        let points: Vec<DVec3> = per_map
+                            .into_iter()
+                            .enumerate()
+                            .filter(|(i, _)| !far_off.contains(i))
+                            .flat_map(|(_, points)| points)
+                            .collect();
                         let Some((lo, hi)) = robust_bounds(&points) else {
                             return Err(StoreError::Stage {
                                 stage: INGEST.into(),
@@ -737,7 +751,7 @@ impl Stage for IngestStage {
         if self.adding_sums {
             let mut meta = txn.open_table(META)?;
             meta.insert(
-                META_SAMPLE_SUMS,
+                META_SAMPLE_SUMS.as_bytes(),
                 catalog::seal("meta", META_SAMPLE_SUMS, &[1u8]).as_slice(),
             )?;
             return Ok(format!(
@@ -780,29 +794,29 @@ impl Stage for IngestStage {
         let mut meta = txn.open_table(META)?;
         if self.scene_is_new {
             meta.insert(
-                META_SCENE,
+                META_SCENE.as_bytes(),
                 catalog::seal_encode("meta", META_SCENE, &self.scene).as_slice(),
             )?;
             if self.root_is_fixed {
                 meta.insert(
-                    META_ROOT_FIXED,
+                    META_ROOT_FIXED.as_bytes(),
                     catalog::seal("meta", META_ROOT_FIXED, &[1u8]).as_slice(),
                 )?;
             }
             meta.insert(
-                META_SAMPLE_SUMS,
+                META_SAMPLE_SUMS.as_bytes(),
                 catalog::seal("meta", META_SAMPLE_SUMS, &[u8::from(self.sample_sums)]).as_slice(),
             )?;
         }
         let grown = match &self.growth {
             Some((old, octants)) => {
                 meta.insert(
-                    META_SCENE,
+                    META_SCENE.as_bytes(),
                     catalog::seal_encode("meta", META_SCENE, &self.scene).as_slice(),
                 )?;
                 let until = scene_until_key(base.version() + 1);
                 meta.insert(
-                    until.as_str(),
+                    until.as_bytes(),
                     catalog::seal_encode("meta", until.as_str(), old).as_slice(),
                 )?;
                 format!(

@@ -542,20 +542,20 @@ impl Stage for OctreeStage {
         let prepared = self.prepared()?;
         let mut table = txn.open_table(UNIT_STATE)?;
         let old: Vec<CubeKey> = table
-            .range((OCTREE, CubeKey::from_raw(0))..=(OCTREE, CubeKey::from_raw(u128::MAX)))?
+            .range((OCTREE.as_bytes(), CubeKey::from_raw(0))..=(OCTREE.as_bytes(), CubeKey::from_raw(u128::MAX)))?
             .map(|e| Ok(e?.0.value().1))
             .collect::<Result<_>>()?;
         for key in old {
-            table.remove((OCTREE, key))?;
+            table.remove((OCTREE.as_bytes(), key))?;
         }
         txn.open_table(crate::store::catalog::META)?.insert(
-            crate::stages::META_OCTREE_MAX_DEPTH,
+            crate::stages::META_OCTREE_MAX_DEPTH.as_bytes(),
             catalog::seal("meta", crate::stages::META_OCTREE_MAX_DEPTH, &[prepared.finest]).as_slice(),
         )?;
         for unit in prepared.units.iter().filter(|u| !u.top) {
             let entry = (unit.ranges.first().map(|r| r.0).unwrap_or(0), unit.cubes());
             table.insert(
-                (OCTREE, unit.key),
+                (OCTREE.as_bytes(), unit.key),
                 catalog::seal_encode("unit_state", &(OCTREE, unit.key), &entry).as_slice(),
             )?;
         }
