@@ -915,3 +915,38 @@ fn a_far_off_pose_is_named_and_does_not_collapse_the_root() {
         .unwrap();
     assert!(scene.root_side < 3.0, "root side {}", scene.root_side);
 }
+
+/// Two first ingests into the same new store at once: one creates it, the other is told the
+/// store is in use (it used to fail with "rename catalog.redb.tmp: No such file", or replace
+/// the winner's catalog), and the store is whole.
+#[test]
+fn two_first_ingests_at_once_leave_one_store_and_a_clear_message() {
+    let dir = tempfile::tempdir().unwrap();
+    let manifest = small_scene().write(&dir.path().join("views")).unwrap();
+    for trial in 0..4 {
+        let store = dir.path().join(format!("store-{trial}"));
+        let spawn = || {
+            std::process::Command::new(octstore_bin())
+                .args([
+                    "ingest",
+                    store.to_str().unwrap(),
+                    manifest.to_str().unwrap(),
+                    "--max-depth",
+                    "6",
+                    "--quiet",
+                ])
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap()
+        };
+        let (first, second) = (spawn(), spawn());
+        let outcomes = [first.wait_with_output().unwrap(), second.wait_with_output().unwrap()];
+        assert!(outcomes.iter().any(|o| o.status.success()), "trial {trial}: neither ingest succeeded");
+        for out in outcomes.iter().filter(|o| !o.status.success()) {
+            assert!(stderr(out).contains("in use by another octstore process"), "trial {trial}: {}", stderr(out));
+        }
+        let out = octstore(&["verify", store.to_str().unwrap()], &[]);
+        assert!(out.status.success(), "trial {trial}: {}", stderr(&out));
+    }
+}

@@ -67,7 +67,7 @@ pub enum StoreError {
     },
     /// Another process holds the catalog for writing.
     #[error(
-        "{path} is in use by another octstore process (only one writer at a time; readers must wait for it to finish)"
+        "{path} is in use by another octstore process (one writer at a time: run this when it has finished; readers such as info, query, extract and verify run beside it)"
     )]
     InUse {
         /// The store.
@@ -295,9 +295,11 @@ impl Store {
             return Err(StoreError::AlreadyExists { path: root });
         }
         fs::create_dir_all(root.join(SEGMENTS_DIR)).map_err(io_error("create directory", &root))?;
-        // The catalog is built under a temporary name and renamed only once it is complete, so
-        // a crash during creation never leaves a catalog without its tables.
-        let temp_path = root.join(format!("{CATALOG_FILE}{TEMP_SUFFIX}"));
+        // The catalog is built under a temporary name of this process's and linked into place
+        // only once it is complete, so a crash during creation never leaves a catalog without
+        // its tables, and of two processes creating the same store at once one wins and the
+        // other is told the store is in use (a rename would replace the winner's catalog).
+        let temp_path = root.join(format!("{CATALOG_FILE}.{}{TEMP_SUFFIX}", std::process::id()));
         match fs::remove_file(&temp_path) {
             Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
                 return Err(io_error("remove", &temp_path)(e));
@@ -334,7 +336,16 @@ impl Store {
             }
             txn.commit()?;
         }
-        fs::rename(&temp_path, &catalog_path).map_err(io_error("rename", &temp_path))?;
+        match fs::hard_link(&temp_path, &catalog_path) {
+            Ok(()) => fs::remove_file(&temp_path).map_err(io_error("remove", &temp_path))?,
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                let _ = fs::remove_file(&temp_path);
+                return Err(StoreError::InUse { path: root });
+            }
+            // A file system without hard links: a plain rename (not safe against a second
+            // creator at the same moment, which such file systems rarely see).
+            Err(_) => fs::rename(&temp_path, &catalog_path).map_err(io_error("rename", &temp_path))?,
+        }
         sync_dir(&root)?;
         let db = catalog_builder()
             .open(&catalog_path)

@@ -79,6 +79,10 @@ fn match_meshes<'a>(manifest: &Manifest, meshes: &'a [PathBuf]) -> Result<Vec<Op
 
 /// Merges `meshes` of the subspaces listed in `manifest_path` into `output`.
 pub fn merge(manifest_path: &Path, meshes: &[PathBuf], output: &Path) -> Result<MergeReport> {
+    merge_meshes(manifest_path, meshes, output).map_err(super::in_divide)
+}
+
+fn merge_meshes(manifest_path: &Path, meshes: &[PathBuf], output: &Path) -> Result<MergeReport> {
     let manifest = read_manifest_file(manifest_path).map_err(divide_error)?;
     let matched = match_meshes(&manifest, meshes)?;
     let tolerance = manifest.division.root.size * 1e-6;

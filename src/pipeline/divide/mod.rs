@@ -175,20 +175,41 @@ fn io<'a>(action: &'static str, path: &'a Path) -> impl Fn(std::io::Error) -> Pi
     }
 }
 
+/// An input error met while dividing is a point cloud's, not an ingest's: its message says
+/// `divide:`.
+pub(crate) fn in_divide(error: PipelineError) -> PipelineError {
+    match error {
+        PipelineError::Inputs(e) => PipelineError::PointCloud(e),
+        other => other,
+    }
+}
+
 /// Divides the point clouds `inputs` (PLY, XYZ, TXT files, PTX or E57 scans, octstore stores:
 /// [`open_input`]) into the folder `dir`; a folder that already holds a division gets the new
 /// points added to it.
 pub fn divide(inputs: &[PathBuf], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
+    divide_inputs(inputs, dir, options).map_err(in_divide)
+}
+
+fn divide_inputs(inputs: &[PathBuf], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
     let opened = inputs
         .iter()
         .map(|path| open_input(path, options.memory_budget))
         .collect::<Result<Vec<_>>>()?;
     let sources: Vec<&dyn PointSource> = opened.iter().map(|s| s.as_ref()).collect();
-    divide_sources(&sources, dir, options)
+    divide_sources_as_given(&sources, dir, options)
 }
 
 /// [`divide`] of any point sources (files, or generated clouds for benchmarks).
 pub fn divide_sources(sources: &[&dyn PointSource], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
+    divide_sources_as_given(sources, dir, options).map_err(in_divide)
+}
+
+fn divide_sources_as_given(
+    sources: &[&dyn PointSource],
+    dir: &Path,
+    options: &DivideOptions,
+) -> Result<DivideReport> {
     if options.max_points == 0 {
         return Err(divide_error("--max-points must be at least 1"));
     }
