@@ -942,9 +942,16 @@ fn two_first_ingests_at_once_leave_one_store_and_a_clear_message() {
         };
         let (first, second) = (spawn(), spawn());
         let outcomes = [first.wait_with_output().unwrap(), second.wait_with_output().unwrap()];
-        assert!(outcomes.iter().any(|o| o.status.success()), "trial {trial}: neither ingest succeeded");
+        assert!(
+            outcomes.iter().any(|o| o.status.success()),
+            "trial {trial}: neither ingest succeeded"
+        );
         for out in outcomes.iter().filter(|o| !o.status.success()) {
-            assert!(stderr(out).contains("in use by another octstore process"), "trial {trial}: {}", stderr(out));
+            assert!(
+                stderr(out).contains("in use by another octstore process"),
+                "trial {trial}: {}",
+                stderr(out)
+            );
         }
         let out = octstore(&["verify", store.to_str().unwrap()], &[]);
         assert!(out.status.success(), "trial {trial}: {}", stderr(&out));

@@ -205,11 +205,7 @@ pub fn divide_sources(sources: &[&dyn PointSource], dir: &Path, options: &Divide
     divide_sources_as_given(sources, dir, options).map_err(in_divide)
 }
 
-fn divide_sources_as_given(
-    sources: &[&dyn PointSource],
-    dir: &Path,
-    options: &DivideOptions,
-) -> Result<DivideReport> {
+fn divide_sources_as_given(sources: &[&dyn PointSource], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
     if options.max_points == 0 {
         return Err(divide_error("--max-points must be at least 1"));
     }

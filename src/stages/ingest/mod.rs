@@ -346,40 +346,7 @@ impl IngestStage {
                         root_side: side,
                         max_depth: options.max_depth,
                     },
-                    None => {
-                        let per_map: Vec<Vec<DVec3>> = maps
-                            .par_iter()
-                            .zip(&medians)
-                            .map(|((_, source), median)| {
-                                // At most ~200,000 points in total, whatever the number of maps.
-                                let per_map = (200_000 / maps.len().max(1)).max(64);
-                                bounds_of(source, map_memory, per_map, *median)
-                            })
-                            .collect::<Result<_>>()?;
-                        let far_off = back_projection::far_off_maps(&per_map);
-                        for &i in &far_off {
-                            if let Some((_, source)) = maps.get(i) {
-                                tracing::warn!(
-                                    "{}: its samples lie far from every other depth map's (a pose in other units, or a wrong translation?); the root is sized without them, and those outside it are left out",
-                                    source.path.display()
-                                );
-                            }
-                        }
-                        let points: Vec<DVec3> = per_map
-                            .into_iter()
-                            .enumerate()
-                            .filter(|(i, _)| !far_off.contains(i))
-                            .flat_map(|(_, points)| points)
-                            .collect();
-                        let Some((lo, hi)) = robust_bounds(&points) else {
-                            return Err(StoreError::Stage {
-                                stage: INGEST.into(),
-                                unit: "all depth maps".into(),
-                                message: "no valid depth samples: nothing to build a scene from".into(),
-                            });
-                        };
-                        Scene::around(lo, hi, options.root_margin, options.max_depth)
-                    }
+                    None => root_around_samples(&maps, &medians, map_memory, options)?,
                 };
                 (scene, true)
             }
@@ -653,7 +620,48 @@ impl IngestStage {
     }
 }
 
-/// `source`'s samples, its rows in memory when they take at most `memory` bytes.
+/// The first ingest's root, around a sample of every map's points: robust quantiles of their
+/// union, without maps far off the others (named in a warning: [`back_projection::far_off_maps`]).
+fn root_around_samples(
+    maps: &[(u64, DepthMapSource)],
+    medians: &[DepthMedian],
+    map_memory: u64,
+    options: &IngestOptions,
+) -> Result<Scene> {
+    let per_map: Vec<Vec<DVec3>> = maps
+        .par_iter()
+        .zip(medians)
+        .map(|((_, source), median)| {
+            // At most ~200,000 points in total, whatever the number of maps.
+            let per_map = (200_000 / maps.len().max(1)).max(64);
+            bounds_of(source, map_memory, per_map, *median)
+        })
+        .collect::<Result<_>>()?;
+    let far_off = back_projection::far_off_maps(&per_map);
+    for &i in &far_off {
+        if let Some((_, source)) = maps.get(i) {
+            tracing::warn!(
+                "{}: its samples lie far from every other depth map's (a pose in other units, or a wrong translation?); the root is sized without them, and those outside it are left out",
+                source.path.display()
+            );
+        }
+    }
+    let points: Vec<DVec3> = per_map
+        .into_iter()
+        .enumerate()
+        .filter(|(i, _)| !far_off.contains(i))
+        .flat_map(|(_, points)| points)
+        .collect();
+    let Some((lo, hi)) = robust_bounds(&points) else {
+        return Err(StoreError::Stage {
+            stage: INGEST.into(),
+            unit: "all depth maps".into(),
+            message: "no valid depth samples: nothing to build a scene from".into(),
+        });
+    };
+    Ok(Scene::around(lo, hi, options.root_margin, options.max_depth))
+}
+
 /// The root-sizing sample of `count` points of `source` ([`bounds_sample`]), whose median
 /// depth its survey measured.
 fn bounds_of(source: &DepthMapSource, memory: u64, count: usize, median: DepthMedian) -> Result<Vec<DVec3>> {
@@ -661,6 +669,7 @@ fn bounds_of(source: &DepthMapSource, memory: u64, count: usize, median: DepthMe
     bounds_sample(stream, count).map_err(input_error)
 }
 
+/// `source`'s samples, its rows in memory when they take at most `memory` bytes.
 fn map_samples(source: &DepthMapSource, memory: u64, median: Option<DepthMedian>) -> Result<SampleStream<'_>> {
     let rows = open_rows(source, memory).map_err(input_error)?;
     match median {
