@@ -15,11 +15,12 @@ use std::path::Path;
 
 use super::grid::{Lookup, Node};
 use super::manifest::{Cube, Manifest, Subspace};
+use super::subspace_files::fixed_header;
 use super::{
-    Context, DivideOptions, DivideReport, Feed, MAX_LOOKUP_DEPTH, PointSource, STAGING, commit, divide_error, io,
-    progress, scan, stream,
+    BLOCK_BYTES, Context, DivideOptions, DivideReport, Feed, MAX_LOOKUP_DEPTH, PointSource, STAGING, commit,
+    divide_error, io, progress, scan, stream,
 };
-use crate::inputs::{PointCloudFile, open_point_cloud};
+use crate::inputs::{PointCloudFile, PointLayout, open_point_cloud};
 use crate::pipeline::{PipelineError, Result};
 
 /// Where new points fall: an existing subspace (by index) or an empty node.
@@ -56,6 +57,14 @@ pub(super) fn divide_more(
     }
     let feeds: Vec<Feed<'_>> = scanned.order.iter().filter_map(|&i| feeds.get(i).copied()).collect();
     let (new_core, touched) = owners_of_new_points(&feeds, &layout, &subspaces, &division, options)?;
+    // Every subspace the new points touch reads them again: from one binary copy, not from the
+    // inputs (a text cloud parsed once per touched subspace made adding 500,000 points to 89
+    // subspaces take 16 s, where dividing everything afresh took 1 s).
+    let copy = copy_of_new_points(&feeds, &layout, &dir.join(STAGING))?;
+    let feeds = [Feed {
+        source: &copy as &dyn PointSource,
+        keep: None,
+    }];
 
     let redo: Vec<Owner> = new_core
         .iter()
@@ -175,6 +184,32 @@ pub(super) fn divide_more(
         std::fs::remove_file(&path).map_err(io("remove", &path))?;
     }
     Ok(report)
+}
+
+/// The points of `feeds`, in their order, copied into one binary PLY in `staging` (removed with
+/// the staging folder when the divide ends).
+fn copy_of_new_points(feeds: &[Feed<'_>], layout: &PointLayout, staging: &Path) -> Result<PointCloudFile> {
+    use std::io::{Seek, SeekFrom, Write};
+    const NOTE: &str = "new points";
+    let path = staging.join("new-points.ply");
+    let file = std::fs::File::create(&path).map_err(io("create", &path))?;
+    let mut out = std::io::BufWriter::new(file);
+    out.write_all(&fixed_header(layout, 0, NOTE))
+        .map_err(io("write", &path))?;
+    let block_points = (BLOCK_BYTES / layout.record_len().max(1)).max(1);
+    let mut count = 0;
+    for feed in feeds {
+        count += feed.source.for_each_block(block_points, &mut |block| {
+            out.write_all(block).map_err(io("write", &path))
+        })?;
+    }
+    let mut file = out.into_inner().map_err(|e| io("write", &path)(e.into_error()))?;
+    // The header has one length whatever the count: write it again with the count.
+    file.seek(SeekFrom::Start(0)).map_err(io("write", &path))?;
+    file.write_all(&fixed_header(layout, count, NOTE))
+        .map_err(io("write", &path))?;
+    drop(file);
+    open_point_cloud(&path).map_err(PipelineError::PointCloud)
 }
 
 /// The new points must have the folder's properties; the limit and the overlap stay its own.
