@@ -66,16 +66,7 @@ pub(super) fn divide_more(
         keep: None,
     }];
 
-    let redo: Vec<Owner> = new_core
-        .iter()
-        .filter(|(owner, new)| match owner {
-            Owner::Subspace(i) => subspaces
-                .get(*i)
-                .is_some_and(|s| s.core_points + **new > division.max_points),
-            Owner::Empty(_) => true,
-        })
-        .map(|(owner, _)| *owner)
-        .collect();
+    let redo = owners_to_divide_again(&new_core, &subspaces, division.max_points);
     let old_files: Vec<PointCloudFile> = subspaces
         .iter()
         .map(|s| open_point_cloud(&dir.join(&s.file)))
@@ -184,6 +175,19 @@ pub(super) fn divide_more(
         std::fs::remove_file(&path).map_err(io("remove", &path))?;
     }
     Ok(report)
+}
+
+/// The owners divided again: every empty one, and every subspace whose core would pass
+/// `max_points` with its `new_core` points.
+fn owners_to_divide_again(new_core: &BTreeMap<Owner, u64>, subspaces: &[Subspace], max_points: u64) -> Vec<Owner> {
+    new_core
+        .iter()
+        .filter(|(owner, new)| match owner {
+            Owner::Subspace(i) => subspaces.get(*i).is_some_and(|s| s.core_points + **new > max_points),
+            Owner::Empty(_) => true,
+        })
+        .map(|(owner, _)| *owner)
+        .collect()
 }
 
 /// The points of `feeds`, in their order, copied into one binary PLY in `staging` (removed with
