@@ -61,12 +61,12 @@ pub(super) fn divide_more(
     // inputs (a text cloud parsed once per touched subspace made adding 500,000 points to 89
     // subspaces take 16 s, where dividing everything afresh took 1 s).
     let copy = copy_of_new_points(&feeds, &layout, &dir.join(STAGING))?;
-    let feeds = [Feed {
-        source: &copy as &dyn PointSource,
-        keep: None,
-    }];
-
     let redo = owners_to_divide_again(&new_core, &subspaces, division.max_points);
+    let appended: Vec<usize> = touched
+        .iter()
+        .filter(|&&i| !redo.contains(&Owner::Subspace(i)))
+        .copied()
+        .collect();
     let old_files: Vec<PointCloudFile> = subspaces
         .iter()
         .map(|s| open_point_cloud(&dir.join(&s.file)))
@@ -85,6 +85,23 @@ pub(super) fn divide_more(
         options,
         report: &mut report,
     };
+    // Each owner reads the new points in its grown cube from a bucket of its own, sorted out
+    // of the copy in one pass: a pass over the copy per owner made adding 500,000 points to 89
+    // subspaces take 3.2 s, three times dividing everything afresh.
+    let owners: Vec<Owner> = redo
+        .iter()
+        .copied()
+        .chain(appended.iter().map(|&i| Owner::Subspace(i)))
+        .collect();
+    let owner_node = |owner: &Owner| match owner {
+        Owner::Subspace(i) => subspaces.get(*i).map_or(Node::ROOT, |s| s.node),
+        Owner::Empty(node) => *node,
+    };
+    let buckets = context.buckets_of_new_points(
+        &copy,
+        owners.iter().map(|o| root.grown(owner_node(o), division.overlap)),
+    )?;
+    let bucket_of = |owner: &Owner| owners.iter().position(|o| o == owner).and_then(|k| buckets.get(k));
     for owner in &redo {
         let top = match owner {
             Owner::Subspace(i) => {
@@ -94,12 +111,12 @@ pub(super) fn divide_more(
             Owner::Empty(node) => *node,
         };
         let grown = root.grown(top, division.overlap);
-        let mut top_feeds: Vec<Feed<'_>> = feeds
-            .iter()
-            .map(|f| Feed {
-                source: f.source,
+        let mut top_feeds: Vec<Feed<'_>> = bucket_of(owner)
+            .map(|bucket| Feed {
+                source: bucket as &dyn PointSource,
                 keep: Some(grown),
             })
+            .into_iter()
             .collect();
         for (subspace, file) in subspaces.iter().zip(&old_files) {
             let core = root.core(subspace.node);
@@ -118,7 +135,6 @@ pub(super) fn divide_more(
         };
         context.divide_node(top, points, &top_feeds, &mut written)?;
     }
-    let appended: Vec<usize> = touched.iter().filter(|i| !replaced.contains(*i)).copied().collect();
     for i in appended {
         let (Some(subspace), Some(file)) = (subspaces.get(i), old_files.get(i)) else {
             continue;
@@ -129,8 +145,8 @@ pub(super) fn divide_more(
             source: file as &dyn PointSource,
             keep: None,
         }];
-        top_feeds.extend(feeds.iter().map(|f| Feed {
-            source: f.source,
+        top_feeds.extend(bucket_of(&Owner::Subspace(i)).map(|bucket| Feed {
+            source: bucket as &dyn PointSource,
             keep: Some(grown),
         }));
         let name = context.file_name(subspace.node);
@@ -175,6 +191,33 @@ pub(super) fn divide_more(
         std::fs::remove_file(&path).map_err(io("remove", &path))?;
     }
     Ok(report)
+}
+
+impl Context<'_> {
+    /// The points of `copy` sorted into one binary PLY per cube of `grown`, in the staging
+    /// folder, in one pass: bucket k holds, in the copy's order, every point in the k-th cube
+    /// (a point in several cubes goes to each). Removed with the staging folder.
+    fn buckets_of_new_points(
+        &mut self,
+        copy: &PointCloudFile,
+        grown: impl Iterator<Item = super::grid::Bounds>,
+    ) -> Result<Vec<PointCloudFile>> {
+        let grown: Vec<_> = grown.collect();
+        let staging = self.dir.join(STAGING);
+        let files: Vec<(std::path::PathBuf, String)> = (0..grown.len())
+            .map(|k| (staging.join(format!("new-points-{k}.ply")), "new points".to_string()))
+            .collect();
+        let paths: Vec<_> = files.iter().map(|(path, _)| path.clone()).collect();
+        let feeds = [Feed {
+            source: copy as &dyn PointSource,
+            keep: None,
+        }];
+        self.write_targets(Node::ROOT, 0, &feeds, files, &grown)?;
+        paths
+            .iter()
+            .map(|path| open_point_cloud(path).map_err(PipelineError::PointCloud))
+            .collect()
+    }
 }
 
 /// The owners divided again: every empty one, and every subspace whose core would pass
