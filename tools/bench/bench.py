@@ -1243,7 +1243,8 @@ def main():
                         help="points of the generated cloud of the divide section")
     parser.add_argument("--divide-budgets", nargs="+", default=["256MiB", "1GiB"],
                         help="--memory-budget values of the divide section")
-    parser.add_argument("--divide-cases", nargs="+", default=["synthetic", "bunny"], choices=["synthetic", "bunny"],
+    parser.add_argument("--divide-cases", nargs="+", default=["synthetic", "incremental", "bunny"],
+                        choices=["synthetic", "incremental", "bunny"],
                         help="cases of the divide section to run; the others keep their rows")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks", help="plots and raw results")
     parser.add_argument("--markdown", type=Path, default=ROOT / "BENCHMARKS.md")
@@ -1274,6 +1275,9 @@ def main():
                 if "synthetic" in args.divide_cases:
                     rows += [divide_bench.synthetic(BIN, work, args.divide_points, budget, 10_000_000, run_measured)
                              for budget in args.divide_budgets]
+                if "incremental" in args.divide_cases:
+                    rows += [divide_bench.incremental(BIN, work, 10_000_000, max_points, region, run_measured)
+                             for max_points, region in ((500_000, 1.0), (200_000, 1.0), (200_000, 0.2))]
                 if "bunny" in args.divide_cases:
                     rows.append(divide_bench.bunny_merge(BIN, work, GT_MESHES["bunny"], octstore, evaluate,
                                                          read_manifest))

@@ -32,6 +32,52 @@ def synthetic(bin_dir, work, points, budget, max_points, run_measured):
             "points_per_s": points / wall}
 
 
+def incremental(bin_dir, work, points, max_points, region, run_measured):
+    """A later divide into a folder: a cloud of `points` (points on a rolling surface 100 units
+    square with a random spread, float x, y, z) divided, then `points` / 4 more in a square of
+    `region` times the side added to the folder, against all of them divided afresh."""
+    import numpy as np
+
+    rng = np.random.default_rng(7)
+
+    def cloud(path, count, corners, side):
+        xy = rng.random((count, 2)) * 100.0 * side
+        z = np.clip(5.0 * np.sin(xy[:, 0] / 7.0) * np.cos(xy[:, 1] / 11.0) + rng.normal(0.0, 0.05, count), -5.5, 5.5)
+        if corners:
+            box = np.array([[x, y, z] for x in (0.0, 100.0) for y in (0.0, 100.0) for z in (-6.0, 6.0)])
+            xy[:8], z[:8] = box[:, :2], box[:, 2]
+        record = np.zeros(count, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+        record["x"], record["y"], record["z"] = xy[:, 0], xy[:, 1], z
+        header = ("ply\nformat binary_little_endian 1.0\n"
+                  f"element vertex {count}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+        path.write_bytes(header.encode() + record.tobytes())
+
+    # The first cloud spans the corners of the region, so the second lies inside its root.
+    first, second = work / "incremental-first.ply", work / "incremental-second.ply"
+    cloud(first, points, True, 1.0)
+    cloud(second, points // 4, False, region)
+    later, fresh = work / "incremental-later", work / "incremental-fresh"
+    subprocess.run(["rm", "-rf", str(later), str(fresh)], check=True)
+    octstore = [str(bin_dir / "octstore"), "--quiet", "divide", "--max-points", str(max_points)]
+    _, _, first_wall, _, _ = run_measured(octstore + [str(first), "-o", str(later)])
+    before = len(list(later.glob("*.ply")))
+    stdout, _, later_wall, _, _ = run_measured(octstore + [str(second), "-o", str(later)])
+    match = DIVIDE_LINE.search(stdout)
+    if not match:
+        raise SystemExit(f"octstore divide printed no summary: {stdout}")
+    stdout, _, fresh_wall, _, _ = run_measured(octstore + [str(first), str(second), "-o", str(fresh)])
+    fresh_match = DIVIDE_LINE.search(stdout)
+    if not fresh_match:
+        raise SystemExit(f"octstore divide printed no summary: {stdout}")
+    row = {"case": "incremental", "points": points, "added": points // 4, "region": region,
+           "max_points": max_points, "subspaces_before": before,
+           "subspaces": int(match.group(2)), "files_rewritten": int(match.group(3)), "first_wall_s": first_wall,
+           "later_wall_s": later_wall, "later_peak_mb": float(match.group(9)), "fresh_wall_s": fresh_wall,
+           "fresh_peak_mb": float(fresh_match.group(9)), "fresh_subspaces": int(fresh_match.group(2))}
+    subprocess.run(["rm", "-rf", str(later), str(fresh), str(first), str(second)], check=True)
+    return row
+
+
 def write_cloud(views, path):
     """The views' valid pixels as points, with the view and pixel they came from (so a subspace's
     file says which pixels to keep)."""
@@ -209,6 +255,21 @@ def markdown(rows):
         lines.append(f"| {r['points']:,} | {r['budget']} | {r['max_points']:,} | {r['subspaces']} | "
                      f"{r['points_written']:,} | {r['counting_depth']} | {r['wall_s']:.0f} | "
                      f"{r['points_per_s'] / 1e6:.1f} | {r['points_per_s'] / 2e6:.1f} | {r['peak_mb']:.0f} |")
+    later = [r for r in rows if r["case"] == "incremental"]
+    if later:
+        lines += ["", "A later divide into the same folder (`octstore divide NEW -o FOLDER`): a cloud of N points on a "
+                  "rolling surface 100 units square (binary PLY) divided, N / 4 more added in a square of the "
+                  "given share of the side, against all of them divided afresh into a new folder (the folders may "
+                  "differ: the later divide rewrites only what the new points touch, or divides everything afresh "
+                  "when the subspaces to divide again hold half the points).", "",
+                  "| N | added | in a square of | --max-points | subspaces before | after | files rewritten | "
+                  "first s | later s | afresh s | later peak MB | afresh peak MB |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in later:
+            lines.append(f"| {r['points']:,} | {r['added']:,} | {r['region']} | {r['max_points']:,} | "
+                         f"{r['subspaces_before']} | {r['subspaces']} | "
+                         f"{r['files_rewritten']} | {r['first_wall_s']:.2f} | {r['later_wall_s']:.2f} | "
+                         f"{r['fresh_wall_s']:.2f} | {r['later_peak_mb']:.0f} | {r['fresh_peak_mb']:.0f} |")
     merges = [r for r in rows if r["case"] == "bunny-merge"]
     if merges:
         lines += ["", "The bunny in its room (24 views of 320x240, 0.2 % depth noise) reconstructed whole and part by "

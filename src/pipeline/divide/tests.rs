@@ -262,6 +262,53 @@ fn a_later_divide_rewrites_only_the_subspaces_its_points_touch() -> TestResult {
 }
 
 #[test]
+fn a_later_divide_that_splits_most_subspaces_divides_everything_afresh() -> TestResult {
+    let temp = tempfile::tempdir()?;
+    let old = cloud(10_000, 7, 0)?;
+    let first = temp.path().join("first.ply");
+    write_ply(&first, &old)?;
+    let dir = temp.path().join("division");
+    divide(std::slice::from_ref(&first), &dir, &options(1_000, 3))?;
+    let before = folder_bytes(&dir)?;
+    // As many points again, each a little nearer the middle than an old one (so inside the
+    // root): every core doubles past the limit.
+    let middle = old
+        .iter()
+        .map(|r| position(r))
+        .fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]]);
+    let middle = middle.map(|c| c / old.len() as f64);
+    let new: Vec<Vec<u8>> = old
+        .iter()
+        .map(|r| {
+            let p = position(r);
+            (0..3)
+                .flat_map(|a| ((middle[a] + (p[a] - middle[a]) * 0.999) as f32).to_le_bytes())
+                .collect()
+        })
+        .collect();
+    let second = temp.path().join("second.ply");
+    write_ply(&second, &new)?;
+    let report = divide(std::slice::from_ref(&second), &dir, &options(1_000, 3))?;
+    let all: Vec<Vec<u8>> = old.iter().chain(&new).cloned().collect();
+    let manifest = check_division(&dir, &all, 1_000)?;
+    // Every file is new, and the subspaces are those of dividing all the points at once.
+    assert_eq!(report.files_written, manifest.subspaces.len());
+    assert!(manifest.subspaces.iter().all(|s| !before.contains_key(&s.file)));
+    let fresh = temp.path().join("fresh");
+    divide(&[first, second], &fresh, &options(1_000, 3))?;
+    let fresh = read_manifest_file(&fresh.join(MANIFEST))?;
+    assert_eq!(fresh.division.root, manifest.division.root);
+    let nodes = |m: &Manifest| {
+        m.subspaces
+            .iter()
+            .map(|s| (s.node, s.core_points))
+            .collect::<std::collections::BTreeSet<_>>()
+    };
+    assert_eq!(nodes(&fresh), nodes(&manifest));
+    Ok(())
+}
+
+#[test]
 fn a_truncated_input_names_its_file_and_writes_no_division() -> TestResult {
     let temp = tempfile::tempdir()?;
     let points = cloud(100, 1, 0)?;
