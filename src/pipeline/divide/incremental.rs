@@ -6,7 +6,11 @@
 //! would pass the limit, and every empty owner, is divided again from its points: the new
 //! ones in its grown cube and the old ones in it, each read from the one subspace file whose
 //! core holds it (so no point is read twice). A subspace that stays within the limit but whose
-//! grown cube receives new points is rewritten as its old file plus those points. Every file
+//! grown cube receives new points is rewritten as its old file plus those points. When the
+//! owners divided again hold half of all the points, the root is divided afresh instead
+//! ([`owners_to_divide_again`]). The new points are copied once into a binary file and
+//! sorted from there into one bucket per owner in one pass, so each owner reads only its
+//! own. Every file
 //! written carries the folder's generation in its name; the manifest is replaced last, and the
 //! replaced files are removed only after it.
 
