@@ -55,19 +55,13 @@
 //! the vertices only their unit produces (Taubin's steps, each vertex within half its edge of
 //! where it was; seam vertices stay).
 //!
-//! Stray islands. Noise leaves a few lone triangles beside the surface where a tetrahedron or
-//! two keep their support apart from it; a unit drops the islands of fewer than 16 triangles
-//! that lie wholly inside it (`islands`), unless `closed`.
-//!
-//! Files: `dual_cells` (a unit's piece; `dual_cells/pinholes` fills its pinholes), `islands`,
-//! `weld`
+//! Files: `dual_cells` (a unit's piece; `dual_cells/pinholes` fills its pinholes), `weld`
 //! (streaming weld in unit order), `mesh_file` (the temporary vertex and face files and the
 //! final PLY), `in_order` (workers compute pieces ahead while the weld consumes them in
 //! order).
 
 mod dual_cells;
 mod in_order;
-mod islands;
 mod mesh_file;
 mod relax;
 mod weld;
@@ -244,9 +238,6 @@ pub fn unit_mesh(
         }
     }
     smooth_private_vertices(&mut mesh, &guides.ends, &movable);
-    if !closed {
-        islands::drop_private_islands(&mut mesh, &movable);
-    }
     Ok(mesh)
 }
 
