@@ -125,8 +125,8 @@ pub enum MethodChoice {
 /// The verbs.
 #[derive(Subcommand, Debug)]
 pub enum Command {
-    /// Register depth maps and write their cubes (one sorted run per depth map). Run it again
-    /// with more depth maps later: the store grows incrementally.
+    /// Register depth maps and write their cubes (one sorted run per group of 16 maps that look
+    /// at one region). Run it again with more depth maps later: the store grows incrementally.
     Ingest(IngestArgs),
     /// Bring everything derived up to date: the octree and its treetop, the histograms, then
     /// the TGV solution level by level.
