@@ -152,25 +152,8 @@ pub(super) fn divide_more(
             continue;
         };
         replaced.insert(i);
-        let grown = root.grown(subspace.node, division.overlap);
-        // The old file and the new points in the grown cube (its bucket holds exactly those),
-        // byte for byte.
-        let mut parts: Vec<&dyn PointSource> = vec![file];
-        parts.extend(bucket_of(&Owner::Subspace(i)).map(|bucket| bucket as &dyn PointSource));
-        let name = context.file_name(subspace.node);
-        let path = dir.join(STAGING).join(&name);
-        let points = concatenate(&path, &layout, &format!("updated {}", subspace.file), &parts)?;
         let new = new_core.get(&Owner::Subspace(i)).copied().unwrap_or(0);
-        context.report.files_written += 1;
-        context.report.points_written += points;
-        written.push(Subspace {
-            file: name,
-            core: subspace.core,
-            grown: Cube::of(&grown),
-            points,
-            core_points: subspace.core_points + new,
-            node: subspace.node,
-        });
+        written.push(context.appended(subspace, file, bucket_of(&Owner::Subspace(i)), new)?);
     }
     let mut all: Vec<Subspace> = subspaces
         .iter()
@@ -195,6 +178,33 @@ pub(super) fn divide_more(
 }
 
 impl Context<'_> {
+    /// `subspace` rewritten as its old `file` and then its `bucket` of new points (exactly
+    /// those in its grown cube), byte for byte; `new` of them lie in its core.
+    fn appended(
+        &mut self,
+        subspace: &Subspace,
+        file: &PointCloudFile,
+        bucket: Option<&PointCloudFile>,
+        new: u64,
+    ) -> Result<Subspace> {
+        let grown = self.division.root.grown(subspace.node, self.division.overlap);
+        let mut parts: Vec<&dyn PointSource> = vec![file];
+        parts.extend(bucket.map(|bucket| bucket as &dyn PointSource));
+        let name = self.file_name(subspace.node);
+        let path = self.dir.join(STAGING).join(&name);
+        let points = concatenate(&path, &self.layout, &format!("updated {}", subspace.file), &parts)?;
+        self.report.files_written += 1;
+        self.report.points_written += points;
+        Ok(Subspace {
+            file: name,
+            core: subspace.core,
+            grown: Cube::of(&grown),
+            points,
+            core_points: subspace.core_points + new,
+            node: subspace.node,
+        })
+    }
+
     /// The points of `copy` sorted into one binary PLY per cube of `grown` (of nodes at most
     /// `deepest` levels down), in the staging
     /// folder, in one pass: bucket k holds, in the copy's order, every point in the k-th cube
