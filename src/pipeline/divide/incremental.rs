@@ -116,7 +116,8 @@ pub(super) fn divide_more(
         deepest,
         owners.iter().map(|o| root.grown(owner_node(o), division.overlap)),
     )?;
-    let bucket_of = |owner: &Owner| owners.iter().position(|o| o == owner).and_then(|k| buckets.get(k));
+    let buckets: BTreeMap<Owner, PointCloudFile> = owners.into_iter().zip(buckets).collect();
+    let bucket_of = |owner: &Owner| buckets.get(owner);
     for owner in &redo {
         let top = owner_node(owner);
         replaced.extend(under(owner));
@@ -136,16 +137,8 @@ pub(super) fn divide_more(
                 });
             }
         }
-        let old_points: u64 = under(owner)
-            .iter()
-            .filter_map(|&i| subspaces.get(i))
-            .map(|s| s.core_points)
-            .sum();
-        let new_points = match owner {
-            Owner::Empty(node) if *node == Node::ROOT => scanned.points,
-            _ => new_core.get(owner).copied().unwrap_or(0),
-        };
-        context.divide_node(top, old_points + new_points, &top_feeds, &mut written)?;
+        let points = owner_points(owner, &subspaces, &new_core, scanned.points);
+        context.divide_node(top, points, &top_feeds, &mut written)?;
     }
     for i in appended {
         let (Some(subspace), Some(file)) = (subspaces.get(i), old_files.get(i)) else {
@@ -205,10 +198,10 @@ impl Context<'_> {
         })
     }
 
-    /// The points of `copy` sorted into one binary PLY per cube of `grown` (of nodes at most
-    /// `deepest` levels down), in the staging
-    /// folder, in one pass: bucket k holds, in the copy's order, every point in the k-th cube
-    /// (a point in several cubes goes to each). Removed with the staging folder.
+    /// The points of `copy` sorted in one pass into one binary PLY per cube of `grown` (of
+    /// nodes at most `deepest` levels down) in the staging folder: bucket k holds, in the
+    /// copy's order, every point in the k-th cube (a point in several cubes goes to each).
+    /// Removed with the staging folder.
     fn buckets_of_new_points(
         &mut self,
         copy: &PointCloudFile,
@@ -254,21 +247,27 @@ fn owners_to_divide_again(
         })
         .map(|(owner, _)| *owner)
         .collect();
-    let old_points: u64 = subspaces.iter().map(|s| s.core_points).sum();
+    let everything = owner_points(&Owner::Empty(Node::ROOT), subspaces, new_core, new_points);
     let redo_points: u64 = redo
         .iter()
-        .map(|owner| {
-            let old = match owner {
-                Owner::Subspace(i) => subspaces.get(*i).map_or(0, |s| s.core_points),
-                Owner::Empty(_) => 0,
-            };
-            old + new_core.get(owner).copied().unwrap_or(0)
-        })
+        .map(|owner| owner_points(owner, subspaces, new_core, new_points))
         .sum();
-    if redo_points.saturating_mul(2) >= old_points + new_points {
+    if redo_points.saturating_mul(2) >= everything {
         vec![Owner::Empty(Node::ROOT)]
     } else {
         redo
+    }
+}
+
+/// The points in `owner`'s core once its new ones are added: a subspace's old and new core
+/// points; an empty node's new points; the root's, all points old and new (`new_points`).
+fn owner_points(owner: &Owner, subspaces: &[Subspace], new_core: &BTreeMap<Owner, u64>, new_points: u64) -> u64 {
+    match owner {
+        Owner::Empty(node) if *node == Node::ROOT => subspaces.iter().map(|s| s.core_points).sum::<u64>() + new_points,
+        Owner::Subspace(i) => {
+            subspaces.get(*i).map_or(0, |s| s.core_points) + new_core.get(owner).copied().unwrap_or(0)
+        }
+        Owner::Empty(_) => new_core.get(owner).copied().unwrap_or(0),
     }
 }
 
