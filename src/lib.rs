@@ -51,7 +51,7 @@ pub use mesh::{Mesh, MeshReadError, MeshSummary};
 pub use pipeline::{PipelineError, SolveOptions, SolveUntil};
 pub use quality::synthetic_scenes::SceneSpec;
 pub use query::{CubeInfo, IndicatorField, LeafInfo};
-pub use stages::extract::ExtractOptions;
+pub use stages::extract::{DEFAULT_MAX_ERROR, ExtractOptions, Simplify};
 pub use stages::ingest::IngestOptions;
 pub use stages::solve::{Method, SolveParams, SsdParams};
 pub use store::{RunOptions, RunReport, Snapshot, Store, StoreError};

@@ -35,6 +35,7 @@ class Snapshot:
         decimate: Optional[float] = None,
         closed: bool = False,
         path: Optional[str] = None,
+        max_error: Optional[float] = None,
     ) -> Tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], npt.NDArray[np.float32]]: ...
 
 def ingest(store: Store, argv: List[str]) -> Tuple[str, Optional[int], str]: ...

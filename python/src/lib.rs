@@ -21,7 +21,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use octstore::cli::{LibraryCall, library_call};
-use octstore::{BoundingBox, ExtractOptions, IndicatorField, RunReport};
+use octstore::{BoundingBox, ExtractOptions, IndicatorField, RunReport, Simplify};
 
 pyo3::create_exception!(
     octstore,
@@ -237,7 +237,7 @@ impl Snapshot {
 
     /// The surface, as `octstore extract` writes it (to `path` too when given): vertices
     /// (V, 3) float32, faces (F, 3) uint32 and vertex normals (V, 3) float32.
-    #[pyo3(signature = (region = None, decimate = None, closed = false, path = None))]
+    #[pyo3(signature = (region = None, decimate = None, closed = false, path = None, max_error = None))]
     #[expect(clippy::type_complexity, reason = "the three arrays Python receives as a tuple")]
     fn extract<'py>(
         &self,
@@ -246,6 +246,7 @@ impl Snapshot {
         decimate: Option<f32>,
         closed: bool,
         path: Option<PathBuf>,
+        max_error: Option<f32>,
     ) -> PyResult<(
         Bound<'py, PyArray2<f32>>,
         Bound<'py, PyArray2<u32>>,
@@ -256,7 +257,12 @@ impl Snapshot {
                 min: DVec3::new(a, b, c),
                 max: DVec3::new(d, e, f),
             }),
-            decimate,
+            simplify: match (decimate, max_error) {
+                (Some(fraction), _) => Simplify::Fraction(fraction),
+                (None, Some(error)) if error <= 0.0 => Simplify::Full,
+                (None, Some(error)) => Simplify::MaxError(error),
+                (None, None) => Simplify::default(),
+            },
             closed,
         };
         let (store, version) = (self.store.clone(), self.version);

@@ -5,12 +5,13 @@ use std::path::PathBuf;
 use clap::{Args, Parser, Subcommand};
 
 use super::parse::{
-    parse_depth_noise, parse_iterations, parse_margin, parse_memory_budget, parse_mesh_path, parse_noise_sigmas,
-    parse_overlap, parse_point, parse_positive, parse_ratio, parse_region, parse_root, parse_ssd_tolerance,
-    parse_ssd_weight, parse_threads, parse_tolerance, parse_weight,
+    parse_depth_noise, parse_iterations, parse_margin, parse_max_error, parse_memory_budget, parse_mesh_path,
+    parse_noise_sigmas, parse_overlap, parse_point, parse_positive, parse_ratio, parse_region, parse_root,
+    parse_ssd_tolerance, parse_ssd_weight, parse_threads, parse_tolerance, parse_weight,
 };
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
+use crate::stages::extract::Simplify;
 use crate::stages::octree;
 use crate::stages::solve::{Method, SolveParams, SsdParams};
 
@@ -257,9 +258,12 @@ pub struct PlanArgs {
     /// extract: only what lies in this box.
     #[arg(long, value_parser = parse_region)]
     pub region: Option<BoundingBox>,
-    /// extract: keep about this fraction of each leaf's triangles.
-    #[arg(long, value_parser = parse_ratio)]
+    /// extract: keep about this fraction of the triangles (see `octstore extract --help`).
+    #[arg(long, value_parser = parse_ratio, conflicts_with = "max_error")]
     pub decimate: Option<f32>,
+    /// extract: simplify within this error, in finest cube sides (see `octstore extract --help`).
+    #[arg(long, value_parser = parse_max_error)]
+    pub max_error: Option<f32>,
     /// extract: the whole zero set, closed at the root cube (see `octstore extract --help`).
     #[arg(long)]
     pub closed: bool,
@@ -342,9 +346,15 @@ pub struct ExtractArgs {
     /// Extract from this version instead of the latest.
     #[arg(long)]
     pub version: Option<u64>,
-    /// Keep about this fraction (0..1] of the triangles: quadric-error simplification per
-    /// treetop leaf that never moves a vertex shared with another leaf.
-    #[arg(long, value_parser = parse_ratio)]
+    /// Simplify the mesh wherever that moves the surface by at most this many finest cube
+    /// sides (quadric edge collapses, streamed across treetop leaf borders within the memory
+    /// budget): flat walls become few large triangles, detailed parts keep theirs. 0 keeps
+    /// every triangle marching tetrahedra gives. [default: 0.25]
+    #[arg(long, value_parser = parse_max_error)]
+    pub max_error: Option<f32>,
+    /// Keep about this fraction (0..1] of the triangles, whatever the error, instead of
+    /// bounding the error.
+    #[arg(long, value_parser = parse_ratio, conflicts_with = "max_error")]
     pub decimate: Option<f32>,
     /// Mesh the whole zero set of u, closed at the root cube, instead of only the surface
     /// between cubes that depth maps saw. Without it (the default) an indoor capture gives the
@@ -504,4 +514,14 @@ pub struct DebugSyntheticArgs {
     pub delay_ms: u64,
     #[arg(long)]
     pub resume: bool,
+}
+
+/// The simplification `--decimate` and `--max-error` ask for (they conflict), or the default.
+pub(super) fn simplify_of(decimate: Option<f32>, max_error: Option<f32>) -> Simplify {
+    match (decimate, max_error) {
+        (Some(fraction), _) => Simplify::Fraction(fraction),
+        (None, Some(0.0)) => Simplify::Full,
+        (None, Some(error)) => Simplify::MaxError(error),
+        (None, None) => Simplify::default(),
+    }
 }

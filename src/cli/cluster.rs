@@ -20,7 +20,7 @@ pub(super) fn plan(args: PlanArgs) -> Result<()> {
         let output = std::path::absolute(&output).map_err(io_error("resolve", &output))?;
         let options = ExtractOptions {
             region: args.region,
-            decimate: args.decimate,
+            simplify: super::args::simplify_of(args.decimate, args.max_error),
             closed: args.closed,
         };
         let plan = cluster::plan_extract(&store, args.chunks, options, output.clone())?;
@@ -86,7 +86,7 @@ pub(super) fn commit(global: &GlobalOptions, args: CommitArgs) -> Result<()> {
     let store = Store::open(&args.store)?;
     if args.stage == EXTRACT {
         let started = Instant::now();
-        let (summary, output) = cluster::commit_extract(&store)?;
+        let (summary, output) = cluster::commit_extract(&store, global.memory_budget)?;
         print_extract_summary(&summary, &output, started);
         return Ok(());
     }

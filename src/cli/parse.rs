@@ -148,6 +148,16 @@ pub(crate) fn parse_ratio(text: &str) -> Result<f32, ArgumentError> {
     }
 }
 
+/// A simplification error bound: finite and not negative.
+pub(crate) fn parse_max_error(text: &str) -> Result<f32, ArgumentError> {
+    match text.trim().parse::<f32>() {
+        Ok(e) if e.is_finite() && e >= 0.0 => Ok(e),
+        _ => Err(ArgumentError(format!(
+            "'{text}' is not an error bound (a number of finest cube sides, 0 or more)"
+        ))),
+    }
+}
+
 /// A finite fraction in [0, 1).
 /// An iteration cap of at least 1: with none, a level would be its starting guess, labelled
 /// solved.

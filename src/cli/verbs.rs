@@ -105,7 +105,7 @@ pub(super) fn extract(global: &GlobalOptions, args: ExtractArgs) -> Result<()> {
     let store = Store::open_for_reading(&args.store)?;
     let options = ExtractOptions {
         region: args.region,
-        decimate: args.decimate,
+        simplify: super::args::simplify_of(args.decimate, args.max_error),
         closed: args.closed,
     };
     let summary = pipeline::extract(&store, &args.output, &options, args.version, global.memory_budget)?;

@@ -1,5 +1,5 @@
 //! Meshes: the crate's one [`Mesh`] type, the named pieces extraction produces
-//! ([`UnitMesh`]), reading and writing mesh files, clipping at a box, decimation, and the
+//! ([`UnitMesh`]), reading and writing mesh files, clipping at a box, and the
 //! shaded preview. Nothing here knows the store: extraction (`stages::extract`) builds the
 //! pieces, and everything after that works on plain vertices and triangles.
 
@@ -8,13 +8,11 @@ use std::collections::HashMap;
 use glam::DVec3;
 
 mod clip;
-mod decimate;
 mod io;
 mod preview;
 mod write;
 
 pub use clip::clip;
-pub use decimate::{DECIMATE_MAX_ERROR, decimate_units};
 pub use io::{MeshReadError, read_mesh};
 pub use preview::{View, render, render_view};
 pub use write::{output_target, ply_header, remove_leftovers, temporary_beside, write_atomically, write_mesh};

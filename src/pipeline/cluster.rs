@@ -8,9 +8,7 @@ use std::sync::Arc;
 use super::{PipelineError, Result, io_error, required_scene};
 use crate::gpu::{DeviceChoice, Gpu};
 use crate::mesh::UnitMesh;
-use crate::stages::extract::{
-    ExtractOptions, MeshSummary, assemble, extract_units, stream_to_file, unit_mesh, write_assembled,
-};
+use crate::stages::extract::{ExtractOptions, MeshSummary, extract_units, unit_mesh, write_pieces};
 use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::registered_depth_maps;
 use crate::stages::samples::{SAMPLES, SamplesStage};
@@ -311,10 +309,12 @@ pub fn work_extract(store: &Store, chunk: u32) -> Result<WorkReport> {
     })
 }
 
-/// Welds every unit's piece into the planned mesh file, exactly as `octstore extract` would;
-/// names the missing or damaged chunks instead when there are any.
-pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
-    let (plan, args, _) = checked_extract_plan(store)?;
+/// Welds every unit's piece into the planned mesh file, exactly as `octstore extract` would
+/// (simplified, and cut to the region, as planned; within `memory_budget`); names the missing
+/// or damaged chunks instead when there are any.
+pub fn commit_extract(store: &Store, memory_budget: u64) -> Result<(MeshSummary, PathBuf)> {
+    let (plan, args, finest) = checked_extract_plan(store)?;
+    let scene = required_scene(store, EXTRACT)?;
     let dir = store.chunk_dir(&plan);
     let read = |unit: u64| -> Option<UnitMesh> {
         std::fs::read(dir.join(unit_mesh_name(unit)))
@@ -332,52 +332,45 @@ pub fn commit_extract(store: &Store) -> Result<(MeshSummary, PathBuf)> {
         let files: Vec<PathBuf> = absent.iter().map(|&unit| dir.join(unit_mesh_name(unit))).collect();
         return Err(plan.missing_chunks_error(&chunks, &files).into());
     }
-    let summary = if args.options.region.is_none() && args.options.decimate.is_none() {
-        // Streamed one piece at a time, like `octstore extract`.
-        let treetop = Treetop::of(&store.latest()?)?;
-        let damaged = std::cell::RefCell::new(std::collections::BTreeSet::new());
-        let pieces = plan.units.iter().filter_map(|&unit| {
-            let key = usize::try_from(unit)
-                .ok()
-                .and_then(|i| treetop.units.get(i))
-                .map(|u| u.key);
-            match (key, usize::try_from(unit), read(unit)) {
-                (Some(key), Ok(index), Some(mesh)) => Some(Ok((index, key, mesh))),
-                _ => {
-                    damaged.borrow_mut().insert(unit);
-                    None
-                }
-            }
-        });
-        // A damaged piece ends the stream with an error after the last piece, so the mesh file
-        // is abandoned before its rename: whatever the output path held stays as it was.
-        let refuse_if_damaged = std::iter::once(()).filter(|()| !damaged.borrow().is_empty()).map(|()| {
-            Err(crate::store::StoreError::Stage {
-                stage: "extract".into(),
-                unit: "-".into(),
-                message: "damaged chunks".into(),
-            })
-        });
-        let streamed = stream_to_file(pieces.chain(refuse_if_damaged), &treetop, &args.output);
-        let damaged: Vec<u64> = damaged.into_inner().into_iter().collect();
-        if !damaged.is_empty() {
-            return Err(damaged_units_error(&plan, &dir, &damaged).into());
-        }
-        streamed?
-    } else {
-        let mut meshes = Vec::with_capacity(plan.units.len());
-        let mut damaged = Vec::new();
-        for &unit in &plan.units {
-            match read(unit) {
-                Some(mesh) => meshes.push(mesh),
-                None => damaged.push(unit),
+    // Streamed one piece at a time, like `octstore extract`.
+    let treetop = Treetop::of(&store.latest()?)?;
+    let damaged = std::cell::RefCell::new(std::collections::BTreeSet::new());
+    let pieces = plan.units.iter().filter_map(|&unit| {
+        let key = usize::try_from(unit)
+            .ok()
+            .and_then(|i| treetop.units.get(i))
+            .map(|u| u.key);
+        match (key, usize::try_from(unit), read(unit)) {
+            (Some(key), Ok(index), Some(mesh)) => Some(Ok((index, key, mesh))),
+            _ => {
+                damaged.borrow_mut().insert(unit);
+                None
             }
         }
-        if !damaged.is_empty() {
-            return Err(damaged_units_error(&plan, &dir, &damaged).into());
-        }
-        write_assembled(&args.output, &assemble(meshes, &args.options))?
-    };
+    });
+    // A damaged piece ends the stream with an error after the last piece, so the mesh file
+    // is abandoned before its rename: whatever the output path held stays as it was.
+    let refuse_if_damaged = std::iter::once(()).filter(|()| !damaged.borrow().is_empty()).map(|()| {
+        Err(crate::store::StoreError::Stage {
+            stage: "extract".into(),
+            unit: "-".into(),
+            message: "damaged chunks".into(),
+        })
+    });
+    let written = write_pieces(
+        pieces.chain(refuse_if_damaged),
+        &treetop,
+        &scene,
+        finest,
+        &args.options,
+        &args.output,
+        memory_budget,
+    );
+    let damaged: Vec<u64> = damaged.into_inner().into_iter().collect();
+    if !damaged.is_empty() {
+        return Err(damaged_units_error(&plan, &dir, &damaged).into());
+    }
+    let summary = written?;
     store.remove_cluster_plan(&plan)?;
     Ok((summary, args.output))
 }

@@ -113,7 +113,7 @@ fn join(
 }
 
 impl MeshWriter for MeshFile {
-    fn vertex(&mut self, position: DVec3, normal: DVec3) -> std::io::Result<()> {
+    fn vertex(&mut self, position: DVec3, normal: DVec3, _settled: bool) -> std::io::Result<()> {
         for v in position.as_vec3().to_array().iter().chain(&normal.as_vec3().to_array()) {
             self.vertices.write_all(&v.to_le_bytes())?;
         }
@@ -149,6 +149,54 @@ impl MeshWriter for MeshFile {
             file.write_all(&bytes)?;
         }
         file.seek(SeekFrom::End(0))?;
+        Ok(())
+    }
+}
+
+/// A streamed mesh kept in memory (a region's, or one a library caller asked for).
+#[derive(Default)]
+pub(super) struct MemoryMesh {
+    positions: Vec<DVec3>,
+    normals: Vec<DVec3>,
+    triangles: Vec<[u32; 3]>,
+}
+
+impl MemoryMesh {
+    pub(super) fn into_mesh(self) -> crate::mesh::Mesh {
+        crate::mesh::Mesh {
+            positions: self.positions.iter().map(|p| p.as_vec3().to_array()).collect(),
+            normals: self
+                .normals
+                .iter()
+                .map(|n| n.normalize_or_zero().as_vec3().to_array())
+                .collect(),
+            triangles: self.triangles,
+        }
+    }
+}
+
+impl MeshWriter for MemoryMesh {
+    fn vertex(&mut self, position: DVec3, normal: DVec3, _settled: bool) -> std::io::Result<()> {
+        self.positions.push(position);
+        self.normals.push(normal);
+        Ok(())
+    }
+
+    fn triangle(&mut self, triangle: [u32; 3]) -> std::io::Result<()> {
+        self.triangles.push(triangle);
+        Ok(())
+    }
+
+    fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()> {
+        for &(index, position, normal) in fixes {
+            if let (Some(p), Some(n)) = (
+                self.positions.get_mut(index as usize),
+                self.normals.get_mut(index as usize),
+            ) {
+                *p = position;
+                *n = normal;
+            }
+        }
         Ok(())
     }
 }

@@ -64,6 +64,7 @@ mod dual_cells;
 mod in_order;
 mod mesh_file;
 mod relax;
+mod simplify;
 mod weld;
 
 use std::collections::HashMap;
@@ -74,14 +75,15 @@ use rayon::prelude::*;
 
 use self::dual_cells::dual_cells_of_unit;
 use self::in_order::{Window, in_order_while_computing};
-use self::mesh_file::MeshFile;
+use self::mesh_file::{MemoryMesh, MeshFile};
 use self::relax::smooth_private_vertices;
-use self::weld::{StreamingWeld, private_to};
+use self::simplify::{SimplifyingWriter, Target};
+use self::weld::{MeshWriter, StreamingWeld, private_to};
 use super::solve::{LEVEL_STAGES, LevelCut};
 use super::treetop::Treetop;
 use crate::format::{BoundingBox, CubeKey, Scene};
 pub use crate::mesh::MeshSummary;
-use crate::mesh::{Mesh, UnitMesh, VertexId, VertexMove, clip, decimate_units, edge_defects, write_mesh};
+use crate::mesh::{Mesh, UnitMesh, clip, edge_defects, write_mesh};
 use crate::store::{Result, Snapshot, StoreError};
 
 /// Hash tables keyed by surface-vertex and edge names: nothing depends on their iteration
@@ -151,22 +153,80 @@ impl Grouped {
 pub struct ExtractOptions {
     /// Only what lies in this box, cut at its faces.
     pub region: Option<BoundingBox>,
-    /// Keep about this fraction of each treetop leaf's triangles (quadric error simplification;
-    /// vertices shared with another leaf never move, so the whole stays seamless).
-    pub decimate: Option<f32>,
+    /// How far to simplify the mesh (`simplify` module).
+    pub simplify: Simplify,
     /// Mesh the whole zero set, closed at the root cube, instead of only what depth maps saw.
     pub closed: bool,
 }
 
-/// Extracts the surface u = 0 of the latest solution, optionally only what lies in a region.
+/// How far extraction simplifies the welded mesh: quadric edge collapses, streamed in batches
+/// across treetop leaf borders, never moving a vertex the file already holds.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum Simplify {
+    /// Every triangle marching tetrahedra gives.
+    Full,
+    /// Collapse while the geometric error stays within this many finest cube sides.
+    MaxError(f32),
+    /// Keep about this fraction of the triangles (0..1], whatever the error.
+    Fraction(f32),
+}
+
+/// The default error bound of [`Simplify::MaxError`], in finest cube sides.
+pub const DEFAULT_MAX_ERROR: f32 = 0.25;
+
+impl Default for Simplify {
+    fn default() -> Self {
+        Simplify::MaxError(DEFAULT_MAX_ERROR)
+    }
+}
+
+impl Simplify {
+    /// The simplification target, errors in scene units: none for the full mesh.
+    fn target(self, scene: &Scene, finest: u8) -> Option<Target> {
+        match self {
+            Simplify::MaxError(error) if error > 0.0 => {
+                Some(Target::MaxError(f64::from(error) * scene.cube_side(finest)))
+            }
+            Simplify::Fraction(fraction) if fraction < 1.0 => Some(Target::Fraction(fraction.max(0.0))),
+            _ => None,
+        }
+    }
+}
+
+/// Bytes a buffered triangle of the simplification holds with its share of vertices and of
+/// meshoptimizer's working memory, about (its vertex map entry, the local arrays, the
+/// quadrics and collapse lists).
+const SIMPLIFY_BYTES_PER_TRIANGLE: u64 = 256;
+
+/// Most triangles a simplification batch gathers. Batches end after the same units at any
+/// budget from 128 MiB, so the mesh does not depend on the budget there. Larger batches gain
+/// nothing: on RedKitchen (1000 frames, `--max-depth 10`, 3.0 M triangles in full) batches of
+/// 2^15 to 2^18 triangles kept 180,884 to 182,776 triangles, and the smaller ones were faster
+/// (a batch that breaks an edge is simplified again whole, `simplify::simplify_manifold`).
+const SIMPLIFY_BATCH_MOST: u64 = 1 << 16;
+
+/// Triangles a simplification batch gathers at `memory_budget`: the share that finished
+/// pieces may hold ([`PIECES_AHEAD_SHARE`]).
+fn simplify_batch(memory_budget: u64) -> usize {
+    let fits = memory_budget / PIECES_AHEAD_SHARE / SIMPLIFY_BYTES_PER_TRIANGLE;
+    fits.clamp(1 << 12, SIMPLIFY_BATCH_MOST) as usize
+}
+
+/// Extracts the surface u = 0 of the latest solution in memory, optionally only what lies in a
+/// region, simplified as `options` say (batches as at a 1 GiB budget).
 pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &ExtractOptions) -> Result<Mesh> {
     let units = extract_units(snapshot, scene, finest, options.region)?;
     let treetop = Treetop::of(snapshot)?;
-    let meshes: Vec<UnitMesh> = units
+    let pieces: Vec<(usize, CubeKey, UnitMesh)> = units
         .par_iter()
-        .map(|&unit| unit_mesh(snapshot, &treetop, scene, finest, unit, options.closed))
+        .map(|&unit| piece(snapshot, &treetop, scene, finest, unit, options.closed))
         .collect::<Result<_>>()?;
-    Ok(assemble(meshes, options))
+    let target = options.simplify.target(scene, finest);
+    let mesh = weld_in_memory(pieces.into_iter().map(Ok), &treetop, target, simplify_batch(1 << 30))?;
+    Ok(match options.region {
+        Some(region) => clip(&mesh, region),
+        None => mesh,
+    })
 }
 
 /// The treetop units whose dual cells can reach the region (all leaves without one), in order.
@@ -241,100 +301,130 @@ pub fn unit_mesh(
     Ok(mesh)
 }
 
-/// Decimates (if asked), welds the units' pieces in unit order, and cuts at the region.
-pub fn assemble(mut meshes: Vec<UnitMesh>, options: &ExtractOptions) -> Mesh {
-    if let Some(ratio) = options.decimate {
-        decimate_units(&mut meshes, ratio);
-    }
-    // Weld across units by edge identity, in unit order (deterministic).
-    let mut index: HashMap<VertexId, u32> = HashMap::new();
-    let mut positions: Vec<DVec3> = Vec::new();
-    let mut normals: Vec<DVec3> = Vec::new();
-    let mut moves: std::collections::BTreeMap<u32, VertexMove> = Default::default();
-    let mut triangles = Vec::new();
-    for mesh in meshes {
-        let map: Vec<u32> = mesh
-            .vertices
-            .iter()
-            .map(|(edge, p, n)| match index.get(edge) {
-                Some(&i) => {
-                    normals[i as usize] += *n;
-                    i
-                }
-                None => {
-                    let i = positions.len() as u32;
-                    index.insert(*edge, i);
-                    positions.push(*p);
-                    normals.push(*n);
-                    i
-                }
-            })
-            .collect();
-        triangles.extend(mesh.triangles.iter().map(|t| t.map(|v| map[v as usize])));
-        for share in &mesh.seam_moves {
-            let Some(&global) = map.get(share.vertex as usize) else {
-                continue;
-            };
-            moves.entry(global).and_modify(|m| m.add(share)).or_insert(VertexMove {
-                vertex: global,
-                ..*share
-            });
-        }
-    }
-    for (global, share) in moves {
-        if let Some(p) = positions.get_mut(global as usize) {
-            *p = share.place(*p, *p);
-        }
-    }
-    let mut mesh = Mesh {
-        positions: positions.iter().map(|p| p.as_vec3().to_array()).collect(),
-        normals: normals
-            .iter()
-            .map(|n| n.normalize_or_zero().as_vec3().to_array())
-            .collect(),
-        triangles,
-    };
-    if let Some(r) = options.region {
-        mesh = clip(&mesh, r);
-    }
-    mesh
-}
-
-/// The low 124 bits of a corner id: the leaf key, or for a virtual cell the key it mirrors.
-/// Streams pieces (unit index, treetop cube, mesh), in increasing unit order, into a mesh file
-/// without region or decimation; memory holds one piece at a time plus the open seams.
-pub fn stream_to_file(
+/// Welds pieces (unit index, treetop cube, mesh), in increasing unit order, into `writer`,
+/// simplified towards `target` if there is one, in batches of `batch` triangles: the writer
+/// (also after an error while adding pieces, to be abandoned) and the counts of what it was
+/// given.
+fn weld_pieces<W: MeshWriter>(
     pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
     treetop: &Treetop,
+    writer: W,
+    target: Option<Target>,
+    batch: usize,
+    io: &dyn Fn(std::io::Error) -> StoreError,
+) -> (Option<W>, Result<MeshSummary>) {
+    fn add_all<X: MeshWriter>(
+        weld: &mut StreamingWeld<'_, X>,
+        pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
+        io: &dyn Fn(std::io::Error) -> StoreError,
+    ) -> Result<()> {
+        for piece in pieces {
+            let (unit, key, mesh) = piece?;
+            weld.add(unit, key, &mesh).map_err(io)?;
+        }
+        tracing::info!(
+            "extract: at most {} seam vertices and {} seam edges open at once",
+            weld.most_open,
+            weld.most_open_edges
+        );
+        Ok(())
+    }
+    match target {
+        None => {
+            let mut weld = StreamingWeld::new(writer, treetop);
+            if let Err(e) = add_all(&mut weld, pieces, io) {
+                return (Some(weld.writer), Err(e));
+            }
+            match weld.finish() {
+                Ok((writer, summary)) => (Some(writer), Ok(summary)),
+                Err(e) => (None, Err(io(e))),
+            }
+        }
+        Some(target) => {
+            let mut weld = StreamingWeld::new(SimplifyingWriter::new(writer, target, batch), treetop);
+            if let Err(e) = add_all(&mut weld, pieces, io) {
+                return (Some(weld.writer.inner), Err(e));
+            }
+            let finished = weld
+                .finish()
+                .and_then(|(simplifying, full)| Ok((simplifying.finish()?, full)));
+            match finished {
+                Ok(((writer, summary), full)) => {
+                    tracing::info!(
+                        "extract: simplified {} triangles to {} ({target:?})",
+                        full.triangles,
+                        summary.triangles
+                    );
+                    (Some(writer), Ok(summary))
+                }
+                Err(e) => (None, Err(io(e))),
+            }
+        }
+    }
+}
+
+/// Welds pieces in memory, simplified towards `target` if there is one.
+fn weld_in_memory(
+    pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
+    treetop: &Treetop,
+    target: Option<Target>,
+    batch: usize,
+) -> Result<Mesh> {
+    let io = |source: std::io::Error| StoreError::Io {
+        action: "weld mesh",
+        path: std::path::PathBuf::new(),
+        source,
+    };
+    match weld_pieces(pieces, treetop, MemoryMesh::default(), target, batch, &io) {
+        (Some(memory), Ok(_)) => Ok(memory.into_mesh()),
+        (_, result) => Err(result
+            .err()
+            .unwrap_or_else(|| io(std::io::Error::other("weld lost its mesh")))),
+    }
+}
+
+/// Writes pieces (unit index, treetop cube, mesh), in increasing unit order, into the mesh file
+/// at `path`, simplified and cut to the region as `options` say. Without a region, memory holds
+/// the pieces computed ahead, the open seams and one simplification batch
+/// ([`simplify_batch`] of `memory_budget`); a region's mesh is welded in memory and clipped.
+pub fn write_pieces(
+    pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
+    treetop: &Treetop,
+    scene: &Scene,
+    finest: u8,
+    options: &ExtractOptions,
     path: &Path,
+    memory_budget: u64,
 ) -> Result<MeshSummary> {
+    let target = options.simplify.target(scene, finest);
+    let batch = simplify_batch(memory_budget);
+    if let Some(region) = options.region {
+        return write_assembled(path, &clip(&weld_in_memory(pieces, treetop, target, batch)?, region));
+    }
     let io = |source: std::io::Error| StoreError::Io {
         action: "write mesh",
         path: path.to_path_buf(),
         source,
     };
     let file = MeshFile::create(path).map_err(io)?;
-    let mut weld = StreamingWeld::new(file, treetop);
-    let written = || -> Result<()> {
-        for piece in pieces {
-            let (unit, key, mesh) = piece?;
-            weld.add(unit, key, &mesh).map_err(io)?;
+    match weld_pieces(pieces, treetop, file, target, batch, &io) {
+        (Some(file), Ok(summary)) => {
+            file.finish(&summary).map_err(io)?;
+            Ok(summary)
         }
-        Ok(())
-    };
-    if let Err(e) = written() {
-        weld.writer.abandon();
-        return Err(e);
+        (file, result) => {
+            if let Some(file) = file {
+                file.abandon();
+            }
+            Err(result
+                .err()
+                .unwrap_or_else(|| io(std::io::Error::other("weld lost its mesh file"))))
+        }
     }
-    let (most_open, most_open_edges) = (weld.most_open, weld.most_open_edges);
-    let (file, summary) = weld.finish().map_err(io)?;
-    file.finish(&summary).map_err(io)?;
-    tracing::info!("extract: at most {most_open} seam vertices and {most_open_edges} seam edges open at once");
-    Ok(summary)
 }
 
 /// Writes a mesh assembled in memory and counts it like the streaming path does.
-pub fn write_assembled(path: &Path, mesh: &Mesh) -> Result<MeshSummary> {
+fn write_assembled(path: &Path, mesh: &Mesh) -> Result<MeshSummary> {
     write_mesh(path, mesh).map_err(crate::store::io_error("write mesh", path))?;
     let (boundary, non_manifold) = edge_defects(mesh);
     Ok(MeshSummary {
@@ -359,11 +449,10 @@ pub const PIECES_AHEAD_SHARE: u64 = 8;
 /// piece is a map entry.
 const PIECES_AHEAD_MOST: usize = 64;
 
-/// Extracts the surface into a mesh file. Without a region or decimation the pieces are
-/// streamed: one worker per thread computes units' pieces, ahead of the weld by at most
-/// `memory_budget / PIECES_AHEAD_SHARE` bytes of finished pieces (and one piece per worker),
-/// while the calling thread welds them in unit order, so memory does not grow with the
-/// surface; with either, the mesh is assembled in memory first.
+/// Extracts the surface into a mesh file: one worker per thread computes units' pieces, ahead
+/// of the weld by at most `memory_budget / PIECES_AHEAD_SHARE` bytes of finished pieces (and
+/// one piece per worker), while the calling thread welds, simplifies and writes them in unit
+/// order ([`write_pieces`]), so memory does not grow with the surface.
 pub fn extract_to_file(
     snapshot: &Snapshot<'_>,
     scene: &Scene,
@@ -372,34 +461,37 @@ pub fn extract_to_file(
     path: &Path,
     memory_budget: u64,
 ) -> Result<MeshSummary> {
-    if options.region.is_some() || options.decimate.is_some() {
-        return write_assembled(path, &extract(snapshot, scene, finest, options)?);
-    }
-    let units = extract_units(snapshot, scene, finest, None)?;
+    let units = extract_units(snapshot, scene, finest, options.region)?;
     let treetop = Treetop::of(snapshot)?;
-    let piece = |unit: usize| -> Result<(usize, CubeKey, UnitMesh)> {
-        let key = treetop
-            .units
-            .get(unit)
-            .map(|u| u.key)
-            .ok_or_else(|| StoreError::Stage {
-                stage: "extract".into(),
-                unit: unit.to_string(),
-                message: "no such treetop unit".into(),
-            })?;
-        Ok((
-            unit,
-            key,
-            unit_mesh(snapshot, &treetop, scene, finest, unit, options.closed)?,
-        ))
-    };
     let threads = rayon::current_num_threads().max(1);
     let window = Window {
         pieces: PIECES_AHEAD_MOST,
         bytes: memory_budget / PIECES_AHEAD_SHARE,
     };
     let weigh = |(_, _, mesh): &(usize, CubeKey, UnitMesh)| mesh.heap_bytes();
-    in_order_while_computing(&units, threads, window, weigh, piece, |pieces| {
-        stream_to_file(pieces, &treetop, path)
+    let compute = |unit: usize| piece(snapshot, &treetop, scene, finest, unit, options.closed);
+    in_order_while_computing(&units, threads, window, weigh, compute, |pieces| {
+        write_pieces(pieces, &treetop, scene, finest, options, path, memory_budget)
     })
+}
+
+/// Unit `unit`'s piece with its index and treetop cube.
+fn piece(
+    snapshot: &Snapshot<'_>,
+    treetop: &Treetop,
+    scene: &Scene,
+    finest: u8,
+    unit: usize,
+    closed: bool,
+) -> Result<(usize, CubeKey, UnitMesh)> {
+    let key = treetop
+        .units
+        .get(unit)
+        .map(|u| u.key)
+        .ok_or_else(|| StoreError::Stage {
+            stage: "extract".into(),
+            unit: unit.to_string(),
+            message: "no such treetop unit".into(),
+        })?;
+    Ok((unit, key, unit_mesh(snapshot, treetop, scene, finest, unit, closed)?))
 }

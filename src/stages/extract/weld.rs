@@ -246,7 +246,9 @@ impl OpenSeam {
 /// Where a streamed mesh goes: vertices in order (positions and normals of seam vertices are
 /// fixed later, when every unit sharing them is done), then triangles by global index.
 pub(super) trait MeshWriter {
-    fn vertex(&mut self, position: DVec3, normal: DVec3) -> std::io::Result<()>;
+    /// A new vertex; `settled` if its position and normal are final, else `fix_vertices` will
+    /// give them.
+    fn vertex(&mut self, position: DVec3, normal: DVec3, settled: bool) -> std::io::Result<()>;
     fn triangle(&mut self, triangle: [u32; 3]) -> std::io::Result<()>;
     /// Sets final positions and normals of earlier vertices, given in increasing index order.
     fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()>;
@@ -285,7 +287,7 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                 .unwrap_or(VertexMove::empty(0, 0.0));
             if private(edge) {
                 let index = self.next_index()?;
-                self.writer.vertex(*p, n.normalize_or_zero())?;
+                self.writer.vertex(*p, n.normalize_or_zero(), true)?;
                 map.push((index, PRIVATE));
                 continue;
             }
@@ -297,7 +299,7 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                 }
                 None => {
                     let index = self.next_index()?;
-                    self.writer.vertex(*p, DVec3::ZERO)?;
+                    self.writer.vertex(*p, DVec3::ZERO, false)?;
                     let last = last_unit_around(self.treetop, self.grain, edge.0)
                         .min(last_unit_around(self.treetop, self.grain, edge.1))
                         .max(unit);

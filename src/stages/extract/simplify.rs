@@ -1,0 +1,469 @@
+//! Streaming simplification: the welded mesh, as the weld writes it in unit order, simplified
+//! by quadric edge collapses (meshoptimizer) in batches of bounded size, across treetop leaf
+//! borders.
+//!
+//! The weld writes vertices and triangles in unit order; a seam vertex is *settled* once the
+//! last unit that can produce it is done (its final position and normal arrive with
+//! `fix_vertices`), every other vertex as it is written. Triangles are buffered; when a unit is
+//! done and the buffer holds `batch` triangles, the buffer is simplified with these vertices
+//! locked:
+//! - unsettled vertices: later units will add triangles around them;
+//! - vertices already written out: the file holds them where they are;
+//! - vertices that an earlier batch already simplified around: each vertex takes part in one
+//!   batch's collapses as a free vertex, so the error of a vertex's neighbourhood is not
+//!   compounded batch after batch along a long-open seam.
+//!
+//! Then every triangle whose three vertices are settled is written; the others (the strip along
+//! the open seam) stay for the next batch, in which their settled vertices are free. So a leaf
+//! border is simplified once both sides are meshed: where it was in the middle of a batch, or
+//! in the batch after the one that met it. The last batch, at `finish`, has every vertex
+//! settled. The buffer holds about `batch` triangles plus the strip along the open seams.
+//!
+//! Determinism: batches end after the same units whatever the thread count (the weld runs in
+//! unit order), and meshoptimizer is deterministic for a given input order.
+
+use glam::DVec3;
+
+use super::weld::MeshWriter;
+use super::{FastMap, Grouped, MeshSummary};
+
+/// How far a simplification may go.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) enum Target {
+    /// Collapse while the geometric error stays within this distance (scene units).
+    MaxError(f64),
+    /// Keep about this fraction of the triangles, whatever the error.
+    Fraction(f32),
+}
+
+/// A buffered vertex.
+#[derive(Clone, Copy)]
+struct Buffered {
+    position: DVec3,
+    normal: DVec3,
+    /// Its final position and normal are known.
+    settled: bool,
+    /// Its index in the output, once written.
+    written: Option<u32>,
+    /// An earlier batch collapsed around it while it was free.
+    simplified: bool,
+}
+
+/// A [`MeshWriter`] that simplifies what it is given before passing it on to `inner`, in
+/// batches (module documentation). The output's counts, and its boundary and non-manifold
+/// edges, are counted here: the weld counts its input.
+pub(super) struct SimplifyingWriter<W: MeshWriter> {
+    pub(super) inner: W,
+    target: Target,
+    /// Triangles a batch gathers before it is simplified.
+    batch: usize,
+    /// Index the weld gives the next vertex.
+    incoming: u32,
+    vertices: FastMap<u32, Buffered>,
+    /// Buffered triangles by the weld's indices: `carried` from earlier batches, then new ones.
+    triangles: Vec<[u32; 3]>,
+    /// How many of `triangles` an earlier batch left (already simplified once).
+    carried: usize,
+    /// Uses of output edges whose two ends may still get triangles.
+    open_edges: FastMap<(u32, u32), u32>,
+    summary: MeshSummary,
+    /// Triangles given, over all batches.
+    pub(super) triangles_in: u64,
+}
+
+impl<W: MeshWriter> SimplifyingWriter<W> {
+    pub(super) fn new(inner: W, target: Target, batch: usize) -> Self {
+        SimplifyingWriter {
+            inner,
+            target,
+            batch: batch.max(1),
+            incoming: 0,
+            vertices: FastMap::default(),
+            triangles: Vec::new(),
+            carried: 0,
+            open_edges: FastMap::default(),
+            summary: MeshSummary::default(),
+            triangles_in: 0,
+        }
+    }
+
+    /// Simplifies and writes what is left (the weld must be finished: every vertex settled),
+    /// returning the inner writer and the output's counts.
+    pub(super) fn finish(mut self) -> std::io::Result<(W, MeshSummary)> {
+        self.flush()?;
+        if !self.triangles.is_empty() {
+            return Err(std::io::Error::other(
+                "simplification: triangles left with vertices the weld never settled",
+            ));
+        }
+        for uses in std::mem::take(&mut self.open_edges).into_values() {
+            self.count_edge(uses);
+        }
+        Ok((self.inner, self.summary))
+    }
+
+    fn count_edge(&mut self, uses: u32) {
+        self.summary.boundary_edges += u64::from(uses == 1);
+        self.summary.non_manifold_edges += u64::from(uses > 2);
+    }
+
+    /// Simplifies the buffer, writes every triangle whose vertices are all settled, and keeps
+    /// the rest with the vertices they use.
+    fn flush(&mut self) -> std::io::Result<()> {
+        if self.triangles.is_empty() {
+            return Ok(());
+        }
+        // Local numbering: the buffer's vertices by increasing weld index (deterministic).
+        let mut used: Vec<u32> = self.triangles.iter().flatten().copied().collect();
+        used.sort_unstable();
+        used.dedup();
+        let local_of = |global: u32| used.binary_search(&global).ok().map(|i| i as u32);
+        let records: Vec<Buffered> = used
+            .iter()
+            .map(|g| self.vertices.get(g).copied())
+            .collect::<Option<_>>()
+            .ok_or_else(|| std::io::Error::other("simplification: a triangle names an unknown vertex"))?;
+        let positions: Vec<[f32; 3]> = records.iter().map(|v| v.position.as_vec3().to_array()).collect();
+        let locks: Vec<bool> = records
+            .iter()
+            .map(|v| !v.settled || v.written.is_some() || v.simplified)
+            .collect();
+        let indices: Vec<u32> = self
+            .triangles
+            .iter()
+            .flatten()
+            .map(|&g| local_of(g).unwrap_or(0))
+            .collect();
+        let written: Vec<Option<u32>> = records.iter().map(|v| v.written).collect();
+        let (indices, positions) = self.simplify_manifold(indices, positions, locks.clone(), &written);
+        let normals = face_normals(&indices, &positions);
+        // Write what is settled, keep the rest.
+        let mut carried: Vec<[u32; 3]> = Vec::new();
+        let mut written_edges: Vec<(u32, u32)> = Vec::new();
+        for local in indices.chunks_exact(3) {
+            let corners = [local[0], local[1], local[2]].map(|l| used.get(l as usize).copied().unwrap_or(0));
+            let all_settled = corners.iter().all(|g| self.vertices.get(g).is_some_and(|v| v.settled));
+            if !all_settled {
+                carried.push(corners);
+                continue;
+            }
+            let mut out = [0u32; 3];
+            for (slot, (&g, &l)) in out.iter_mut().zip(corners.iter().zip(local)) {
+                let position = positions
+                    .get(l as usize)
+                    .map_or(DVec3::ZERO, |p| DVec3::from(p.map(f64::from)));
+                let Some(vertex) = self.vertices.get_mut(&g) else {
+                    continue;
+                };
+                *slot = match vertex.written {
+                    Some(index) => index,
+                    None => {
+                        let index = u32::try_from(self.summary.vertices).map_err(|_| {
+                            std::io::Error::other("more than 2^32 vertices: the PLY indices would overflow")
+                        })?;
+                        vertex.position = position;
+                        let normal = normals.get(l as usize).copied().unwrap_or(DVec3::ZERO);
+                        let normal = if normal == DVec3::ZERO { vertex.normal } else { normal };
+                        self.inner.vertex(position, normal.normalize_or_zero(), true)?;
+                        self.summary.vertices += 1;
+                        vertex.written = Some(index);
+                        index
+                    }
+                };
+            }
+            self.inner.triangle(out)?;
+            self.summary.triangles += 1;
+            for (a, b) in [(out[0], out[1]), (out[1], out[2]), (out[2], out[0])] {
+                written_edges.push((a.min(b), a.max(b)));
+            }
+        }
+        // Carried vertices stay; the others are done. Free vertices that survive were
+        // simplified around; a moved one keeps its new position.
+        let mut keep: Vec<u32> = carried.iter().flatten().copied().collect();
+        keep.sort_unstable();
+        keep.dedup();
+        for (&global, &locked) in used.iter().zip(&locks) {
+            if keep.binary_search(&global).is_err() {
+                self.vertices.remove(&global);
+            } else if let Some(vertex) = self.vertices.get_mut(&global)
+                && !locked
+            {
+                vertex.simplified = true;
+                if let Some(p) = local_of(global).and_then(|l| positions.get(l as usize)) {
+                    vertex.position = DVec3::from(p.map(f64::from));
+                }
+            }
+        }
+        for edge in written_edges {
+            *self.open_edges.entry(edge).or_insert(0) += 1;
+        }
+        // An output edge can get more triangles only if both its ends are still buffered.
+        let still_buffered: std::collections::HashSet<u32> = self.vertices.values().filter_map(|v| v.written).collect();
+        let done: Vec<(u32, u32)> = self
+            .open_edges
+            .keys()
+            .filter(|(a, b)| !still_buffered.contains(a) || !still_buffered.contains(b))
+            .copied()
+            .collect();
+        for edge in done {
+            if let Some(uses) = self.open_edges.remove(&edge) {
+                self.count_edge(uses);
+            }
+        }
+        self.carried = carried.len();
+        self.triangles = carried;
+        Ok(())
+    }
+}
+
+impl<W: MeshWriter> SimplifyingWriter<W> {
+    /// Simplifies a batch (local `indices` over `positions`, `locks` fixed; `written` gives the
+    /// output index of the vertices already written) so that no edge gets more than two
+    /// triangles, counting those already written: meshoptimizer does not promise that, and two
+    /// sheets closer than the error bound (a wall's two faces) can be collapsed onto common
+    /// edges. Where that happens the batch is simplified again from its input with every
+    /// vertex near such an edge locked as well, the neighbourhood doubling each round; after
+    /// `MANIFOLD_ROUNDS` rounds the batch is kept as it came. The simplified indices and the
+    /// positions (free vertices moved).
+    fn simplify_manifold(
+        &self,
+        indices: Vec<u32>,
+        positions: Vec<[f32; 3]>,
+        mut locks: Vec<bool>,
+        written: &[Option<u32>],
+    ) -> (Vec<u32>, Vec<[f32; 3]>) {
+        let mut rings: Option<Grouped> = None;
+        for round in 0..MANIFOLD_ROUNDS {
+            let (mut simplified, mut moved) = (indices.clone(), positions.clone());
+            let kept = simplify(&mut simplified, &mut moved, &locks, self.target, self.carried);
+            simplified.truncate(kept);
+            let simplified = without_folded_pairs(simplified);
+            let bad = self.overused_edges(&simplified, written);
+            if bad.is_empty() {
+                return (simplified, moved);
+            }
+            // Freeze the stars of the edge's ends: a vertex whose ring is locked, and that is
+            // locked itself, keeps its original triangles. The rings widen each round.
+            let rings = rings.get_or_insert_with(|| {
+                let triangles = || indices.chunks_exact(3);
+                Grouped::of(positions.len(), || {
+                    triangles().flat_map(|t| {
+                        [
+                            (t[0], t[1]),
+                            (t[1], t[0]),
+                            (t[1], t[2]),
+                            (t[2], t[1]),
+                            (t[2], t[0]),
+                            (t[0], t[2]),
+                        ]
+                    })
+                })
+            });
+            let mut front: Vec<u32> = bad.iter().flat_map(|&(a, b)| [a, b]).collect();
+            let mut seen: std::collections::HashSet<u32> = front.iter().copied().collect();
+            for depth in 0..=round + 1 {
+                let mut next = Vec::new();
+                for v in front {
+                    if let Some(lock) = locks.get_mut(v as usize) {
+                        *lock = true;
+                    }
+                    if depth <= round {
+                        next.extend(
+                            rings
+                                .of_key(v as usize)
+                                .unwrap_or(&[])
+                                .iter()
+                                .filter(|&&n| seen.insert(n)),
+                        );
+                    }
+                }
+                front = next;
+            }
+        }
+        (indices, positions)
+    }
+
+    /// Edges (local ends) of a simplified batch that more than two triangles use, those already
+    /// written between two written vertices counted too; sorted.
+    fn overused_edges(&self, indices: &[u32], written: &[Option<u32>]) -> Vec<(u32, u32)> {
+        let mut uses: FastMap<(u32, u32), u32> = FastMap::default();
+        for t in indices.chunks_exact(3) {
+            for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+                *uses.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+            }
+        }
+        let earlier = |(a, b): (u32, u32)| match (written.get(a as usize), written.get(b as usize)) {
+            (Some(Some(x)), Some(Some(y))) => self.open_edges.get(&(*x.min(y), *x.max(y))).copied().unwrap_or(0),
+            _ => 0,
+        };
+        let mut bad: Vec<(u32, u32)> = uses
+            .into_iter()
+            .filter(|&(edge, count)| count + earlier(edge) > 2)
+            .map(|(edge, _)| edge)
+            .collect();
+        bad.sort_unstable();
+        bad
+    }
+}
+
+/// The triangles less every pair of one triangle in both orientations (a thin part squashed
+/// flat, whose edges the pair then shares with the surface on either side: four uses), where
+/// no edge of the pair has three uses (removing it would leave a border there).
+fn without_folded_pairs(indices: Vec<u32>) -> Vec<u32> {
+    let triangles: Vec<[u32; 3]> = indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect();
+    let mut by_corners: FastMap<[u32; 3], Vec<usize>> = FastMap::default();
+    for (i, t) in triangles.iter().enumerate() {
+        let mut corners = *t;
+        corners.sort_unstable();
+        by_corners.entry(corners).or_default().push(i);
+    }
+    // A rotation of the corners keeps the orientation: sorted, an even permutation.
+    let orientation = |t: &[u32; 3]| {
+        let [a, b, c] = *t;
+        (a < b) as u8 + (b < c) as u8 + (c < a) as u8
+    };
+    let mut pairs: Vec<[usize; 2]> = by_corners
+        .values()
+        .filter_map(|found| match found.as_slice() {
+            [x, y] => {
+                let (tx, ty) = (triangles.get(*x)?, triangles.get(*y)?);
+                (orientation(tx) != orientation(ty)).then_some([*x, *y])
+            }
+            _ => None,
+        })
+        .collect();
+    if pairs.is_empty() {
+        return indices;
+    }
+    pairs.sort_unstable();
+    let mut uses: FastMap<(u32, u32), u32> = FastMap::default();
+    let edges = |t: &[u32; 3]| [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])].map(|(a, b)| (a.min(b), a.max(b)));
+    for t in &triangles {
+        for edge in edges(t) {
+            *uses.entry(edge).or_insert(0) += 1;
+        }
+    }
+    let mut dropped = vec![false; triangles.len()];
+    for [x, y] in pairs {
+        let Some(t) = triangles.get(x) else { continue };
+        if edges(t).iter().all(|edge| uses.get(edge).copied() != Some(3)) {
+            for i in [x, y] {
+                if let Some(flag) = dropped.get_mut(i) {
+                    *flag = true;
+                }
+            }
+        }
+    }
+    triangles
+        .iter()
+        .zip(&dropped)
+        .filter(|(_, dropped)| !**dropped)
+        .flat_map(|(t, _)| *t)
+        .collect()
+}
+
+/// Rounds of simplification a batch gets before it is kept as it came (`simplify_manifold`).
+const MANIFOLD_ROUNDS: u32 = 8;
+
+/// Area-weighted sums of the triangles' normals at each vertex.
+fn face_normals(indices: &[u32], positions: &[[f32; 3]]) -> Vec<DVec3> {
+    let mut normals = vec![DVec3::ZERO; positions.len()];
+    let point = |l: u32| {
+        positions
+            .get(l as usize)
+            .map_or(DVec3::ZERO, |p| DVec3::from(p.map(f64::from)))
+    };
+    for t in indices.chunks_exact(3) {
+        let [a, b, c] = [t[0], t[1], t[2]];
+        let n = (point(b) - point(a)).cross(point(c) - point(a));
+        for v in [a, b, c] {
+            if let Some(sum) = normals.get_mut(v as usize) {
+                *sum += n;
+            }
+        }
+    }
+    normals
+}
+
+/// Simplifies `indices` over `positions` (moving free vertices to where the quadrics put them),
+/// `locks` fixed; returns how many indices are kept. The first `carried` triangles were
+/// simplified already: a fraction applies to the others.
+fn simplify(indices: &mut [u32], positions: &mut [[f32; 3]], locks: &[bool], target: Target, carried: usize) -> usize {
+    let triangles = indices.len() / 3;
+    let (count, error, options) = match target {
+        Target::MaxError(error) => (0, error as f32, meshopt::SimplifyOptions::ErrorAbsolute),
+        Target::Fraction(fraction) => {
+            let new = triangles.saturating_sub(carried) as f64;
+            let kept = carried as f64 + new * f64::from(fraction.clamp(0.0, 1.0));
+            (
+                kept.round() as usize * 3,
+                f32::MAX,
+                meshopt::SimplifyOptions::ErrorAbsolute,
+            )
+        }
+    };
+    let locks: Vec<meshopt::SimplifyVertex> = locks
+        .iter()
+        .map(|&l| {
+            if l {
+                meshopt::SimplifyVertex::Lock
+            } else {
+                meshopt::SimplifyVertex::None
+            }
+        })
+        .collect();
+    meshopt::simplify_with_update(
+        indices,
+        positions,
+        &mut [],
+        &[],
+        0,
+        Some(&locks),
+        count,
+        error,
+        options,
+        None,
+    )
+}
+
+impl<W: MeshWriter> MeshWriter for SimplifyingWriter<W> {
+    fn vertex(&mut self, position: DVec3, normal: DVec3, settled: bool) -> std::io::Result<()> {
+        self.vertices.insert(
+            self.incoming,
+            Buffered {
+                position,
+                normal,
+                settled,
+                written: None,
+                simplified: false,
+            },
+        );
+        self.incoming = self
+            .incoming
+            .checked_add(1)
+            .ok_or_else(|| std::io::Error::other("more than 2^32 vertices"))?;
+        Ok(())
+    }
+
+    fn triangle(&mut self, triangle: [u32; 3]) -> std::io::Result<()> {
+        self.triangles.push(triangle);
+        self.triangles_in += 1;
+        Ok(())
+    }
+
+    /// Settles vertices; the weld calls it once at the end of each unit, which is when a batch
+    /// may end.
+    fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()> {
+        for &(index, position, normal) in fixes {
+            if let Some(vertex) = self.vertices.get_mut(&index) {
+                vertex.position = position;
+                vertex.normal = normal;
+                vertex.settled = true;
+            }
+        }
+        if self.triangles.len() >= self.carried + self.batch {
+            self.flush()?;
+        }
+        Ok(())
+    }
+}
