@@ -311,6 +311,18 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
             );
         }
     }
+    // GLB holds the same vertices, normals and triangles as the PLY, streamed or (with a
+    // region) written from memory.
+    for args in [&[][..], &["--region=-5,-5,-5,0.2,5,5"][..]] {
+        extract_bytes(&store_a, "same.ply", args);
+        extract_bytes(&store_a, "same.glb", args);
+        let ply = read_mesh(&a.path().join("same.ply")).unwrap();
+        let glb = read_glb(&a.path().join("same.glb"));
+        assert!(!ply.triangles.is_empty(), "{args:?}");
+        assert_eq!(glb.positions, ply.positions, "{args:?}");
+        assert_eq!(glb.normals, ply.normals, "{args:?}");
+        assert_eq!(glb.triangles, ply.triangles, "{args:?}");
+    }
     let out = octstore(
         &["extract", store_a.to_str().unwrap(), "-o", "x.ply", "--decimate", "1.5"],
         &[],
@@ -756,4 +768,55 @@ fn closest_on_triangle(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> DVec3 {
     }
     let denom = 1.0 / (va + vb + vc);
     a + ab * (vb * denom) + ac * (vc * denom)
+}
+
+/// Positions, normals and triangles of a GLB as `octstore` writes it, every length checked.
+fn read_glb(path: &Path) -> octstore::Mesh {
+    let bytes = std::fs::read(path).unwrap();
+    let word = |at: usize| u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+    assert_eq!(&bytes[0..4], b"glTF");
+    assert_eq!((word(4), word(8)), (2, bytes.len()));
+    let json_length = word(12);
+    assert_eq!(&bytes[16..20], b"JSON");
+    let json: serde_json::Value = serde_json::from_slice(&bytes[20..20 + json_length]).unwrap();
+    let bin = 20 + json_length;
+    assert_eq!(&bytes[bin + 4..bin + 8], b"BIN\0");
+    let data = &bytes[bin + 8..bin + 8 + word(bin)];
+    assert_eq!(data.len(), bytes.len() - bin - 8);
+    let accessors = &json["accessors"];
+    let vertices = accessors[0]["count"].as_u64().unwrap() as usize;
+    let indices = accessors[2]["count"].as_u64().unwrap() as usize;
+    assert_eq!(json["meshes"][0]["primitives"][0]["attributes"]["NORMAL"], 1);
+    assert_eq!(data.len(), vertices * 24 + indices * 4);
+    let float = |at: usize| f32::from_le_bytes(data[at..at + 4].try_into().unwrap());
+    let positions: Vec<[f32; 3]> = (0..vertices)
+        .map(|v| std::array::from_fn(|k| float(24 * v + 4 * k)))
+        .collect();
+    let normals = (0..vertices)
+        .map(|v| std::array::from_fn(|k| float(24 * v + 12 + 4 * k)))
+        .collect();
+    for (axis, (lo, hi)) in accessors[0]["min"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(accessors[0]["max"].as_array().unwrap())
+        .enumerate()
+    {
+        let values = positions.iter().map(|p| p[axis]);
+        assert_eq!(
+            lo.as_f64().unwrap() as f32,
+            values.clone().fold(f32::INFINITY, f32::min)
+        );
+        assert_eq!(hi.as_f64().unwrap() as f32, values.fold(f32::NEG_INFINITY, f32::max));
+    }
+    let at = vertices * 24;
+    let index = |i: usize| u32::from_le_bytes(data[at + 4 * i..at + 4 * i + 4].try_into().unwrap());
+    let triangles = (0..indices / 3)
+        .map(|t| std::array::from_fn(|k| index(3 * t + k)))
+        .collect();
+    octstore::Mesh {
+        positions,
+        normals,
+        triangles,
+    }
 }

@@ -230,9 +230,9 @@ pub(crate) fn parse_overlap(text: &str) -> Result<f64, ArgumentError> {
 pub(crate) fn parse_mesh_path(text: &str) -> Result<std::path::PathBuf, ArgumentError> {
     let path = std::path::PathBuf::from(text);
     match crate::inputs::extension_of(&path).as_str() {
-        "ply" | "obj" => Ok(path),
+        "ply" | "obj" | "glb" => Ok(path),
         other => Err(ArgumentError(format!(
-            "'{text}': a mesh is written as .ply (binary) or .obj, not {}",
+            "'{text}': a mesh is written as .ply (binary), .glb (glTF binary) or .obj, not {}",
             if other.is_empty() {
                 "a name without an extension".to_string()
             } else {

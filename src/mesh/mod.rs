@@ -8,11 +8,13 @@ use std::collections::HashMap;
 use glam::DVec3;
 
 mod clip;
+mod glb;
 mod io;
 mod preview;
 mod write;
 
 pub use clip::clip;
+pub(crate) use glb::{GLB_VERTEX_BYTES, is_glb, write_glb_head};
 pub use io::{MeshReadError, read_mesh};
 pub use preview::{View, render, render_view};
 pub use write::{output_target, ply_header, remove_leftovers, temporary_beside, write_atomically, write_mesh};

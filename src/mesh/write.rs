@@ -129,7 +129,21 @@ fn write_mesh_to(path: &Path, mesh: &Mesh, out: &mut impl Write) -> std::io::Res
             [0.0; 3]
         }
     };
-    if is_obj {
+    if super::glb::is_glb(path) {
+        let (min, max) = super::glb::bounds(mesh.positions.iter());
+        let (vertices, triangles) = (mesh.positions.len() as u64, mesh.triangles.len() as u64);
+        super::glb::write_glb_head(out, vertices, triangles, min, max)?;
+        for (i, p) in mesh.positions.iter().enumerate() {
+            for v in p.iter().chain(&normal(i)) {
+                out.write_all(&v.to_le_bytes())?;
+            }
+        }
+        for t in &mesh.triangles {
+            for v in t {
+                out.write_all(&v.to_le_bytes())?;
+            }
+        }
+    } else if is_obj {
         for (i, p) in mesh.positions.iter().enumerate() {
             writeln!(out, "v {} {} {}", p[0], p[1], p[2])?;
             if has_normals {

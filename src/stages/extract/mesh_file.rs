@@ -8,7 +8,10 @@ use glam::DVec3;
 
 use super::MeshSummary;
 use super::weld::MeshWriter;
-use crate::mesh::{output_target, ply_header, remove_leftovers, temporary_beside, write_atomically};
+use crate::mesh::{
+    GLB_VERTEX_BYTES, is_glb, output_target, ply_header, remove_leftovers, temporary_beside, write_atomically,
+    write_glb_head,
+};
 
 /// Writes a mesh file in two passes over temporary files beside it: fixed-size vertex records
 /// (so that normals can be fixed in place) and face records, joined under the header at the end.
@@ -82,7 +85,36 @@ fn join(
 ) -> std::io::Result<()> {
     use std::io::Read;
     let is_obj = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("obj"));
-    if is_obj {
+    if is_glb(path) {
+        use std::io::{Seek, SeekFrom};
+        // The positions' bounds first (the JSON needs them), then the records as they are and
+        // the faces without their count byte.
+        let mut record = [0u8; VERTEX_RECORD as usize];
+        let mut reader = std::io::BufReader::new(&mut vertices);
+        let (mut min, mut max) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for _ in 0..summary.vertices {
+            reader.read_exact(&mut record)?;
+            let coordinates = record
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+            for ((lo, hi), v) in min.iter_mut().zip(max.iter_mut()).zip(coordinates) {
+                (*lo, *hi) = (lo.min(v), hi.max(v));
+            }
+        }
+        drop(reader);
+        if summary.vertices == 0 {
+            (min, max) = ([0.0; 3], [0.0; 3]);
+        }
+        vertices.seek(SeekFrom::Start(0))?;
+        write_glb_head(out, summary.vertices, summary.triangles, min, max)?;
+        std::io::copy(&mut (&mut vertices).take(summary.vertices * GLB_VERTEX_BYTES), out)?;
+        let mut reader = std::io::BufReader::new(faces);
+        let mut face = [0u8; FACE_RECORD];
+        for _ in 0..summary.triangles {
+            reader.read_exact(&mut face)?;
+            out.write_all(&face[1..])?;
+        }
+    } else if is_obj {
         let mut reader = std::io::BufReader::new(vertices);
         let mut record = [0u8; VERTEX_RECORD as usize];
         for _ in 0..summary.vertices {

@@ -69,6 +69,8 @@ pub(super) struct SimplifyingWriter<W: MeshWriter> {
     summary: MeshSummary,
     /// Triangles given, over all batches.
     pub(super) triangles_in: u64,
+    /// Most triangles buffered at once (what the batch and the open seams hold).
+    pub(super) most_buffered: usize,
 }
 
 impl<W: MeshWriter> SimplifyingWriter<W> {
@@ -84,6 +86,7 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
             open_edges: FastMap::default(),
             summary: MeshSummary::default(),
             triangles_in: 0,
+            most_buffered: 0,
         }
     }
 
@@ -448,6 +451,7 @@ impl<W: MeshWriter> MeshWriter for SimplifyingWriter<W> {
     fn triangle(&mut self, triangle: [u32; 3]) -> std::io::Result<()> {
         self.triangles.push(triangle);
         self.triangles_in += 1;
+        self.most_buffered = self.most_buffered.max(self.triangles.len());
         Ok(())
     }
 
@@ -465,5 +469,85 @@ impl<W: MeshWriter> MeshWriter for SimplifyingWriter<W> {
             self.flush()?;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stages::extract::mesh_file::MemoryMesh;
+
+    /// A wavy strip of `rows` x `columns` grid vertices streamed as units of `per_unit` rows,
+    /// the weld's way: each unit writes its rows, the last one unsettled (the next unit shares
+    /// it), and settles the previous unit's last row when it is done.
+    fn stream(writer: &mut impl MeshWriter, rows: u32, columns: u32, per_unit: u32, height: impl Fn(f64, f64) -> f64) {
+        let index = |row: u32, column: u32| row * columns + column;
+        let point = |row: u32, column: u32| {
+            let (x, y) = (f64::from(column) * 0.01, f64::from(row) * 0.01);
+            DVec3::new(x, y, height(x, y))
+        };
+        let mut row = 0;
+        while row + 1 < rows {
+            let last = (row + per_unit).min(rows - 1);
+            let first_new = if row == 0 { 0 } else { row + 1 };
+            for r in first_new..=last {
+                for c in 0..columns {
+                    let settled = r != last || last == rows - 1;
+                    writer.vertex(point(r, c), DVec3::Z, settled).unwrap();
+                }
+            }
+            for r in row..last {
+                for c in 0..columns - 1 {
+                    let [a, b, d, e] = [index(r, c), index(r, c + 1), index(r + 1, c), index(r + 1, c + 1)];
+                    writer.triangle([a, b, e]).unwrap();
+                    writer.triangle([a, e, d]).unwrap();
+                }
+            }
+            let fixes: Vec<(u32, DVec3, DVec3)> = if row == 0 {
+                Vec::new()
+            } else {
+                (0..columns).map(|c| (index(row, c), point(row, c), DVec3::Z)).collect()
+            };
+            writer.fix_vertices(&fixes).unwrap();
+            row = last;
+        }
+    }
+
+    #[test]
+    fn a_long_stream_is_simplified_in_bounded_batches_across_unit_borders() {
+        let (rows, columns, per_unit, batch) = (401, 60, 4, 4096);
+        let wave = |x: f64, y: f64| 0.05 * (x * 9.0).sin() * (y * 3.0).cos();
+        let mut writer = SimplifyingWriter::new(MemoryMesh::default(), Target::MaxError(0.0005), batch);
+        stream(&mut writer, rows, columns, per_unit, wave);
+        let given = writer.triangles_in;
+        let most_buffered = writer.most_buffered;
+        let (memory, summary) = writer.finish().unwrap();
+        let mesh = memory.into_mesh();
+        assert_eq!(given, u64::from((rows - 1) * (columns - 1) * 2));
+        // One batch plus the strip along the open seam (two rows of triangles) and the unit that
+        // ended the batch: the buffer does not grow with the stream.
+        let unit = 2 * (columns as usize - 1) * per_unit as usize;
+        assert!(most_buffered <= batch + 2 * unit, "{most_buffered} triangles buffered");
+        // Simplified across the unit borders: far fewer triangles than the units' rows would
+        // keep if their borders were locked (two triangles per border edge at least).
+        let locked_borders = (rows / per_unit) as u64 * 2 * u64::from(columns - 1);
+        assert!(
+            summary.triangles * 2 < locked_borders,
+            "{} triangles kept",
+            summary.triangles
+        );
+        assert_eq!(summary.triangles as usize, mesh.triangles.len());
+        assert_eq!(summary.non_manifold_edges, 0);
+        let (boundary, non_manifold) = crate::mesh::edge_defects(&mesh);
+        assert_eq!((boundary as u64, non_manifold as u64), (summary.boundary_edges, 0));
+        // The strip's border stays a single loop: no fewer than its 4 corners' edges, no more
+        // than the full strip's.
+        assert!((4..=2 * u64::from(rows + columns)).contains(&summary.boundary_edges));
+        // Every vertex stays on the surface within the bound (plus what a chord of the wave
+        // deviates, which the bound's quadrics measure at the vertices only).
+        for p in &mesh.positions {
+            let off = (f64::from(p[2]) - wave(f64::from(p[0]), f64::from(p[1]))).abs();
+            assert!(off < 0.001, "{p:?} is {off} off the surface");
+        }
     }
 }
