@@ -1214,6 +1214,9 @@ def write_markdown(results, out_dir, path):
     import divide_bench
 
     lines += divide_bench.markdown(results.get("divide", []))
+    import simplify_bench
+
+    lines += simplify_bench.markdown(results.get("simplify", []), commits)
     path.write_text("\n".join(lines))
 
 
@@ -1222,7 +1225,7 @@ def main():
         return worker(sys.argv[2:])
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sections", nargs="*",
-                        default=["objects", "groundtruth", "interior", "redkitchen", "scale", "cube-sizes"],
+                        default=["objects", "groundtruth", "interior", "redkitchen", "scale", "cube-sizes", "simplify"],
                         help="sections to run; none (a bare --sections) only rewrites BENCHMARKS.md")
     parser.add_argument("--frames", nargs="+", type=int, default=[100, 300, 1000])
     parser.add_argument("--redkitchen-max-depth", type=int, default=10,
@@ -1268,6 +1271,10 @@ def main():
                 rows = scale(work, args.scale_sizes, args.scale_budget)
             elif section == "cube-sizes":
                 rows = [row for frames in args.frames for row in cube_sizes(work, frames, args.redkitchen_budget)]
+            elif section == "simplify":
+                import simplify_bench
+
+                rows = simplify_bench.run(sys.modules[__name__], work, args.out)
             elif section == "divide":
                 import divide_bench
 
@@ -1312,7 +1319,7 @@ def main():
                 rows.sort(key=lambda r: (r.get("max_depth") or 99, r["frames"], r["method"] != "octstore"))
             path.write_text(json.dumps(rows, indent=1))
     results = {}
-    for section in ("objects", "groundtruth", "interior", "redkitchen", "scale", "cube-sizes", "divide"):
+    for section in ("objects", "groundtruth", "interior", "redkitchen", "scale", "cube-sizes", "divide", "simplify"):
         path = args.out / f"results-{section}.json"
         results[section] = json.loads(path.read_text()) if path.exists() else []
     write_markdown(results, args.out, args.markdown)
