@@ -357,6 +357,17 @@ fn weld_pieces<W: MeshWriter>(
                         full.triangles,
                         summary.triangles
                     );
+                    if let Target::Fraction(fraction) = target {
+                        let kept = summary.triangles as f64 / (full.triangles.max(1)) as f64;
+                        if kept > 1.1 * f64::from(fraction) {
+                            tracing::warn!(
+                                "extract --decimate {fraction}: kept {:.1} % of the triangles; collapsing more would \
+                                 change the surface's topology (thin parts, small holes) or leave edges of more \
+                                 than two triangles",
+                                100.0 * kept
+                            );
+                        }
+                    }
                     (Some(writer), Ok(summary))
                 }
                 Err(e) => (None, Err(io(e))),
