@@ -187,3 +187,38 @@ pub fn write_png16(path: &Path, image: &octstore::inputs::DepthImage, scale: f64
     let buffer = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(image.width, image.height, pixels).unwrap();
     buffer.save(path).unwrap();
 }
+
+/// The folder of the test data beside the repository (`../shared/data`), or the one
+/// `OCTSTORE_SHARED_DATA` names.
+pub fn shared_data_root() -> PathBuf {
+    std::env::var_os("OCTSTORE_SHARED_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data"))
+}
+
+/// `relative` under [`shared_data_root`], whether it exists or not (for helpers; a test checks
+/// with [`shared_data`] first).
+pub fn shared_path(relative: &str) -> PathBuf {
+    shared_data_root().join(relative)
+}
+
+/// `relative` under [`shared_data_root`] if it exists. If it does not, the test is skipped: one
+/// line on stderr names the path and the caller returns. With `OCTSTORE_REQUIRE_SHARED_DATA`
+/// set (CI, which has the data) an absent path fails the test instead, so nothing is skipped
+/// there unnoticed.
+pub fn shared_data(relative: &str) -> Option<PathBuf> {
+    let path = shared_path(relative);
+    if path.exists() {
+        return Some(path);
+    }
+    assert!(
+        std::env::var_os("OCTSTORE_REQUIRE_SHARED_DATA").is_none(),
+        "{} is absent and OCTSTORE_REQUIRE_SHARED_DATA is set",
+        path.display()
+    );
+    eprintln!(
+        "skipped: {} is absent (the test data beside the repository)",
+        path.display()
+    );
+    None
+}
