@@ -5,7 +5,6 @@
 
 mod common;
 
-use std::path::Path;
 
 use common::*;
 use octstore::mesh::read_mesh;
