@@ -5,7 +5,6 @@
 
 mod common;
 
-
 use common::*;
 use octstore::mesh::read_mesh;
 use octstore::quality::evaluate::{EvaluateOptions, evaluate};

@@ -195,9 +195,9 @@ impl Simplify {
 
 /// Bytes a buffered triangle of the simplification holds with its share of vertices and of
 /// meshoptimizer's working memory, about (its half of a vertex map entry, the batch's local
-/// arrays and their copies for a second round, the quadrics and collapse lists): on the
-/// interior scene, whose 8 treetop leaves give batches of about 450,000 triangles, the peak
-/// rose by 130 to 150 MB over the full mesh's.
+/// arrays and their copies for a second round, the quadrics and collapse lists): when batches
+/// ended only between pieces, the interior scene's pieces of about 450,000 triangles raised
+/// the peak by 130 to 150 MB over the full mesh's.
 const SIMPLIFY_BYTES_PER_TRIANGLE: u64 = 512;
 
 /// Most triangles a simplification batch gathers. Batches end after the same units at any

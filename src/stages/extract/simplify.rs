@@ -455,8 +455,21 @@ impl<W: MeshWriter> MeshWriter for SimplifyingWriter<W> {
         Ok(())
     }
 
-    /// Settles vertices; the weld calls it once at the end of each unit, which is when a batch
-    /// may end.
+    /// Settles private vertices whose triangles are all given; a batch may end here.
+    fn settle(&mut self, indices: &[u32]) -> std::io::Result<()> {
+        for index in indices {
+            if let Some(vertex) = self.vertices.get_mut(index) {
+                vertex.settled = true;
+            }
+        }
+        if self.triangles.len() >= self.carried + self.batch {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    /// Settles seam vertices; the weld calls it once at the end of each unit, which is when a
+    /// batch may end too.
     fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()> {
         for &(index, position, normal) in fixes {
             if let Some(vertex) = self.vertices.get_mut(&index) {

@@ -92,6 +92,9 @@ fn unit_grain(treetop: &Treetop) -> u64 {
         .unwrap_or(1)
 }
 
+/// Triangles of a piece between two calls of `MeshWriter::settle`.
+const SETTLE_EVERY: usize = 4096;
+
 /// Welds units' pieces into one mesh as they come, in unit order. Only vertices that a later
 /// unit may also produce (seam vertices) are held, each until the last unit that can produce
 /// it is done, and likewise edges between two of them: the same vertices, normals, triangles
@@ -252,6 +255,11 @@ pub(super) trait MeshWriter {
     fn triangle(&mut self, triangle: [u32; 3]) -> std::io::Result<()>;
     /// Sets final positions and normals of earlier vertices, given in increasing index order.
     fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()>;
+    /// Says that no triangle will use these vertices any more (they were written with their
+    /// final position and normal). Only a simplifying writer needs to know.
+    fn settle(&mut self, _indices: &[u32]) -> std::io::Result<()> {
+        Ok(())
+    }
 }
 
 impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
@@ -287,7 +295,8 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                 .unwrap_or(VertexMove::empty(0, 0.0));
             if private(edge) {
                 let index = self.next_index()?;
-                self.writer.vertex(*p, n.normalize_or_zero(), true)?;
+                // Settled after its last triangle here (below).
+                self.writer.vertex(*p, n.normalize_or_zero(), false)?;
                 map.push((index, PRIVATE));
                 continue;
             }
@@ -325,7 +334,43 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
         // Edges with a private end, by the private end (the lower one, if both are) as an
         // offset from `first_new`, and the other end.
         let mut local_edges: Vec<(u32, u32)> = Vec::with_capacity(3 * mesh.triangles.len());
-        for t in &mesh.triangles {
+        // Private vertices by the last triangle of the piece that uses them: each is settled for
+        // the writer once that triangle is written (no other piece has it), so a simplifying
+        // writer can end a batch inside a large piece.
+        let mut last_use = vec![0u32; mesh.vertices.len()];
+        for (i, t) in mesh.triangles.iter().enumerate() {
+            for &v in t {
+                if let Some(last) = last_use.get_mut(v as usize) {
+                    *last = i as u32;
+                }
+            }
+        }
+        let mut private_by_last_use: Vec<(u32, u32)> = map
+            .iter()
+            .zip(&last_use)
+            .filter(|((_, last), _)| *last == PRIVATE)
+            .map(|((index, _), &used)| (used, *index))
+            .collect();
+        private_by_last_use.sort_unstable();
+        let mut settled = 0;
+        let mut settle_through = |writer: &mut W, triangle: Option<u32>| -> std::io::Result<()> {
+            let end = match triangle {
+                Some(t) => private_by_last_use.partition_point(|&(used, _)| used <= t),
+                None => private_by_last_use.len(),
+            };
+            let due: Vec<u32> = private_by_last_use
+                .get(settled..end)
+                .unwrap_or(&[])
+                .iter()
+                .map(|&(_, index)| index)
+                .collect();
+            settled = end.max(settled);
+            writer.settle(&due)
+        };
+        for (i, t) in mesh.triangles.iter().enumerate() {
+            if i > 0 && i % SETTLE_EVERY == 0 {
+                settle_through(&mut self.writer, Some(i as u32 - 1))?;
+            }
             let [Some(a), Some(b), Some(c)] = t.map(|v| map.get(v as usize).copied()) else {
                 continue;
             };
@@ -355,6 +400,7 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
                 }
             }
         }
+        settle_through(&mut self.writer, None)?;
         let new_vertices = (self.summary.vertices - first_new) as usize;
         self.count_edges(edge_uses(&local_edges, new_vertices).iter());
         self.most_open_edges = self.most_open_edges.max(self.seam_edges.len());
