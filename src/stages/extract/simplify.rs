@@ -180,13 +180,16 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
                 written_edges.push((a.min(b), a.max(b)));
             }
         }
-        // Carried vertices stay; the others are done. Free vertices that survive were
+        // Carried and unsettled vertices stay; the others are done. Free vertices that survive were
         // simplified around; a moved one keeps its new position.
         let mut keep: Vec<u32> = carried.iter().flatten().copied().collect();
         keep.sort_unstable();
         keep.dedup();
         for (&global, &locked) in used.iter().zip(&locks) {
-            if keep.binary_search(&global).is_err() {
+            // An unsettled vertex stays even if the batch collapsed every triangle it had so
+            // far: later triangles will name it.
+            let settled = self.vertices.get(&global).is_some_and(|v| v.settled);
+            if settled && keep.binary_search(&global).is_err() {
                 self.vertices.remove(&global);
             } else if let Some(vertex) = self.vertices.get_mut(&global)
                 && !locked
