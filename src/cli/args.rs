@@ -252,7 +252,7 @@ pub struct PlanArgs {
     pub chunks: u32,
     #[command(flatten)]
     pub solver: SolverArgs,
-    /// extract: the mesh file the commit writes (.ply or .obj).
+    /// extract: the mesh file the commit writes (.ply, .glb or .obj).
     #[arg(short, long, required_if_eq("stage", "extract"), value_parser = parse_mesh_path)]
     pub output: Option<PathBuf>,
     /// extract: only what lies in this box.
@@ -337,7 +337,7 @@ pub struct DemoArgs {
 #[derive(Args, Debug)]
 pub struct ExtractArgs {
     pub store: PathBuf,
-    /// The mesh file: binary PLY, or OBJ by the extension `.obj`.
+    /// The mesh file: binary PLY, or GLB (glTF binary) or OBJ by the extension `.glb` or `.obj`.
     #[arg(short, long, value_parser = parse_mesh_path)]
     pub output: PathBuf,
     /// Only what lies in this box: minx,miny,minz,maxx,maxy,maxz.
