@@ -1,8 +1,8 @@
 //! octstore: an embedded storage engine for one huge adaptive octree, and the out-of-core
 //! surface reconstruction pipeline that runs on it (Poliarnyi 2021, global TGV minimisation).
 //!
-//! `ARCHITECTURE.md` in the repository describes every folder and the invariants a
-//! contributor must keep. Bottom up:
+//! The guide (`docs/` in the repository) is for users; `ARCHITECTURE.md` describes every
+//! folder and the invariants a contributor must keep. Bottom up:
 //! - [`format`]: cube keys, the immutable segment format, the root cube (byte slices in,
 //!   values out);
 //! - [`store`]: the versioned store: redb catalog, segment files, commit protocol, snapshots,
@@ -10,7 +10,7 @@
 //! - [`inputs`]: finding and reading depth maps (RGB-D folders, manifests, COLMAP, LIDAR);
 //! - [`kernels`]: CPU reference kernels that need no store (TGV, votes);
 //! - [`gpu`]: the same kernels as wgpu compute shaders, tested against [`kernels`];
-//! - [`mesh`]: the mesh type, mesh files, clipping, decimation, previews;
+//! - [`mesh`]: the mesh type, mesh files (PLY, GLB, OBJ), clipping, previews;
 //! - [`stages`]: the pipeline stages that run on the store;
 //! - [`query`]: reading the indicator field of a pinned version from code;
 //! - [`pipeline`]: ingest, solve, the demo and cluster runs as library calls;
@@ -56,3 +56,9 @@ pub use stages::ingest::IngestOptions;
 pub use stages::solve::{Method, SolveParams, SsdParams};
 pub use store::{RunOptions, RunReport, Snapshot, Store, StoreError};
 pub use sys::die_quietly_on_closed_pipe;
+
+/// The guide's Rust examples (`docs/api.md`), compiled and run by `cargo test --doc` so that
+/// they cannot drift from the API.
+#[cfg(doctest)]
+#[doc = include_str!("../docs/api.md")]
+pub struct GuideExamples;

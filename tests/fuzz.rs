@@ -4,7 +4,7 @@
 //! `OCTSTORE_FUZZ_SECONDS` (default 2) per target, flips bits, overwrites bytes, truncates,
 //! inserts and splices in troublesome numbers, then decodes. Errors are what bad bytes must
 //! give; a panic fails the test and leaves the input in `OCTSTORE_FUZZ_CRASHES` (default the
-//! system temporary folder) with the seed that made it (README, "Fuzzing").
+//! system temporary folder) with the seed that made it (docs/store.md, "Fuzzing").
 //!
 //! Integer overflow while decoding must be an error too, so CI runs this file a second time
 //! with overflow checks on in the release profile (`.ci/run`). The long run:
@@ -515,7 +515,7 @@ fn read_flipped(store: &Path, original_dump: &[u8]) -> FlipOutcome {
 /// printable text (table names, type names, segment names, meta keys and stage names, where a
 /// flip used to panic inside redb), then at the other nonzero bytes (page headers, offsets,
 /// numbers, checksums), then at the zeros (mostly free pages), each group in a shuffled order,
-/// until the budget is spent (a long run reaches every position; README, "Fuzzing").
+/// until the budget is spent (a long run reaches every position; docs/store.md, "Fuzzing").
 #[test]
 fn catalog_bit_flips() {
     let dir = tempfile::tempdir().unwrap();

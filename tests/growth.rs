@@ -125,7 +125,7 @@ fn a_kitchen_store_grows_to_take_frames_beyond_its_root() {
 
     // A batch build that sizes its own root: the same frames, another grid. Two batch builds
     // whose roots differ only by a translation disagree by about as much on these six noisy
-    // frames (README, "Growing scenes"), so this bound is looser.
+    // frames (docs/store.md, "Growing scenes"), so this bound is looser.
     let batch = dir.path().join("batch");
     ingest(
         &batch,

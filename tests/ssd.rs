@@ -317,8 +317,7 @@ fn stores_ingested_without_sample_moments_are_refused_by_name() {
 }
 
 /// Units freeze their borders at the coarser level's f carried to the neighbour's centre; what
-/// that costs: the sphere solved as one unit and as 653 small ones. Measured (README,
-/// "Solvers"): mean 0.044 and 0.100 finest cubes, 95th percentile 0.125 and 0.208; the
+/// that costs: the sphere solved as one unit and as 653 small ones. Measured: mean 0.044 and 0.100 finest cubes, 95th percentile 0.125 and 0.208; the
 /// bounds catch a regression of either.
 #[test]
 fn seams_between_units_cost_the_ssd_sphere_a_twentieth_of_a_cube() {

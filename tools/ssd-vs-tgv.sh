@@ -3,7 +3,7 @@
 # once (`--sample-sums`), votes once (`solve --until histograms`), then alternates `solve
 # --method tgv` and `solve --method ssd` on fresh copies of that store, so that both meet the
 # same minutes of a machine whose speed drifts. Prints each run's wall and user time, peak RSS,
-# SSD's samples stage and the round's ratio. Not part of CI (README, "Solvers").
+# SSD's samples stage and the round's ratio. Not part of CI (docs/parameters.md, "Solvers").
 #
 #   tools/ssd-vs-tgv.sh                       (1000 frames, 3 rounds)
 #   FRAMES=100 ROUNDS=2 MEMORY=512MiB tools/ssd-vs-tgv.sh

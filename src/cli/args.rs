@@ -69,12 +69,12 @@ pub struct SolverArgs {
     tolerance: f32,
     /// The energy minimised on each level: tgv (robust to outliers: the paper's method), ssd
     /// (smooth signed distance from the samples' positions and normals: sub-cube accuracy on
-    /// clean data) or hybrid (ssd from the samples the histograms confirm). README, "Solvers".
+    /// clean data) or hybrid (ssd from the samples the histograms confirm). docs/parameters.md, "Solvers".
     #[arg(long, value_enum, default_value = "tgv")]
     method: MethodChoice,
     /// ssd and hybrid: weight of the normal term, relative to the position term (> 0), where
     /// the samples' normals agree; units whose normals disagree (noisy depth maps) take up to
-    /// 10 times it (README, "Solvers").
+    /// 10 times it (docs/parameters.md, "Solvers").
     #[arg(long, default_value_t = SsdParams::default().normal_weight, value_parser = parse_ssd_weight)]
     ssd_normal_weight: f64,
     /// ssd and hybrid: weight of the smoothness term, relative to the position term (> 0).
@@ -143,7 +143,8 @@ pub enum Command {
     Slurm(SlurmArgs),
     /// Render the built-in synthetic scene, then ingest, solve and extract it (no files needed).
     Demo(DemoArgs),
-    /// Write the surface u = 0 as a mesh (binary PLY, or OBJ by extension).
+    /// Write the surface u = 0 as a mesh: by default the observed part, simplified (binary PLY, or
+    /// GLB or OBJ by extension).
     Extract(ExtractArgs),
     /// The indicator u at a point (interpolated), from the latest or a given version.
     Query(QueryArgs),
@@ -172,9 +173,13 @@ pub enum Command {
 /// Arguments of `octstore ingest`.
 #[derive(Args, Debug)]
 pub struct IngestArgs {
+    /// The store's folder (created by the first ingest).
     pub store: PathBuf,
+    /// Depth maps: RGB-D or TUM folders, frame files, JSON manifests, COLMAP workspaces,
+    /// PTX / E57 scans (docs/inputs.md).
     #[arg(required = true)]
     pub inputs: Vec<PathBuf>,
+    /// The inputs' layout.
     #[arg(long, value_enum, default_value = "auto")]
     pub format: InputFormat,
     /// Take every n-th frame of a folder (at least 1).
@@ -187,8 +192,8 @@ pub struct IngestArgs {
     /// without a camera-intrinsics.txt beside them; it replaces theirs where they have one.
     #[arg(long, value_name = "FILE")]
     pub intrinsics: Option<PathBuf>,
-    /// Depth noise of every map given (README, "Cube sizes"): `auto` (the default: measured
-    /// from each map's own pixels, in its own units), `none` (cubes follow the pixel footprint
+    /// Depth noise of every map given (docs/parameters.md, "Cube sizes and depth noise"):
+    /// `auto` (the default: measured from each map's own pixels, in its own units), `none` (cubes follow the pixel footprint
     /// alone), `kinect` (0.0012,0.0019,0.4, metres), `lidar` (0.002, metres), a sigma, or
     /// `constant,quadratic,offset` for sigma(d) = constant + quadratic (d - offset)^2, in scene
     /// units.
@@ -203,6 +208,8 @@ pub struct IngestArgs {
     /// box grown by --root-margin).
     #[arg(long, value_parser = parse_root)]
     pub root: Option<([f64; 3], f64)>,
+    /// How far the root cube reaches past the samples' box, in parts of its size (first
+    /// ingest only; 0 to 10).
     #[arg(long, default_value_t = 0.1, value_parser = parse_margin)]
     pub root_margin: f64,
     /// Deepest octree level a sample may create (first ingest only; at most 32, the keys'
@@ -215,6 +222,7 @@ pub struct IngestArgs {
     /// not use them.
     #[arg(long)]
     pub sample_sums: bool,
+    /// Continue an interrupted ingest from its last committed unit.
     #[arg(long)]
     pub resume: bool,
 }
@@ -429,8 +437,10 @@ pub struct QueryArgs {
     /// The level cut `--cubes` lists (default: the finest solved level).
     #[arg(long, requires = "cubes")]
     pub level: Option<u8>,
+    /// Read this version instead of the latest.
     #[arg(long)]
     pub version: Option<u64>,
+    /// Print the point's value as JSON.
     #[arg(long)]
     pub json: bool,
     /// List the solved levels (JSON).
@@ -444,11 +454,15 @@ pub struct QueryArgs {
 /// Arguments of `octstore render`.
 #[derive(Args, Debug)]
 pub struct RenderArgs {
+    /// The mesh to draw (PLY, OFF or OBJ, optionally .gz).
     pub mesh: PathBuf,
+    /// The PNG to write.
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Picture width in pixels.
     #[arg(long, default_value_t = 800)]
     pub width: u32,
+    /// Picture height in pixels.
     #[arg(long, default_value_t = 600)]
     pub height: u32,
     /// Take the picture from this camera instead of the fitted 3/4 view: a text file of 16
@@ -470,6 +484,7 @@ pub struct InfoArgs {
     /// List the GPU adapters wgpu finds (and which one `--device auto` would take).
     #[arg(long)]
     pub devices: bool,
+    /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
     /// Show this version instead of the latest.
@@ -487,6 +502,7 @@ pub struct VerifyArgs {
 #[derive(Args, Debug)]
 pub struct LogArgs {
     pub store: PathBuf,
+    /// Print the versions as JSON.
     #[arg(long)]
     pub json: bool,
 }

@@ -1,6 +1,6 @@
 //! Depth maps: camera models, poses, and the image formats they are read from.
 //!
-//! Conventions (README, "Inputs"): poses are camera-to-world with OpenCV camera axes (x right,
+//! Conventions (docs/inputs.md): poses are camera-to-world with OpenCV camera axes (x right,
 //! y down, z forward); pinhole depth is the z coordinate in the camera frame, pixel (i, j) has
 //! its centre at image coordinates (i, j); spherical (LIDAR) depth is the range along the ray.
 
@@ -100,11 +100,11 @@ impl Kind {
 }
 
 /// How many standard deviations of depth noise a sample's radius spans at least, by default
-/// (README, "Cube sizes": measured on RedKitchen).
+/// (BENCHMARKS.md, "Cube sizes of RGB-D frames": measured on RedKitchen).
 pub const DEFAULT_NOISE_SIGMAS: f64 = 1.0;
 
-/// The most pixel footprints the noise may widen a sample's radius to, by default (README,
-/// "Cube sizes": measured on RedKitchen).
+/// The most pixel footprints the noise may widen a sample's radius to, by default
+/// (BENCHMARKS.md, "Cube sizes of RGB-D frames": measured on RedKitchen).
 pub const DEFAULT_NOISE_FOOTPRINTS: f64 = 3.0;
 
 /// A depth map's noise model, which bounds how small its samples' cubes may be.

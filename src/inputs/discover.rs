@@ -1,5 +1,5 @@
 //! Finding depth maps in user paths: the 7-Scenes / RGB-D folder layout, single 7-Scenes frames,
-//! and the generic JSON scene manifest (README, "Inputs").
+//! and the generic JSON scene manifest (docs/inputs.md).
 
 use std::path::{Path, PathBuf};
 

@@ -2,7 +2,7 @@
 //! manifests, COLMAP dense workspaces, PTX / E57 LIDAR scans) and reading them into
 //! [`DepthImage`]s.
 //!
-//! Conventions (README, "Inputs"): poses are camera-to-world with OpenCV camera axes (x right,
+//! Conventions (docs/inputs.md): poses are camera-to-world with OpenCV camera axes (x right,
 //! y down, z forward); pinhole depth is the z coordinate in the camera frame, pixel (i, j) has
 //! its centre at image coordinates (i, j); spherical (LIDAR) depth is the range along the ray.
 //!

@@ -64,7 +64,7 @@ pub const DISTANCE_BAND_PER_DELTA: f64 = 2.0;
 /// top (100 frames) went from 7.9 to 6.1 degrees (4 delta for every cube gave the same). The
 /// cost is on objects seen from all around, whose samples are also finer than their cubes:
 /// votes of views on the far side of a thin part now reach the near surface (clean bunny
-/// Chamfer 0.00117 to 0.00157, normal consistency 0.974 to 0.959; README, known limitations).
+/// Chamfer 0.00117 to 0.00157, normal consistency 0.974 to 0.959).
 /// Since distances read the surface bilinearly ([`crate::kernels::surface_depth`]) a floor of
 /// 3 sides gives the clean bunny Chamfer 0.00073 instead of 0.00118, but the table's ridges
 /// come back (measured 2026-11-25): a band that tells grazing views from views of another

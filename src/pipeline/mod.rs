@@ -248,8 +248,8 @@ pub fn open_gpu(choice: DeviceChoice) -> Result<Option<Arc<Gpu>>> {
     }
 }
 
-/// Extracts the surface of the latest solved version (or of `version`) into `output`: PLY, or
-/// OBJ by extension; streamed leaf by leaf unless a region or decimation asks for the whole.
+/// Extracts the surface of the latest solved version (or of `version`) into `output`: PLY, GLB
+/// or OBJ by extension; streamed leaf by leaf, and welded in memory where a region asks for it.
 /// An eighth of `memory_budget` holds leaves' pieces computed ahead of the weld.
 pub fn extract(
     store: &Store,

@@ -30,7 +30,7 @@ impl Treetop {
             return Err(StoreError::Stage {
                 stage: OCTREE.into(),
                 unit: "-".into(),
-                message: "no octree yet: run `octstore solve --until octree` first".into(),
+                message: "no octree yet: run `octstore solve` first".into(),
             });
         }
         let root = CubeKey::new(0, 0, 0, 0);

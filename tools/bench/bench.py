@@ -667,7 +667,7 @@ def redkitchen(work, frames_list, max_depth, out_dir, budget="512MiB", tsdf_voxe
     return rows
 
 
-# Cube-size rules of RGB-D frames (README, "Cube sizes"): the footprint capped at --max-depth 10
+# Cube-size rules of RGB-D frames (docs/parameters.md, "Cube sizes and depth noise"): the footprint capped at --max-depth 10
 # (the rule before noise models), k sigma of the Kinect table for three k, and the default,
 # the noise measured from each frame.
 CUBE_SIZE_RULES = (
@@ -1014,7 +1014,7 @@ def fmt(row, key, digits=3):
 def write_markdown(results, out_dir, path):
     gt_rows, rk_rows, scale_rows = results["groundtruth"], results["redkitchen"], results["scale"]
     lines = ["# Benchmarks", "",
-             "Written by `tools/bench/run.sh` (see the README); raw figures in `benchmarks/results-*.json`. "
+             "Written by `tools/bench/run.sh` (see docs/quality.md); raw figures in `benchmarks/results-*.json`. "
              f"Machine: {machine()}. Generated {time.strftime('%Y-%m-%d')}.", ""]
     object_rows = results.get("objects", [])
     if object_rows:
@@ -1073,7 +1073,7 @@ def write_markdown(results, out_dir, path):
                   "random depth between 0.2 and 2 times the true one). All three methods read the same depth maps. "
                   "octstore: `--max-depth 9`, 100 iterations per level (TGV); octstore-ssd and octstore-hybrid: "
                   "`ingest --sample-sums`, `solve --method ssd|hybrid`, the default SSD settings of those commits (`--ssd-tolerance 1e-4`; "
-                  "README, \"Solvers\", has these cases again at 1e-3, the default since 2026-11-27). TSDF: Open3D "
+                  "1e-3 is the default since). TSDF: Open3D "
                   "VoxelBlockGrid at octstore's "
                   "finest cube size, truncation 4 voxels. Poisson: Open3D screened Poisson, depth 9, on the "
                   "back-projected pixels (every second one) with normals oriented to their camera, lowest 2 % "
@@ -1098,8 +1098,8 @@ def write_markdown(results, out_dir, path):
                   "per level, stopping at `--tolerance`) and extract with the `--memory-budget` given; TSDF (Open3D VoxelBlockGrid, CPU) integrates the same "
                   "frames, truncation 4 voxels, depth cut at 4 m, at octstore's finest cube size where `--max-depth` "
                   "caps it (10: 5.7 mm) and at 5 mm for octstore's default (`tools/bench/run.sh --sections redkitchen "
-                  "--redkitchen-max-depth 0 --tsdf-voxel 0.005`), whose cubes follow the sensor's noise (README, "
-                  "\"Cube sizes\": 2.9 mm near the camera, coarser farther away). Peak is each "
+                  "--redkitchen-max-depth 0 --tsdf-voxel 0.005`), whose cubes follow the sensor's noise (docs/parameters.md, "
+                  "\"Cube sizes and depth noise\": 2.9 mm near the camera, coarser farther away). Peak is each "
                   f"process's own peak RSS; for octstore the largest over its three commands. octstore commit "
                   f"{commits(rk_rows)}.", "",
                   "The last column is octstore's wall time over TSDF's on the same frames, measured one after "
@@ -1156,7 +1156,7 @@ def write_markdown(results, out_dir, path):
     if size_rows:
         lines += ["## Cube sizes of RGB-D frames", "",
                   "`tools/bench/run.sh --sections cube-sizes --frames 100`: octstore alone on every 10th RedKitchen "
-                  "frame under each cube-size rule (README, \"Cube sizes\"), `--memory-budget "
+                  "frame under each cube-size rule (docs/parameters.md, \"Cube sizes and depth noise\"), `--memory-budget "
                   f"{size_rows[0]['budget']}`. Invented area: the mesh's area farther than 15 mm (3 cm) from every "
                   "input sample; table: the mean normal deviation on the table top. octstore commit "
                   f"{commits(size_rows)}.", "",

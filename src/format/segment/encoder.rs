@@ -18,8 +18,7 @@ use crate::format::{CubeKey, EncodeError};
 /// HUFFMAN_WORTH_DEN` of its raw bytes. At negative levels zstd stores literals raw, so the
 /// high-entropy columns (solver fields, sample moments), which Huffman coding shrank by 7 to 13
 /// % at about 1 GB/s a core of decoding, decode at about memory speed: the sample moments of
-/// RedKitchen's 1000 depth maps took 1.5 s of a core to decode, now a few hundredths (README,
-/// "Performance"). Either frame is plain zstd: readers do not tell them apart.
+/// RedKitchen's 1000 depth maps took 1.5 s of a core to decode, now a few hundredths. Either frame is plain zstd: readers do not tell them apart.
 const RAW_LITERALS_ZSTD_LEVEL: i32 = -1;
 /// See [`RAW_LITERALS_ZSTD_LEVEL`].
 const HUFFMAN_WORTH_NUM: usize = 3;

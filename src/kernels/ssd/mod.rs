@@ -44,7 +44,7 @@ pub const ANCHOR: f64 = 1.0e-10;
 /// cubes (the cascadic start). With [`ANCHOR`] alone that extension, held only by the frozen
 /// borders, was what the conjugate gradients spent most of their iterations on.
 ///
-/// Measured (README, "Solvers"): RedKitchen's finest level 204 iterations per cube before, 33
+/// Measured (docs/parameters.md, "Solvers"): RedKitchen's finest level 204 iterations per cube before, 33
 /// after. The groundtruth bunny's clean Chamfer went from 0.00111 to 0.00089. Sparing the
 /// cubes within 2, 4 or 6 face steps of samples gave 0.00107, 0.00135 and 0.00117 there, at 36
 /// to 71 iterations. The anchor does cost an isolated clean sphere solved as one unit: its
@@ -59,7 +59,7 @@ pub const UNSAMPLED_ANCHOR: f64 = 0.1;
 /// (`stages::solve::ssd::noise_normal_weight`).
 pub const DEFAULT_NORMAL_WEIGHT: f64 = 0.1;
 /// See [`DEFAULT_NORMAL_WEIGHT`]. More smoothness smooths noisy surfaces but pulls them inwards
-/// where they curve (README, "Solvers").
+/// where they curve (docs/parameters.md, "Solvers").
 pub const DEFAULT_SMOOTHNESS: f64 = 0.1;
 
 /// Index of a difference-term target: a free cube (< n) or a frozen one (n + index).

@@ -463,7 +463,7 @@ fn the_unsampled_anchor_keeps_a_finer_level_on_the_coarse_solution_in_fewer_iter
     // within 0.05 cubes on average (the worst crossing 0.2 cubes off) against 0.010 (0.03):
     // the pinned cubes beside the samples carry the coarse level's interpolation error, which
     // on a sphere lies on its curved side. This is the anchor's cost in the ideal case; on the
-    // groundtruth meshes, which the levels reach through many units, Chamfer fell (README).
+    // groundtruth meshes, which the levels reach through many units, Chamfer fell.
     let sampled = |a: usize, b: usize| fine.samples[a].weight > 0.0 || fine.samples[b].weight > 0.0;
     let (mean, max, _) = sphere_errors_where(&anchored, 32, radius, centre, sampled);
     let (mean_free, max_free, _) = sphere_errors_where(&free, 32, radius, centre, sampled);

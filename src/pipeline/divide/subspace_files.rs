@@ -30,7 +30,7 @@ pub fn fixed_header(layout: &PointLayout, count: u64, note: &str) -> Vec<u8> {
 ///
 /// The whole pages of a buffer are written with `O_DIRECT` where the file system takes it:
 /// through the page cache, the kernel's copy and writeback cost about a second of CPU per GB
-/// on the 2-core machine of the README, a quarter of the write pass. The partial page left at
+/// on a 2-core machine, a quarter of the write pass. The partial page left at
 /// the end, and every write on a file system that refuses direct I/O, go through the page
 /// cache; the bytes in the files are the same either way. The pages are written on threads
 /// of their own ([`Writer`]), so a pass's workers go on while the disk takes them.
@@ -70,7 +70,7 @@ struct Writer {
 /// Jobs queued for the writers besides those being written.
 const WRITES_IN_FLIGHT: usize = 8;
 
-/// Threads writing pages at once. Measured on the README's 2-core machine, 10^9 generated
+/// Threads writing pages at once. Measured on a 2-core machine, 10^9 generated
 /// points at 256 MiB, alternating, the write pass: one thread (and the release before's
 /// locator), 54.0 and 49.2 s; four, 43.3 and 47.4 s (both with buffers of an eighth of the
 /// budget); with today's buffers, four, 36.6 and 38.4 s; eight, 33.0 and 33.6 s. The threads

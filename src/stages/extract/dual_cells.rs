@@ -125,7 +125,7 @@ const NEAR_SURFACE_SPANS: f64 = 1.0;
 /// measured) lets a cell of coarse cubes carry surface anywhere in it; at depth edges and in
 /// crevices that left fringes and bridges one to three cubes wide beyond every sample
 /// (RedKitchen, 100 frames: 2.9 % of the mesh farther than 3 finest cubes from every input
-/// pixel; 1.9 % with this test, at the same completeness; README, "Status and limits").
+/// pixel; 1.9 % with this test, at the same completeness).
 /// Within 1.5 spans it trims less (2.1 %); within 1 span alone (no pinhole fill) it opened
 /// holes in the noisy bunnies of `tests/quality.rs`, which [`pinholes::fill_pinholes`] closes; a
 /// share of 0.15 opens holes in the clean one.

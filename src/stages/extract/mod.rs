@@ -352,8 +352,14 @@ fn weld_pieces<W: MeshWriter>(
                 .and_then(|(simplifying, full)| Ok((simplifying.finish()?, full)));
             match finished {
                 Ok(((writer, summary), full)) => {
+                    let bound = match target {
+                        Target::MaxError(distance) => {
+                            format!("moving the surface by at most {distance:.3e} scene units")
+                        }
+                        Target::Fraction(fraction) => format!("aiming at {:.1} % of them", 100.0 * fraction),
+                    };
                     tracing::info!(
-                        "extract: simplified {} triangles to {} ({target:?})",
+                        "extract: simplified {} triangles to {} ({bound})",
                         full.triangles,
                         summary.triangles
                     );
@@ -454,8 +460,8 @@ fn write_assembled(path: &Path, mesh: &Mesh) -> Result<MeshSummary> {
 /// behind a large piece (4 pieces on 2 cores: extract 2.31 to 2.71 s) or risked memory on
 /// scenes of larger pieces; one counted in bytes lets small pieces run far ahead (1.96 to
 /// 2.04 s against 2.35 to 2.64 s). An eighth: about what 4 large pieces held at 256 MiB, where
-/// the 53 M-cube city's extraction peaked just within the budget with them (README, "Status
-/// and limits"); RedKitchen's peak at 256 MiB went from 227-245 MB to 248-250 MB.
+/// the 53 M-cube city's extraction peaked just within the budget with them (BENCHMARKS.md,
+/// "Scale"); RedKitchen's peak at 256 MiB went from 227-245 MB to 248-250 MB.
 pub const PIECES_AHEAD_SHARE: u64 = 8;
 
 /// Pieces computed ahead of the weld, at most, whatever their sizes: the weld's state per

@@ -1,6 +1,8 @@
-//! `ingest`: registers depth maps and writes one sorted run of cubes per depth map (paper 4.1).
+//! `ingest`: registers depth maps and writes their cubes as sorted runs, one per group of up
+//! to [`MAPS_PER_RUN`] depth maps that look at one region (paper 4.1).
 //!
-//! One ingest is one version; it is committed unit by unit (a unit is one depth map), so a
+//! One ingest is one version; it is committed unit by unit (a unit is one group of depth
+//! maps, the maps of one run), so a
 //! killed ingest resumes. Depth maps are identified by a hash of their content (pixels, pose,
 //! intrinsics, kind, weight), which makes the input order irrelevant and a repeated ingest of
 //! the same files a no-op. Depth maps that see beyond the root grow it (`growth.rs`): the

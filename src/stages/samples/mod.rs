@@ -118,7 +118,7 @@ pub fn normal_disagreement(moments: &[Moments]) -> Option<(f64, f64)> {
 /// the noise, and the lower quartile leaves it out where the median did not: the groundtruth
 /// dragon at 0.2 % depth noise had units at 0.012 to 0.033 by the median (the bunny at 1 %
 /// noise 0.013 to 0.025), at most 0.0062 by the lower quartile (the bunny at 1 %: 0.0077 to
-/// 0.0128; README, "Solvers").
+/// 0.0128; docs/parameters.md, "Solvers").
 pub const DISAGREEMENT_QUANTILE: f64 = 0.25;
 
 /// A cube's centre in root units.

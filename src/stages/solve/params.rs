@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 /// the usual count on a floor seen at a slant) was too weak against the regulariser, and u's
 /// zero set sat up to 3.5 finest cubes off the measured surface; extraction, which keeps only
 /// surface near samples, then tore holes there. 0.5 follows such surfaces and is as robust to
-/// outliers (README, "Quality").
+/// outliers (BENCHMARKS.md, "Ground truth").
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
 pub struct SolveParams {
     pub alpha1: f32,
@@ -24,7 +24,7 @@ pub struct SolveParams {
     pub tolerance: f32,
 }
 
-/// The default stopping tolerance; README, "Speed", gives what it was measured to cost.
+/// The default stopping tolerance (see [`SolveParams::tolerance`]).
 pub const DEFAULT_TOLERANCE: f32 = 1e-4;
 
 impl Default for SolveParams {
@@ -49,7 +49,7 @@ impl SolveParams {
     }
 }
 
-/// Which energy a solve minimises on the level cuts (README, "Solvers").
+/// Which energy a solve minimises on the level cuts (docs/parameters.md, "Solvers").
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, Default, PartialEq)]
 pub enum Method {
     /// TGV with the histogram data term (the paper's method): robust to outliers.
@@ -87,7 +87,7 @@ impl Method {
 /// the coarser level's f, so the finest levels need far fewer iterations to place the surface
 /// (RedKitchen's finest level 22 per cube instead of 36, `solve` about 8 % faster), and on the
 /// groundtruth bunny and dragon the meshes moved by at most 2 % in Chamfer distance, except for
-/// the bunny at 1 % depth noise without outliers (5 %; README, "Solvers").
+/// the bunny at 1 % depth noise without outliers (5 %; docs/parameters.md, "Solvers").
 pub const DEFAULT_SSD_TOLERANCE: f64 = 1e-3;
 
 /// The SSD solver's weights and when its conjugate gradients stop.

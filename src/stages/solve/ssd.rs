@@ -412,7 +412,7 @@ fn cut_samples(
 
 /// The [`normal_disagreement`] up to which a unit keeps `--ssd-normal-weight`, and from which
 /// on it takes [`NOISY_NORMAL_FACTOR`] times it (log-linear between). Measured on the
-/// groundtruth bench's views at `--max-depth 9` (README, "Solvers"): the clean sphere of
+/// groundtruth bench's views at `--max-depth 9` (docs/parameters.md, "Solvers"): the clean sphere of
 /// `tests/ssd.rs` at most 0.0017, the bunny at 0.2 % depth noise 0.0011 to 0.0031, the dragon
 /// 0.0020 to 0.0062; at 1 % noise the bunny 0.0077 to 0.0128, the dragon 0.0099 to 0.0162;
 /// RedKitchen (Kinect depths, 100 frames, `--max-depth 10`) 0.0052 to 0.055.
