@@ -21,9 +21,6 @@
 //! read the field through [`IndicatorField`], or run the pipeline with [`pipeline`]'s calls and
 //! their options ([`IngestOptions`], [`DiscoverOptions`], [`SolveParams`]).
 
-#![deny(unsafe_code)]
-#![deny(missing_docs)]
-
 pub mod cli;
 pub mod format;
 #[doc(hidden)]
@@ -39,7 +36,7 @@ pub mod query;
 #[doc(hidden)]
 pub mod stages;
 pub mod store;
-#[allow(
+#[expect(
     unsafe_code,
     reason = "memory maps of immutable segment files, malloc_trim, AVX2 code, SSE2 conversions and AVX-512 gathers: see sys.rs"
 )]
@@ -55,7 +52,7 @@ pub use stages::extract::{DEFAULT_MAX_ERROR, ExtractOptions, Simplify};
 pub use stages::ingest::IngestOptions;
 pub use stages::solve::{Method, SolveParams, SsdParams};
 pub use store::{RunOptions, RunReport, Snapshot, Store, StoreError};
-pub use sys::die_quietly_on_closed_pipe;
+pub use sys::{die_quietly_on_closed_pipe, set_env_defaults_at_start};
 
 /// The guide's Rust examples (`docs/api.md`), compiled and run by `cargo test --doc` so that
 /// they cannot drift from the API.

@@ -1,3 +1,5 @@
+//! The `octstore` command line (`src/cli` parses and runs each verb).
+
 use std::process::ExitCode;
 
 use clap::Parser;
@@ -18,13 +20,7 @@ const QUIET_VULKAN_PROBES: &[(&str, &str)] = &[("NODEVICE_SELECT", "1")];
 
 fn main() -> ExitCode {
     octstore::die_quietly_on_closed_pipe();
-    for (name, value) in QUIET_VULKAN_PROBES {
-        if std::env::var_os(name).is_none() {
-            // SAFETY: the first statement of `main`: no other thread exists yet, so nothing can
-            // read or write the environment concurrently.
-            unsafe { std::env::set_var(name, value) };
-        }
-    }
+    octstore::set_env_defaults_at_start(QUIET_VULKAN_PROBES);
     let cli = octstore::cli::Cli::parse();
     // `--quiet` keeps warnings and errors; OCTSTORE_LOG, when set, decides instead.
     let level = if cli.global.quiet { "warn" } else { "info" };

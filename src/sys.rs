@@ -42,6 +42,19 @@ pub fn die_quietly_on_closed_pipe() {
     }
 }
 
+/// Sets each environment variable of `defaults` that is not set already. Only the binary
+/// calls it, as the first statement of `main` (before any other thread exists: setting the
+/// environment while another thread reads it is undefined behaviour on most platforms).
+pub fn set_env_defaults_at_start(defaults: &[(&str, &str)]) {
+    for (name, value) in defaults {
+        if std::env::var_os(name).is_none() {
+            // SAFETY: called at the start of `main`, before any other thread exists, so nothing
+            // can read or write the environment concurrently.
+            unsafe { std::env::set_var(name, value) };
+        }
+    }
+}
+
 /// Work for [`with_wide_vectors`]: a hot loop and what it reads.
 pub trait WideWork {
     /// What the work gives.

@@ -208,6 +208,10 @@ fn spread3(v: u32) -> u128 {
 }
 
 /// `SPREAD_BYTE[b]`: bit i of the byte `b` at bit 3i (24 bits), [`spread3`] of one byte.
+#[expect(
+    clippy::indexing_slicing,
+    reason = "a constant evaluation over 0..256 of a 256-entry table"
+)]
 const SPREAD_BYTE: [u32; 256] = {
     let mut table = [0u32; 256];
     let mut b = 0;
@@ -230,6 +234,10 @@ const SPREAD_BYTE: [u32; 256] = {
 fn interleave3(x: u32, y: u32, z: u32) -> u128 {
     // Bytes k of the three coordinates interleave into bits 24k to 24k + 23.
     let bytes = |k: u32| -> u64 {
+        #[expect(
+            clippy::indexing_slicing,
+            reason = "a byte (masked to 0xff) indexes a 256-entry table"
+        )]
         let spread = |v: u32| u64::from(SPREAD_BYTE[((v >> (8 * k)) & 0xff) as usize]);
         spread(x) | spread(y) << 1 | spread(z) << 2
     };
@@ -496,6 +504,12 @@ impl redb::Key for CubeKeyColumn {
 }
 
 #[cfg(test)]
+#[expect(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::indexing_slicing,
+    reason = "tests: a panic is the failure report"
+)]
 mod tests {
     #[test]
     fn a_parents_children_have_consecutive_codes_at_their_depth() {

@@ -3,6 +3,10 @@
 //!
 //! Everything here works on byte slices and in-memory buffers; files are the store's business.
 
+// The layers that decode bytes from disk: a damaged byte must give an error, never a panic
+// (format-spec.md), so no unwrap, expect or unchecked index outside tests.
+#![deny(clippy::unwrap_used, clippy::expect_used, clippy::indexing_slicing)]
+
 #[doc(hidden)]
 pub mod bytes;
 pub mod key;

@@ -215,6 +215,11 @@ pub fn parse_ply_header(bytes: &[u8]) -> Result<PlyHeader, String> {
 }
 
 #[cfg(test)]
+#[expect(
+    clippy::expect_used,
+    clippy::indexing_slicing,
+    reason = "tests: a panic is the failure report"
+)]
 mod tests {
     use super::*;
 

@@ -426,6 +426,7 @@ impl Store {
 }
 
 #[cfg(test)]
+#[expect(clippy::indexing_slicing, reason = "tests: a panic is the failure report")]
 mod tests {
     use super::*;
 

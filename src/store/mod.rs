@@ -8,6 +8,10 @@
 //! write `NAME.seg.tmp`, fsync it, rename it to `NAME.seg`, fsync the directory, then one catalog
 //! write transaction that records the unit and its segments.
 
+// The layers that decode bytes from disk: a damaged byte must give an error, never a panic
+// (format-spec.md), so no unwrap, expect or unchecked index outside tests.
+#![deny(clippy::unwrap_used, clippy::expect_used, clippy::indexing_slicing)]
+
 #[doc(hidden)]
 pub mod catalog;
 #[doc(hidden)]

@@ -103,6 +103,7 @@ pub fn live_pinned_versions(root: &Path) -> std::io::Result<Vec<u64>> {
 }
 
 #[cfg(test)]
+#[expect(clippy::unwrap_used, reason = "tests: a panic is the failure report")]
 mod tests {
     use super::*;
 
