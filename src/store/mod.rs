@@ -22,6 +22,7 @@ mod pins;
 pub mod runner;
 pub mod snapshot;
 mod spill;
+mod stage_error;
 pub mod verify;
 
 use std::fs::{self, File};
@@ -42,6 +43,7 @@ pub use pins::ReaderPin;
 pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSpec};
 pub use snapshot::{SegmentChunks, SegmentFile, Snapshot};
 pub use spill::{SegmentContent, SegmentSpill};
+pub use stage_error::StageError;
 
 /// The catalog's file name inside a store folder.
 pub const CATALOG_FILE: &str = "catalog.redb";
@@ -168,14 +170,14 @@ pub enum StoreError {
         horizon: u64,
     },
     /// A stage failed on a unit (bad input, a missing earlier stage, an internal check).
-    #[error("stage '{stage}', {unit}: {message}")]
+    #[error("stage '{stage}', {unit}: {error}")]
     Stage {
         /// The stage.
         stage: String,
         /// The unit (a depth map, a treetop leaf) or `-`.
         unit: String,
-        /// What went wrong and what to do.
-        message: String,
+        /// What went wrong; its message says what to do (boxed: it is the largest variant's).
+        error: Box<StageError>,
     },
     /// A stage produced columns that break the segment format.
     #[error("invalid segment content: {0}")]
@@ -764,21 +766,44 @@ impl Store {
 
     /// Drops catalog records and files of segments that no version from `current - keep + 1`
     /// on can see, and of abandoned runs. Returns (files removed, bytes freed).
+    ///
+    /// Two steps, so that a reader in another process never loses a file it counts on: the new
+    /// horizon (held back to the oldest version a reader has open) is committed first, and the
+    /// reader pins are listed again before anything goes. A reader pins the horizon it read
+    /// and then reads the horizon again (a changed one makes it try again): a pin made before
+    /// the second listing keeps its version's files, and one made after it saw the new horizon.
     pub fn gc(&self, keep: u64) -> Result<(usize, u64)> {
         let db = self.writable()?;
         let current = self.current_version()?;
-        let mut horizon = current.saturating_sub(keep.max(1) - 1);
-        // Versions that readers in other processes have open stay.
-        let pinned = pins::live_pinned_versions(&self.root)
-            .map_err(io_error("list reader pins", &self.root.join(pins::PINS_DIR)))?;
-        if let Some(&oldest) = pinned.first()
-            && oldest < horizon
-        {
-            tracing::warn!("gc: keeping versions from {oldest} on: a reader has version {oldest} open");
-            horizon = oldest;
-        }
         // Never back: versions behind an earlier horizon have lost their files.
-        horizon = horizon.max(self.gc_horizon()?);
+        let earlier = self.gc_horizon()?;
+        let oldest_pinned = || -> Result<Option<u64>> {
+            let pinned = pins::live_pinned_versions(&self.root)
+                .map_err(io_error("list reader pins", &self.root.join(pins::PINS_DIR)))?;
+            Ok(pinned.first().copied())
+        };
+        let kept_from = |horizon: u64, oldest: Option<u64>| match oldest {
+            Some(oldest) if oldest < horizon => oldest.max(earlier),
+            _ => horizon,
+        };
+        let asked = current.saturating_sub(keep.max(1) - 1).max(earlier);
+        let horizon = kept_from(asked, oldest_pinned()?);
+        if horizon > earlier {
+            let txn = db.begin_write()?;
+            {
+                let mut meta = txn.open_table(META)?;
+                meta.insert(
+                    META_GC_HORIZON.as_bytes(),
+                    catalog::seal("meta", META_GC_HORIZON, &horizon.to_le_bytes()).as_slice(),
+                )?;
+            }
+            txn.commit()?;
+        }
+        // A reader that pinned the old horizon between the first listing and the commit.
+        let horizon = kept_from(horizon, oldest_pinned()?);
+        if horizon < asked {
+            tracing::warn!("gc: keeping versions from {horizon} on: a reader has version {horizon} open");
+        }
         let txn = db.begin_write()?;
         let mut doomed = Vec::new();
         {
@@ -802,11 +827,6 @@ impl Store {
             for (name, _) in &doomed {
                 segments.remove(name.as_bytes())?;
             }
-            let mut meta = txn.open_table(META)?;
-            meta.insert(
-                META_GC_HORIZON.as_bytes(),
-                catalog::seal("meta", META_GC_HORIZON, &horizon.to_le_bytes()).as_slice(),
-            )?;
         }
         txn.commit()?;
         // Files go only after the commit: a crash in between leaves debris, removed on open.
