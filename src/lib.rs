@@ -43,15 +43,16 @@ pub mod store;
 mod sys;
 
 pub use format::{BoundingBox, CubeKey, Scene};
-pub use inputs::{DiscoverOptions, InputError};
+pub use inputs::{DiscoverOptions, InputError, PoseProblem};
 pub use mesh::{Mesh, MeshReadError, MeshSummary};
+pub use pipeline::divide::DivideError;
 pub use pipeline::{PipelineError, SolveOptions, SolveUntil};
 pub use quality::synthetic_scenes::SceneSpec;
 pub use query::{CubeInfo, IndicatorField, LeafInfo};
 pub use stages::extract::{DEFAULT_MAX_ERROR, ExtractOptions, Simplify};
 pub use stages::ingest::IngestOptions;
 pub use stages::solve::{Method, SolveParams, SsdParams};
-pub use store::{RunOptions, RunReport, Snapshot, Store, StoreError};
+pub use store::{RunOptions, RunReport, Snapshot, StageError, Store, StoreError};
 pub use sys::{die_quietly_on_closed_pipe, set_env_defaults_at_start};
 
 /// The guide's Rust examples (`docs/api.md`), compiled and run by `cargo test --doc` so that

@@ -13,6 +13,7 @@ use crate::stages::HISTOGRAMS;
 use crate::stages::ingest::scene_at;
 use crate::stages::solve::{CutValue, LEVEL_STAGES, LevelCut, method_of_segment};
 use crate::stages::treetop::Treetop;
+use crate::store::StageError;
 use crate::store::{Result, Snapshot, StoreError};
 
 /// One cube of a level cut, as `cubes_in` returns it.
@@ -121,18 +122,12 @@ pub fn ensure_solution_is_current(snapshot: &Snapshot<'_>) -> Result<()> {
             .snapshot(v)
             .is_ok_and(|s| s.finest_level().is_some() && solution_is_current(&s))
     });
-    let advice = match complete {
-        Some(v) => {
-            format!("run `octstore solve` to finish it, or read version {v}, the latest complete one (--version {v})")
-        }
-        None => "run `octstore solve` to finish it".into(),
-    };
     Err(StoreError::Stage {
         stage: "read".into(),
         unit: format!("version {}", snapshot.version()),
-        message: format!(
-            "its solution is older than its octree or histograms (a solve has not finished since the last change): {advice}"
-        ),
+        error: Box::new(StageError::SolutionBehind {
+            latest_complete: complete,
+        }),
     })
 }
 
@@ -158,7 +153,7 @@ fn scene_of(snapshot: &Snapshot<'_>) -> Result<Scene> {
     scene_at(snapshot.store(), snapshot.version())?.ok_or_else(|| StoreError::Stage {
         stage: "query".into(),
         unit: "-".into(),
-        message: "the store has no depth maps yet".into(),
+        error: Box::new(StageError::NotIngested),
     })
 }
 

@@ -17,8 +17,40 @@ pub const PRINCIPAL_POINT_REACH: f64 = 0.08;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum InputError {
-    /// The file is not a usable input.
-    #[error("{file}: {problem}")]
+    /// The path does not exist.
+    #[error("{}: no such file or folder", file.display())]
+    NotFound {
+        /// The path given.
+        file: PathBuf,
+    },
+    /// The path is a folder, FIFO, socket or device where a file was expected (opening a FIFO
+    /// would block).
+    #[error("{}: not a regular file ({kind}): name the file itself", file.display())]
+    NotARegularFile {
+        /// The path given.
+        file: PathBuf,
+        /// What it is instead: "a folder", or "a FIFO, socket or device".
+        kind: &'static str,
+    },
+    /// `--format auto` cannot tell what the path holds.
+    #[error("{}: cannot tell the input format ({expected}); pass --format", file.display())]
+    UnknownFormat {
+        /// The path given.
+        file: PathBuf,
+        /// What auto-detection looks for at such a path.
+        expected: &'static str,
+    },
+    /// A camera-to-world pose that is not a rotation and a translation.
+    #[error("{}: {problem}", file.display())]
+    BadPose {
+        /// The file holding the pose.
+        file: PathBuf,
+        /// What is wrong with it.
+        problem: PoseProblem,
+    },
+    /// The file is not a usable input: the problems programs are not expected to tell apart
+    /// (a malformed header, a truncated image, a value out of range, ...), named in words.
+    #[error("{}: {problem}", file.display())]
     Bad {
         /// The file.
         file: PathBuf,
@@ -387,22 +419,42 @@ pub fn check_depth_scale(scale: f64) -> Result<f64, String> {
     }
 }
 
+/// What is wrong with a camera-to-world pose ([`InputError::BadPose`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum PoseProblem {
+    /// A NaN or infinite entry.
+    #[error("pose has non-finite entries")]
+    NonFinite,
+    /// The last row is not `0 0 0 1`.
+    #[error("pose's last row is {0:?}, expected 0 0 0 1")]
+    NotAffine([f64; 4]),
+    /// The rotation part is singular.
+    #[error("pose is not invertible (rotation determinant {0:.3e})")]
+    NotInvertible(f64),
+    /// The rotation part mirrors (determinant -1).
+    #[error(
+        "pose's rotation is a reflection (determinant {0:.3}): a camera-to-world pose is a rotation and a translation; check the axes convention (one axis flipped)"
+    )]
+    Reflection(f64),
+    /// The rotation part scales or shears (depth is metric, so no scale is allowed).
+    #[error("pose's rotation is not orthonormal (error {0:.3e})")]
+    NotOrthonormal(f64),
+}
+
 /// Checks that `path` is a regular file (or a link to one) before it is opened: opening a FIFO
 /// blocks until something writes to it, and a device or a folder is no depth map.
 pub fn check_regular_file(path: &Path) -> Result<(), InputError> {
     match std::fs::metadata(path) {
         Ok(metadata) if metadata.is_file() => Ok(()),
-        Ok(metadata) => Err(bad(
-            path,
-            format!(
-                "not a regular file ({}): name the file itself",
-                if metadata.is_dir() {
-                    "a folder"
-                } else {
-                    "a FIFO, socket or device"
-                }
-            ),
-        )),
+        Ok(metadata) => Err(InputError::NotARegularFile {
+            file: path.to_path_buf(),
+            kind: if metadata.is_dir() {
+                "a folder"
+            } else {
+                "a FIFO, socket or device"
+            },
+        }),
         Err(source) => Err(InputError::Io {
             file: path.to_path_buf(),
             source,
@@ -413,40 +465,36 @@ pub fn check_regular_file(path: &Path) -> Result<(), InputError> {
 /// Checks a camera-to-world matrix: finite, affine, with an invertible, near-orthonormal
 /// rotation part (scale is not allowed: depth is metric).
 pub fn check_pose(file: &Path, m: &DMat4) -> Result<(), InputError> {
+    pose_problem(m).map_or(Ok(()), |problem| {
+        Err(InputError::BadPose {
+            file: file.to_path_buf(),
+            problem,
+        })
+    })
+}
+
+/// What is wrong with a camera-to-world matrix, if anything.
+fn pose_problem(m: &DMat4) -> Option<PoseProblem> {
     if !m.to_cols_array().iter().all(|v| v.is_finite()) {
-        return Err(bad(file, "pose has non-finite entries"));
+        return Some(PoseProblem::NonFinite);
     }
     let row3 = m.row(3);
     if (row3 - glam::DVec4::new(0.0, 0.0, 0.0, 1.0)).abs().max_element() > 1e-6 {
-        return Err(bad(file, format!("pose's last row is {row3:?}, expected 0 0 0 1")));
+        return Some(PoseProblem::NotAffine(row3.to_array()));
     }
     let r = DMat3::from_mat4(*m);
     let det = r.determinant();
     if det.abs() < 1e-6 {
-        return Err(bad(
-            file,
-            format!("pose is not invertible (rotation determinant {det:.3e})"),
-        ));
+        return Some(PoseProblem::NotInvertible(det));
     }
     if det < 0.0 {
-        return Err(bad(
-            file,
-            format!(
-                "pose's rotation is a reflection (determinant {det:.3}): a camera-to-world pose is a rotation and a translation; check the axes convention (one axis flipped)"
-            ),
-        ));
+        return Some(PoseProblem::Reflection(det));
     }
     let err = (r.transpose() * r - DMat3::IDENTITY)
         .to_cols_array()
         .iter()
         .fold(0f64, |a, b| a.max(b.abs()));
-    if err > 1e-3 {
-        return Err(bad(
-            file,
-            format!("pose's rotation is not orthonormal (error {err:.3e})"),
-        ));
-    }
-    Ok(())
+    (err > 1e-3).then_some(PoseProblem::NotOrthonormal(err))
 }
 
 impl DepthMapSource {

@@ -100,13 +100,15 @@ fn detect(path: &Path, intrinsics_given: bool) -> Result<InputFormat, InputError
                 "RGB-D frames (*.depth.png) without camera-intrinsics.txt beside them: name the intrinsics file with --intrinsics FILE",
             ));
         }
-        return Err(bad(
-            path,
-            "cannot tell the input format: a folder needs camera-intrinsics.txt (7-Scenes/RGB-D), depth.txt and groundtruth.txt (TUM RGB-D) or sparse/ and stereo/ (COLMAP); pass --format",
-        ));
+        return Err(InputError::UnknownFormat {
+            file: path.to_path_buf(),
+            expected: "a folder needs camera-intrinsics.txt (7-Scenes/RGB-D), depth.txt and groundtruth.txt (TUM RGB-D) or sparse/ and stereo/ (COLMAP)",
+        });
     }
     if !path.exists() {
-        return Err(bad(path, "no such file or folder"));
+        return Err(InputError::NotFound {
+            file: path.to_path_buf(),
+        });
     }
     if name.ends_with(".depth.png") {
         return Ok(InputFormat::SevenScenes);
@@ -117,10 +119,10 @@ fn detect(path: &Path, intrinsics_given: bool) -> Result<InputFormat, InputError
     if name.ends_with(".e57") || name.ends_with(".ptx") {
         return Ok(InputFormat::Lidar);
     }
-    Err(bad(
-        path,
-        "cannot tell the input format (expected a 7-Scenes folder or frame-*.depth.png, a .json manifest, a COLMAP workspace, .e57 or .ptx); pass --format",
-    ))
+    Err(InputError::UnknownFormat {
+        file: path.to_path_buf(),
+        expected: "expected a 7-Scenes folder or frame-*.depth.png, a .json manifest, a COLMAP workspace, .e57 or .ptx",
+    })
 }
 
 /// All depth maps named by `paths`, validated cheaply (headers, poses, intrinsics).

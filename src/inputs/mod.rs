@@ -22,8 +22,8 @@ mod tum;
 pub use colmap::{WorkspaceWriter, write_colmap_depth};
 pub use depth_map::{
     DEFAULT_NOISE_FOOTPRINTS, DEFAULT_NOISE_SIGMAS, DepthImage, DepthMapSource, DepthNoise, ImageFormat, InputError,
-    Kind, MAX_DEPTH_SCALE, MAX_NOISE_SIGMAS, Projection, bad, check_depth_scale, check_noise_sigmas, check_pose,
-    check_regular_file, extension_of,
+    Kind, MAX_DEPTH_SCALE, MAX_NOISE_SIGMAS, PoseProblem, Projection, bad, check_depth_scale, check_noise_sigmas,
+    check_pose, check_regular_file, extension_of,
 };
 pub use depth_rows::DepthRows;
 pub use discover::{DiscoverOptions, InputFormat, discover};

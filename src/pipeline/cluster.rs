@@ -15,6 +15,7 @@ use crate::stages::samples::{SAMPLES, SamplesStage};
 use crate::stages::solve::{LEVEL_STAGES, LevelStage, Method, SolveParams};
 use crate::stages::treetop::Treetop;
 use crate::stages::{HISTOGRAMS, OCTREE, octree_max_depth};
+use crate::store::StageError;
 use crate::store::cluster::{ClusterPlan, WorkReport, decode_chunk_file, encode_chunk_file};
 use crate::store::{Stage, Store};
 
@@ -354,7 +355,7 @@ pub fn commit_extract(store: &Store, memory_budget: u64) -> Result<(MeshSummary,
         Err(crate::store::StoreError::Stage {
             stage: "extract".into(),
             unit: "-".into(),
-            message: "damaged chunks".into(),
+            error: Box::new(StageError::internal("damaged chunks")),
         })
     });
     let written = write_pieces(

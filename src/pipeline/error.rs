@@ -50,7 +50,7 @@ pub enum PipelineError {
     PointCloud(InputError),
     /// `divide` or `merge` cannot go on: what is wrong, naming the file or folder.
     #[error("divide: {0}")]
-    Divide(String),
+    Divide(#[from] super::divide::DivideError),
     /// A mesh file could not be read.
     #[error(transparent)]
     Mesh(#[from] MeshReadError),

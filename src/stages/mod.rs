@@ -39,6 +39,6 @@ pub fn octree_max_depth(store: &crate::store::Store) -> crate::store::Result<u8>
     value.ok_or_else(|| crate::store::StoreError::Stage {
         stage: OCTREE.into(),
         unit: "-".into(),
-        message: "no octree yet: run `octstore solve` first".into(),
+        error: Box::new(crate::store::StageError::NoOctree),
     })
 }

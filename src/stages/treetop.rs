@@ -2,6 +2,7 @@
 //! plus one for the treetop's internal nodes), and every cube key belongs to exactly one unit.
 
 use crate::format::CubeKey;
+use crate::store::StageError;
 use crate::store::catalog::SegmentRecord;
 use crate::store::{Result, Snapshot, StoreError};
 
@@ -30,7 +31,7 @@ impl Treetop {
             return Err(StoreError::Stage {
                 stage: OCTREE.into(),
                 unit: "-".into(),
-                message: "no octree yet: run `octstore solve` first".into(),
+                error: Box::new(StageError::NoOctree),
             });
         }
         let root = CubeKey::new(0, 0, 0, 0);

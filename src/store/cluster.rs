@@ -27,6 +27,7 @@ use std::path::{Path, PathBuf};
 use redb::ReadableTable;
 use serde::{Deserialize, Serialize};
 
+use super::StageError;
 use super::catalog::{self, META, SegmentRecord};
 use super::runner::{ProducedUnit, Stage, UnitSpec};
 use super::{CHUNKS_DIR, Result, RunOptions, RunReport, Store, StoreError, io_error, sync_dir};
@@ -66,22 +67,15 @@ impl ClusterPlan {
     /// The error of a commit that found chunks `missing` or damaged: names them and the first of
     /// the `files` at fault (missing, or not decoding).
     pub fn missing_chunks_error(&self, missing: &std::collections::BTreeSet<u32>, files: &[PathBuf]) -> StoreError {
-        let list: Vec<String> = missing.iter().map(u32::to_string).collect();
-        const NAMED: usize = 3;
-        let mut named: Vec<String> = files.iter().take(NAMED).map(|f| f.display().to_string()).collect();
-        if files.len() > NAMED {
-            named.push(format!("and {} more", files.len() - NAMED));
-        }
         cluster_error(
             &self.stage,
             "commit",
-            format!(
-                "chunk(s) {} of {} are missing or damaged ({}): run `octstore work STORE --stage {} --chunk N` for each, then commit again",
-                list.join(", "),
-                self.chunks,
-                named.join(", "),
-                self.stage
-            ),
+            StageError::ChunksMissing {
+                stage: self.stage.clone(),
+                missing: missing.iter().copied().collect(),
+                chunks: self.chunks,
+                files: files.to_vec(),
+            },
         )
     }
 
@@ -91,7 +85,7 @@ impl ClusterPlan {
             return Err(cluster_error(
                 &self.stage,
                 format!("chunk {chunk}"),
-                format!("the plan has chunks 0 to {}", self.chunks - 1),
+                StageError::NoSuchChunk { chunks: self.chunks },
             ));
         }
         Ok(())
@@ -128,11 +122,11 @@ fn manifest_name(unit: u64) -> String {
     format!("u{unit:010}.unit")
 }
 
-fn cluster_error(stage: &str, unit: impl Into<String>, message: impl Into<String>) -> StoreError {
+fn cluster_error(stage: &str, unit: impl Into<String>, error: StageError) -> StoreError {
     StoreError::Stage {
         stage: stage.into(),
         unit: unit.into(),
-        message: message.into(),
+        error: Box::new(error),
     }
 }
 
@@ -283,11 +277,10 @@ impl Store {
             return Err(cluster_error(
                 name,
                 "plan",
-                format!(
-                    "the store changed since the plan was made (version {} now, {} then, or other inputs): run `octstore plan` again",
-                    base.version(),
-                    plan.base_version
-                ),
+                StageError::PlanOutdated {
+                    now: base.version(),
+                    then: plan.base_version,
+                },
             ));
         }
         if plan.units.is_empty() {
@@ -299,7 +292,7 @@ impl Store {
     /// The recorded plan of `name`, or an error that says to plan first.
     pub fn recorded_plan(&self, name: &str) -> Result<ClusterPlan> {
         self.cluster_plan(name)?
-            .ok_or_else(|| cluster_error(name, "plan", "no cluster plan: run `octstore plan` first"))
+            .ok_or_else(|| cluster_error(name, "plan", StageError::NoPlan))
     }
 
     /// Computes chunk `chunk` of the recorded plan into the chunk folder. Needs only read access
@@ -321,7 +314,7 @@ impl Store {
             }
             let spec = specs
                 .get(&unit)
-                .ok_or_else(|| cluster_error(name, format!("unit {unit}"), "not part of the stage's plan"))?;
+                .ok_or_else(|| cluster_error(name, format!("unit {unit}"), StageError::NotInPlan))?;
             let output = stage.run_unit(&base, spec)?;
             let mut segments = Vec::with_capacity(output.segments.len());
             for (part, content) in output.segments.into_iter().enumerate() {
@@ -401,9 +394,9 @@ impl Store {
         let adopt = |_: &super::Snapshot<'_>, target: u64, unit: &UnitSpec| -> Result<ProducedUnit> {
             let manifest = manifests
                 .get(&unit.id)
-                .ok_or_else(|| cluster_error(name, unit.label.clone(), "no worker output for this unit"))?;
+                .ok_or_else(|| cluster_error(name, unit.label.clone(), StageError::NoWorkerOutput))?;
             if target != plan.target() {
-                return Err(cluster_error(name, unit.label.clone(), "the target version moved"));
+                return Err(cluster_error(name, unit.label.clone(), StageError::TargetMoved));
             }
             for (file, _) in &manifest.segments {
                 let from = dir.join(file);

@@ -17,12 +17,13 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::Path;
 
+use super::DivideError;
 use super::grid::{Lookup, Node};
 use super::manifest::{Cube, Manifest, Subspace};
 use super::subspace_files::fixed_header;
 use super::{
-    BLOCK_BYTES, Context, DivideOptions, DivideReport, Feed, MAX_LOOKUP_DEPTH, PointSource, STAGING, commit,
-    divide_error, io, progress, scan, stream,
+    BLOCK_BYTES, Context, DivideOptions, DivideReport, Feed, MAX_LOOKUP_DEPTH, PointSource, STAGING, commit, io,
+    progress, scan, stream,
 };
 use crate::inputs::{PointCloudFile, PointLayout, open_point_cloud};
 use crate::pipeline::{PipelineError, Result};
@@ -41,23 +42,26 @@ pub(super) fn divide_more(
     options: &DivideOptions,
 ) -> Result<DivideReport> {
     let Manifest { subspaces, division } = manifest;
-    let layout = division.layout().map_err(divide_error)?;
+    let layout = division.layout().map_err(|e| DivideError::BadManifest {
+        path: dir.join(super::MANIFEST),
+        source: e.into(),
+    })?;
     check_compatible(sources, dir, &division, &layout, options)?;
     let root = division.root;
     let feeds: Vec<Feed<'_>> = sources.iter().map(|&source| Feed { source, keep: None }).collect();
     let scanned = scan(&feeds, &layout, options)?;
     if scanned.points == 0 {
-        return Err(divide_error("the inputs hold no points"));
+        return Err(DivideError::NoPoints.into());
     }
     if !(root.contains(scanned.low) && root.contains(scanned.high)) {
-        return Err(divide_error(format!(
-            "the new points reach from {:?} to {:?}, beyond the root cube of {} (min {:?}, size {}): divide everything into a new folder",
-            scanned.low,
-            scanned.high,
-            dir.display(),
-            root.min,
-            root.size
-        )));
+        return Err(DivideError::BeyondRoot {
+            folder: dir.to_path_buf(),
+            low: scanned.low,
+            high: scanned.high,
+            root_min: root.min,
+            root_size: root.size,
+        }
+        .into());
     }
     let feeds: Vec<Feed<'_>> = scanned.order.iter().filter_map(|&i| feeds.get(i).copied()).collect();
     let (new_core, touched) = owners_of_new_points(&feeds, &layout, &subspaces, &division, options)?;
@@ -313,24 +317,24 @@ fn check_compatible(
     options: &DivideOptions,
 ) -> Result<()> {
     if options.max_points != division.max_points || options.overlap != division.overlap {
-        return Err(divide_error(format!(
-            "{} was divided with --max-points {} and --overlap {}; a later divide into it keeps them (asked: {} and {})",
-            dir.display(),
-            division.max_points,
-            division.overlap,
-            options.max_points,
-            options.overlap
-        )));
+        return Err(DivideError::LimitsDiffer {
+            folder: dir.to_path_buf(),
+            max_points: division.max_points,
+            overlap: division.overlap,
+            asked_max_points: options.max_points,
+            asked_overlap: options.overlap,
+        }
+        .into());
     }
     for source in sources {
         if source.layout() != layout {
-            return Err(divide_error(format!(
-                "{}: its vertex properties ({}) differ from those of the division in {} ({})",
-                source.describe(),
-                super::property_list(source.layout()),
-                dir.display(),
-                super::property_list(layout)
-            )));
+            return Err(DivideError::PropertiesDiffer {
+                input: source.describe(),
+                properties: super::property_list(source.layout()),
+                other: format!("the division in {}", dir.display()),
+                other_properties: super::property_list(layout),
+            }
+            .into());
         }
     }
     Ok(())

@@ -7,6 +7,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
+use super::DivideError;
 use super::grid::{Bounds, Node, Root};
 use crate::format::ply_header::PlyScalar;
 use crate::inputs::PointLayout;
@@ -191,31 +192,39 @@ impl Division {
     }
 }
 
+/// The error of a manifest at `path`.
+fn bad(path: &Path) -> impl Fn(Box<dyn std::error::Error + Send + Sync>) -> DivideError + '_ {
+    move |source| DivideError::BadManifest {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
 /// Reads a folder's manifest; `None` when there is none.
-pub fn read_manifest(dir: &Path) -> Result<Option<Manifest>, String> {
+pub fn read_manifest(dir: &Path) -> Result<Option<Manifest>, DivideError> {
     let path = dir.join(MANIFEST);
     let bytes = match std::fs::read(&path) {
         Ok(bytes) => bytes,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(format!("{}: {e}", path.display())),
+        Err(e) => return Err(bad(&path)(e.into())),
     };
-    let manifest: Manifest = serde_json::from_slice(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+    let manifest: Manifest = serde_json::from_slice(&bytes).map_err(|e| bad(&path)(e.into()))?;
     if manifest.division.version > FORMAT_VERSION {
-        return Err(format!(
-            "{}: written by a later octstore (division version {})",
-            path.display(),
+        let later = format!(
+            "written by a later octstore (division version {})",
             manifest.division.version
-        ));
+        );
+        return Err(bad(&path)(later.into()));
     }
-    manifest.check().map_err(|e| format!("{}: {e}", path.display()))?;
+    manifest.check().map_err(|e| bad(&path)(e.into()))?;
     Ok(Some(manifest))
 }
 
 /// Reads the manifest at `path` (for `merge`, which may name it anywhere).
-pub fn read_manifest_file(path: &Path) -> Result<Manifest, String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let manifest: Manifest = serde_json::from_slice(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
-    manifest.check().map_err(|e| format!("{}: {e}", path.display()))?;
+pub fn read_manifest_file(path: &Path) -> Result<Manifest, DivideError> {
+    let bytes = std::fs::read(path).map_err(|e| bad(path)(e.into()))?;
+    let manifest: Manifest = serde_json::from_slice(&bytes).map_err(|e| bad(path)(e.into()))?;
+    manifest.check().map_err(|e| bad(path)(e.into()))?;
     Ok(manifest)
 }
 

@@ -9,7 +9,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use super::manifest::{Manifest, read_manifest_file};
-use super::{divide_error, io};
+use super::{DivideError, io};
 use crate::mesh::{Mesh, edge_defects, read_mesh, write_mesh};
 use crate::pipeline::Result;
 
@@ -56,19 +56,19 @@ fn match_meshes<'a>(manifest: &Manifest, meshes: &'a [PathBuf]) -> Result<Vec<Op
             })
             .max_by_key(|(_, stem)| stem.len());
         let Some((index, _)) = best else {
-            return Err(divide_error(format!(
-                "{}: its name starts with no subspace's file name in the manifest",
-                mesh.display()
-            )));
+            return Err(DivideError::UnmatchedMesh {
+                mesh: mesh.to_path_buf(),
+            }
+            .into());
         };
         match matched.get_mut(index) {
             Some(Some(other)) => {
-                return Err(divide_error(format!(
-                    "{} and {} are both meshes of subspace {}",
-                    other.display(),
-                    mesh.display(),
-                    stems.get(index).map_or("", String::as_str)
-                )));
+                return Err(DivideError::TwoMeshes {
+                    first: other.to_path_buf(),
+                    second: mesh.to_path_buf(),
+                    subspace: stems.get(index).map_or("", String::as_str).to_string(),
+                }
+                .into());
             }
             Some(slot) => *slot = Some(mesh),
             None => {}
@@ -83,7 +83,7 @@ pub fn merge(manifest_path: &Path, meshes: &[PathBuf], output: &Path) -> Result<
 }
 
 fn merge_meshes(manifest_path: &Path, meshes: &[PathBuf], output: &Path) -> Result<MergeReport> {
-    let manifest = read_manifest_file(manifest_path).map_err(divide_error)?;
+    let manifest = read_manifest_file(manifest_path)?;
     let matched = match_meshes(&manifest, meshes)?;
     let tolerance = manifest.division.root.size * 1e-6;
     let mut report = MergeReport::default();
@@ -103,10 +103,10 @@ fn merge_meshes(manifest_path: &Path, meshes: &[PathBuf], output: &Path) -> Resu
         for triangle in &mesh.triangles {
             let corners = triangle.map(|v| mesh.positions.get(v as usize).copied());
             let [Some(a), Some(b), Some(c)] = corners else {
-                return Err(divide_error(format!(
-                    "{}: a triangle names a missing vertex",
-                    mesh_path.display()
-                )));
+                return Err(DivideError::MissingVertex {
+                    mesh: mesh_path.to_path_buf(),
+                }
+                .into());
             };
             let centroid = [0, 1, 2].map(|k| (f64::from(a[k]) + f64::from(b[k]) + f64::from(c[k])) / 3.0);
             if !subspace.core.contains(centroid) {

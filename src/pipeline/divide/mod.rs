@@ -16,6 +16,7 @@
 //! thread count and input order. A later `divide` into the same folder updates only the
 //! subspaces the new points touch (`incremental.rs`).
 
+mod error;
 mod grid;
 mod incremental;
 mod manifest;
@@ -29,6 +30,7 @@ use std::path::{Path, PathBuf};
 use indicatif::ProgressBar;
 use rayon::prelude::*;
 
+pub use error::DivideError;
 pub use grid::{Bounds, GRID_BITS, Node, Root};
 pub use manifest::{Cube, Division, MANIFEST, Manifest, Subspace, read_manifest_file};
 pub use sources::{ScanPoints, StoreSamples, open_input};
@@ -109,10 +111,7 @@ pub trait PointSource: Sync {
     /// what it held: the records [`PointSource::for_each_block`] hands over as its block
     /// `index`.
     fn read_block(&self, _block_points: usize, _index: u64, _block: &mut Vec<u8>) -> Result<()> {
-        Err(divide_error(format!(
-            "{} is read in order, not by blocks",
-            self.describe()
-        )))
+        Err(DivideError::Internal(format!("{} is read in order, not by blocks", self.describe())).into())
     }
 }
 
@@ -163,10 +162,6 @@ const BATCH_PER_THREAD: usize = 8;
 /// The scratch folder inside a division's folder; removed at the start and end of a run.
 const STAGING: &str = ".divide-staging";
 
-pub(crate) fn divide_error(problem: impl Into<String>) -> PipelineError {
-    PipelineError::Divide(problem.into())
-}
-
 fn io<'a>(action: &'static str, path: &'a Path) -> impl Fn(std::io::Error) -> PipelineError + 'a {
     move |source| PipelineError::Io {
         action,
@@ -207,30 +202,33 @@ pub fn divide_sources(sources: &[&dyn PointSource], dir: &Path, options: &Divide
 
 fn divide_sources_as_given(sources: &[&dyn PointSource], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
     if options.max_points == 0 {
-        return Err(divide_error("--max-points must be at least 1"));
+        return Err(DivideError::MaxPointsZero.into());
     }
     if !(0.0..1.0).contains(&options.overlap) {
-        return Err(divide_error(format!("--overlap {} is not in [0, 1)", options.overlap)));
+        return Err(DivideError::OverlapOutOfRange {
+            overlap: options.overlap,
+        }
+        .into());
     }
     let Some(first) = sources.first() else {
-        return Err(divide_error("no input point clouds"));
+        return Err(DivideError::NoInputs.into());
     };
     for source in sources {
         if source.layout() != first.layout() {
-            return Err(divide_error(format!(
-                "{}: its vertex properties ({}) differ from those of {} ({}); divide them separately",
-                source.describe(),
-                property_list(source.layout()),
-                first.describe(),
-                property_list(first.layout())
-            )));
+            return Err(DivideError::PropertiesDiffer {
+                input: source.describe(),
+                properties: property_list(source.layout()),
+                other: first.describe(),
+                other_properties: property_list(first.layout()),
+            }
+            .into());
         }
     }
     std::fs::create_dir_all(dir).map_err(io("create", dir))?;
     let staging = dir.join(STAGING);
     remove_staging(&staging)?;
     std::fs::create_dir_all(&staging).map_err(io("create", &staging))?;
-    let existing = manifest::read_manifest(dir).map_err(divide_error)?;
+    let existing = manifest::read_manifest(dir)?;
     remove_leftovers(dir, existing.as_ref())?;
     let result = match existing {
         Some(manifest) => incremental::divide_more(sources, dir, manifest, options),
@@ -297,10 +295,10 @@ fn divide_fresh(sources: &[&dyn PointSource], dir: &Path, options: &DivideOption
     let layout = sources
         .first()
         .map(|s| s.layout().clone())
-        .ok_or_else(|| divide_error("no inputs"))?;
+        .ok_or(DivideError::NoInputs)?;
     let feeds: Vec<Feed<'_>> = sources.iter().map(|&source| Feed { source, keep: None }).collect();
     let scan = scan(&feeds, &layout, options)?;
-    let root = Root::around(scan.low, scan.high).ok_or_else(|| divide_error("the inputs hold no points"))?;
+    let root = Root::around(scan.low, scan.high).ok_or(DivideError::NoPoints)?;
     let feeds: Vec<Feed<'_>> = scan.order.iter().filter_map(|&i| feeds.get(i).copied()).collect();
     let mut division = Division {
         version: manifest::FORMAT_VERSION,

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 
-use super::{PointSource, Result, divide_error};
+use super::{DivideError, PointSource, Result};
 use crate::format::ply_header::PlyScalar;
 use crate::inputs::{PointLayout, extension_of, open_point_cloud, scan_points_in_world};
 use crate::pipeline::PipelineError;
@@ -29,10 +29,10 @@ pub fn open_input(path: &Path, memory_budget: u64) -> Result<Box<dyn PointSource
         if path.join(CATALOG_FILE).is_file() {
             return Ok(Box::new(StoreSamples::open(path, memory_budget)?));
         }
-        return Err(divide_error(format!(
-            "{}: a folder, but not an octstore store (no {CATALOG_FILE}); give point cloud files, scans or a store",
-            path.display()
-        )));
+        return Err(DivideError::NotAStore {
+            path: path.to_path_buf(),
+        }
+        .into());
     }
     let extension = extension_of(path);
     match extension.as_str() {
@@ -146,7 +146,10 @@ impl StoreSamples {
         let store = Store::open_read_only(path)?;
         let maps: Vec<DepthMapRecord> = registered_depth_maps(&store)?.into_iter().map(|(_, r)| r).collect();
         if maps.is_empty() {
-            return Err(divide_error(format!("{}: the store has no depth maps", path.display())));
+            return Err(DivideError::EmptyStore {
+                path: path.to_path_buf(),
+            }
+            .into());
         }
         Ok(StoreSamples {
             path: path.to_path_buf(),

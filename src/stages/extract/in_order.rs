@@ -1,6 +1,7 @@
 //! An in-order parallel map: workers compute pieces ahead (a bounded window) while one
 //! consumer takes them strictly in item order.
 
+use crate::store::StageError;
 use crate::store::{Result, StoreError};
 
 /// How far workers may run ahead of the consumer: at most `pieces` results exist at once (the
@@ -154,7 +155,7 @@ impl<T> Iterator for InOrderPieces<'_, T> {
                 return Some(Err(StoreError::Stage {
                     stage: "extract".into(),
                     unit: taken.to_string(),
-                    message: "a worker thread panicked".into(),
+                    error: Box::new(StageError::WorkerPanicked),
                 }));
             }
             if taken >= self.count {
@@ -280,7 +281,7 @@ mod tests {
                 return Err(StoreError::Stage {
                     stage: "extract".into(),
                     unit: item.to_string(),
-                    message: "bad unit".into(),
+                    error: Box::new(StageError::internal("bad unit")),
                 });
             }
             Ok(item)

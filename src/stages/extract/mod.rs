@@ -84,6 +84,7 @@ use super::treetop::Treetop;
 use crate::format::{BoundingBox, CubeKey, Scene};
 pub use crate::mesh::MeshSummary;
 use crate::mesh::{Mesh, UnitMesh, clip, edge_defects, write_mesh};
+use crate::store::StageError;
 use crate::store::{Result, Snapshot, StoreError};
 
 /// Hash tables keyed by surface-vertex and edge names: nothing depends on their iteration
@@ -244,7 +245,7 @@ pub fn extract_units(
         return Err(StoreError::Stage {
             stage: "extract".into(),
             unit: "-".into(),
-            message: format!("no solution at level {finest}: run `octstore solve` first"),
+            error: Box::new(StageError::NoSolution { level: finest }),
         });
     }
     Ok((0..treetop.units.len())
@@ -510,7 +511,7 @@ fn piece(
         .ok_or_else(|| StoreError::Stage {
             stage: "extract".into(),
             unit: unit.to_string(),
-            message: "no such treetop unit".into(),
+            error: Box::new(StageError::internal("no such treetop unit")),
         })?;
     Ok((unit, key, unit_mesh(snapshot, treetop, scene, finest, unit, closed)?))
 }

@@ -28,6 +28,7 @@ use crate::kernels::votes::{
     BINS, Chunk, ChunkedCubes, FrustumTest, MAPS_AT_ONCE, MapVote, Pyramid, UnitView, band_floor, chunks,
     cube_geometry, cube_offsets, quantized_weight, relayout_for_lanes, vote_maps,
 };
+use crate::store::StageError;
 use crate::store::catalog::{self, META, UNIT_STATE, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
@@ -114,17 +115,18 @@ impl HistogramsStage {
         if seen(&self.verified) {
             return Ok(());
         }
-        let stage_error = |message: String| StoreError::Stage {
+        let stage_error = |error: StageError| StoreError::Stage {
             stage: HISTOGRAMS.into(),
             unit: unit.to_string(),
-            message,
+            error: Box::new(error),
         };
-        let found = super::ingest::depth_map_id(source).map_err(|e| stage_error(e.to_string()))?;
+        let found = super::ingest::depth_map_id(source).map_err(|e| stage_error(StageError::Input(Box::new(e))))?;
         if found != id {
-            return Err(stage_error(format!(
-                "{}: the file changed since it was ingested (its content hash is {found:016x}, the store recorded {id:016x}); put the ingested file back, or ingest the new one into a new store",
-                source.path.display()
-            )));
+            return Err(stage_error(StageError::FileChanged {
+                path: source.path.clone(),
+                found,
+                recorded: id,
+            }));
         }
         self.verified
             .lock()
@@ -325,7 +327,7 @@ impl Stage for HistogramsStage {
         let plans = self.units.get().ok_or_else(|| StoreError::Stage {
             stage: HISTOGRAMS.into(),
             unit: unit.label.clone(),
-            message: "units run before planning".into(),
+            error: Box::new(StageError::internal("units run before planning")),
         })?;
         let members = self
             .groups
@@ -343,7 +345,7 @@ impl Stage for HistogramsStage {
                     let plan = plans.get(member).ok_or_else(|| StoreError::Stage {
                         stage: HISTOGRAMS.into(),
                         unit: unit.label.clone(),
-                        message: "unit out of range".into(),
+                        error: Box::new(StageError::internal("unit out of range")),
                     })?;
                     self.voter(base, plan)
                 })
@@ -686,7 +688,7 @@ impl HistogramsStage {
             let mut image = source.load().map_err(|e| StoreError::Stage {
                 stage: HISTOGRAMS.into(),
                 unit: unit.to_string(),
-                message: e.to_string(),
+                error: Box::new(StageError::Input(Box::new(e))),
             })?;
             // A map that sees its content against nothing votes free space there.
             crate::kernels::background::mark_background(&mut image, &source.projection);

@@ -15,6 +15,7 @@ use redb::ReadableTable;
 use super::{DepthMedian, bounds_of, robust_bounds};
 use crate::format::{Column, ColumnValues, META_SCENE, Scene};
 use crate::inputs::DepthMapSource;
+use crate::store::StageError;
 use crate::store::catalog::{self, META};
 use crate::store::{Result, SegmentFile, Store, StoreError};
 
@@ -109,10 +110,13 @@ pub fn growth_for(
     Err(StoreError::Stage {
         stage: super::INGEST.into(),
         unit,
-        message: format!(
-            "its samples reach from {l:?} to {h:?}, beyond what {MAX_DOUBLINGS_PER_INGEST} doublings of the store's root cube (min {:?}, side {}) can hold; check its pose and depth scale",
-            scene.root_min, scene.root_side
-        ),
+        error: Box::new(StageError::BeyondRoot {
+            low: l.to_array(),
+            high: h.to_array(),
+            root_min: scene.root_min,
+            root_side: scene.root_side,
+            doublings: MAX_DOUBLINGS_PER_INGEST,
+        }),
     })
 }
 
@@ -132,7 +136,7 @@ pub fn rekeyed_run(run: &SegmentFile, octants: &[[u32; 3]]) -> Result<Vec<Column
                         *key = key.in_doubled_root(*octant).ok_or_else(|| StoreError::Stage {
                             stage: super::INGEST.into(),
                             unit: run.path().display().to_string(),
-                            message: format!("cube {key:?} is at the keys' depth limit: the root cannot grow"),
+                            error: Box::new(StageError::RootAtDepthLimit),
                         })?;
                     }
                 }

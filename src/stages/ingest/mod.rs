@@ -35,6 +35,7 @@ use super::INGEST;
 use super::samples::Moments;
 use crate::format::{META_SCENE, RadiusDepths, Scene};
 use crate::inputs::{DepthMapSource, DepthNoise, InputError, Projection};
+use crate::store::StageError;
 use crate::store::catalog::{self, META, UnitRecord};
 use crate::store::{Plan, Replace, Result, SegmentContent, Snapshot, Stage, Store, StoreError, UnitOutput, UnitSpec};
 use cube_runs::CubeRuns;
@@ -229,16 +230,12 @@ pub struct IngestStage {
     adding_sums: bool,
 }
 
-/// The error as the stage's, with the file as its unit (named once).
+/// The error as the stage's (the input error names the file).
 fn input_error(e: InputError) -> StoreError {
-    let (unit, message) = match &e {
-        InputError::Bad { file, problem } => (file.display().to_string(), problem.clone()),
-        InputError::Io { file, source } => (file.display().to_string(), source.to_string()),
-    };
     StoreError::Stage {
         stage: INGEST.into(),
-        unit,
-        message,
+        unit: "input".into(),
+        error: Box::new(StageError::Input(Box::new(e))),
     }
 }
 
@@ -314,11 +311,10 @@ impl IngestStage {
             return Err(StoreError::Stage {
                 stage: INGEST.into(),
                 unit: "options".into(),
-                message: format!(
-                    "max depth {} is outside 1..={} (the cube keys' limit)",
-                    options.max_depth,
-                    crate::format::MAX_DEPTH
-                ),
+                error: Box::new(StageError::MaxDepthOutOfRange {
+                    max_depth: options.max_depth,
+                    limit: crate::format::MAX_DEPTH,
+                }),
             });
         }
         // One survey of each new map before anything reads its samples: its median depth
@@ -366,7 +362,7 @@ impl IngestStage {
                 return Err(StoreError::Stage {
                     stage: INGEST.into(),
                     unit: "options".into(),
-                    message: "--sample-sums: this store was created without sample sums, and its depth maps' runs lack them; ingest without --sample-sums (solve --method ssd or hybrid adds the sums to every run once, reading the maps again)".into(),
+                    error: Box::new(StageError::SampleSumsNotRecorded),
                 });
             }
             recorded
@@ -381,7 +377,7 @@ impl IngestStage {
                     scene = scene.doubled(*octant).ok_or_else(|| StoreError::Stage {
                         stage: INGEST.into(),
                         unit: "new depth maps".into(),
-                        message: "the root cannot grow past the keys' depth limit".into(),
+                        error: Box::new(StageError::RootAtDepthLimit),
                     })?;
                 }
                 growth = Some((old, octants));
@@ -415,7 +411,7 @@ impl IngestStage {
         let scene = read_scene(store)?.ok_or_else(|| StoreError::Stage {
             stage: INGEST.into(),
             unit: "sample sums".into(),
-            message: "the store has no depth maps yet: ingest some first".into(),
+            error: Box::new(StageError::NotIngested),
         })?;
         // Registered maps come in id order, as a new ingest's do.
         let maps: Vec<(u64, DepthMapSource)> = registered_depth_maps(store)?
@@ -465,7 +461,7 @@ impl IngestStage {
             let (id, source) = self.maps.get(index).ok_or_else(|| StoreError::Stage {
                 stage: INGEST.into(),
                 unit: format!("depth map {index}"),
-                message: "depth map out of range".into(),
+                error: Box::new(StageError::internal("depth map out of range")),
             })?;
             let median = self.medians.get(index).copied();
             let stream = map_samples(source, self.map_memory / 4, median)?;
@@ -658,7 +654,7 @@ fn root_around_samples(
         return Err(StoreError::Stage {
             stage: INGEST.into(),
             unit: "all depth maps".into(),
-            message: "no valid depth samples: nothing to build a scene from".into(),
+            error: Box::new(StageError::NoValidSamples),
         });
     };
     Ok(Scene::around(lo, hi, options.root_margin, options.max_depth))
@@ -748,7 +744,7 @@ impl Stage for IngestStage {
         let group = self.groups.get(unit.id as usize).ok_or_else(|| StoreError::Stage {
             stage: INGEST.into(),
             unit: unit.label.clone(),
-            message: "unit out of range".into(),
+            error: Box::new(StageError::internal("unit out of range")),
         })?;
         let (content, maps) = self.group_cubes(group)?;
         Ok(UnitOutput {
@@ -854,7 +850,7 @@ impl IngestStage {
             return Err(StoreError::Stage {
                 stage: INGEST.into(),
                 unit: unit.label.clone(),
-                message: "unit out of range".into(),
+                error: Box::new(StageError::internal("unit out of range")),
             });
         };
         let file = base.open_segment(name)?;

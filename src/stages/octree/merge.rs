@@ -14,6 +14,7 @@ use crate::format::segment::SegmentDirectory;
 use crate::format::{ColumnValues, CubeKey};
 use crate::stages::INGEST;
 use crate::stages::ingest::SPIKE_COUNT;
+use crate::store::StageError;
 use crate::store::catalog;
 use crate::store::{Result, SegmentChunks, Snapshot, StoreError};
 
@@ -248,7 +249,7 @@ fn merge_sorted(
     let malformed = |reader: &RunReader, key: CubeKey| StoreError::Stage {
         stage: OCTREE.into(),
         unit: reader.path().display().to_string(),
-        message: format!("a run holds the malformed key {key:?}"),
+        error: Box::new(StageError::internal(format!("a run holds the malformed key {key:?}"))),
     };
     let mut heads: Vec<Option<CubeKey>> = Vec::with_capacity(readers.len());
     for reader in &readers {
@@ -281,7 +282,7 @@ fn merge_sorted(
             return Err(StoreError::Stage {
                 stage: OCTREE.into(),
                 unit: reader.path().display().to_string(),
-                message: "run keys are not increasing".into(),
+                error: Box::new(StageError::internal("run keys are not increasing")),
             });
         }
         let head = next.filter(in_range).map(|r| r.key);

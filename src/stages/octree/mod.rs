@@ -29,6 +29,7 @@ use super::ingest::SPIKE_COUNT;
 use super::{INGEST, OCTREE};
 use crate::format::segment::content_digest;
 use crate::format::{Column, ColumnValues, CubeKey, Scene};
+use crate::store::StageError;
 use crate::store::catalog::{self, UNIT_STATE, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
@@ -215,7 +216,7 @@ impl OctreeStage {
         self.prepared.get().ok_or_else(|| StoreError::Stage {
             stage: OCTREE.into(),
             unit: "-".into(),
-            message: "units run before planning".into(),
+            error: Box::new(StageError::internal("units run before planning")),
         })
     }
 
@@ -302,7 +303,10 @@ impl OctreeStage {
                         return Err(StoreError::Stage {
                             stage: OCTREE.into(),
                             unit: "balance".into(),
-                            message: format!("requested cube {:?} is missing from the balanced octree", r.key),
+                            error: Box::new(StageError::internal(format!(
+                                "requested cube {:?} is missing from the balanced octree",
+                                r.key
+                            ))),
                         });
                     }
                     if let Some(next) = request_streams
@@ -338,7 +342,10 @@ impl OctreeStage {
             return Err(StoreError::Stage {
                 stage: OCTREE.into(),
                 unit: "balance".into(),
-                message: format!("requested cube {:?} is missing from the balanced octree", r.key),
+                error: Box::new(StageError::internal(format!(
+                    "requested cube {:?} is missing from the balanced octree",
+                    r.key
+                ))),
             });
         }
         nodes.finish()?;
@@ -520,7 +527,7 @@ impl Stage for OctreeStage {
         let leaf = prepared.units.get(unit.id as usize).ok_or_else(|| StoreError::Stage {
             stage: OCTREE.into(),
             unit: unit.label.clone(),
-            message: "unit out of range".into(),
+            error: Box::new(StageError::internal("unit out of range")),
         })?;
         let records = self.unit_records(&prepared.nodes, leaf)?;
         let extra = OctreeUnitExtra {

@@ -18,7 +18,7 @@ use crate::format::segment::SegmentDirectory;
 use crate::format::{Column, ColumnValues, CubeKey, Scene, round_half_away_from_zero};
 use crate::store::catalog::{self, UnitRecord};
 use crate::store::{
-    Plan, Replace, Result, SegmentChunks, SegmentFile, Snapshot, Stage, StoreError, UnitOutput, UnitSpec,
+    Plan, Replace, Result, SegmentChunks, SegmentFile, Snapshot, Stage, StageError, StoreError, UnitOutput, UnitSpec,
 };
 
 /// The stage's name.
@@ -368,11 +368,11 @@ impl RunBlock {
         ) else {
             return Err(SamplesStage::error(
                 &run.name,
-                "sample columns of the wrong type".into(),
+                StageError::internal("sample columns of the wrong type"),
             ));
         };
         RunBlock::new(keys, w, o, n)
-            .ok_or_else(|| SamplesStage::error(&run.name, "sample columns of unequal lengths".into()))
+            .ok_or_else(|| SamplesStage::error(&run.name, StageError::internal("sample columns of unequal lengths")))
     }
 
     /// `None` unless there are one weight and three offsets and normals per key.
@@ -520,11 +520,11 @@ impl SamplesStage {
         self.decoded.load(std::sync::atomic::Ordering::Relaxed)
     }
 
-    fn error(unit: &str, message: String) -> StoreError {
+    fn error(unit: &str, error: StageError) -> StoreError {
         StoreError::Stage {
             stage: SAMPLES.into(),
             unit: unit.into(),
-            message,
+            error: Box::new(error),
         }
     }
 
@@ -532,7 +532,7 @@ impl SamplesStage {
         let mut slot = self
             .runs
             .lock()
-            .map_err(|_| Self::error("-", "a worker panicked while indexing the runs".into()))?;
+            .map_err(|_| Self::error("-", StageError::WorkerPanicked))?;
         if let Some(runs) = slot.as_ref() {
             return Ok(runs.clone());
         }
@@ -560,10 +560,7 @@ impl SamplesStage {
             let file = SegmentFile::open(path.clone(), record)?;
             let reader = file.reader()?;
             if reader.column(SAMPLE_WEIGHT).is_err() {
-                return Err(Self::error(
-                    name,
-                    "this depth map's run carries no sample sums (the store was created without `ingest --sample-sums`, or by an octstore older than `--method ssd`): ingest the depth maps into a new store with `--sample-sums` to solve with ssd or hybrid".into(),
-                ));
+                return Err(Self::error(name, StageError::NoSampleSums));
             }
             // The directory holds each block's key range; decoding the key columns of
             // RedKitchen's 1000 runs for it, under this lock, cost the stage 0.8 of its 11.8 s.
@@ -599,7 +596,7 @@ impl SamplesStage {
         decode: impl FnOnce() -> Result<RunBlock>,
     ) -> Result<Arc<RunBlock>> {
         use std::sync::atomic::Ordering;
-        let poisoned = || Self::error(&run.name, "a worker panicked while sharing a block".into());
+        let poisoned = || Self::error(&run.name, StageError::WorkerPanicked);
         let left = run
             .readers_left
             .get(block)
@@ -680,7 +677,10 @@ impl SamplesStage {
                     // The top unit's few nodes are rarely in a block its key range meets: its
                     // keys tell, before the moments are decoded.
                     let ColumnValues::Key(block_keys) = chunks.read_block("key", block)? else {
-                        return Err(Self::error(&run.name, "a key column of the wrong type".into()));
+                        return Err(Self::error(
+                            &run.name,
+                            StageError::internal("a key column of the wrong type"),
+                        ));
                     };
                     if !block_keys.iter().any(|k| keys.binary_search(k).is_ok()) {
                         continue;
@@ -740,7 +740,7 @@ impl Stage for SamplesStage {
             .treetop
             .get()
             .and_then(|t| t.units.get(unit.id as usize))
-            .ok_or_else(|| Self::error(&unit.label, "no such treetop unit".into()))?;
+            .ok_or_else(|| Self::error(&unit.label, StageError::internal("no such treetop unit")))?;
         let file = base.open_segment(&info.segment)?;
         let keys = file.reader()?.read_keys().map_err(|e| file.corruption(e))?;
         let mut sums = vec![Moments::default(); keys.len()];

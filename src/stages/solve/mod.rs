@@ -22,6 +22,7 @@ use crate::format::key::{find_sorted_from, last_at_or_below_from};
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
 use crate::kernels::tgv::{Problem, State};
 use crate::kernels::votes::BINS;
+use crate::store::StageError;
 use crate::store::catalog::{self, UnitRecord};
 use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutput, UnitSpec};
 
@@ -229,7 +230,7 @@ impl Neighbourhood<'_, '_> {
         let info = self.treetop.units.get(unit).ok_or_else(|| StoreError::Stage {
             stage: "solution".into(),
             unit: format!("unit {unit}"),
-            message: "no such treetop unit".into(),
+            error: Box::new(StageError::internal("no such treetop unit")),
         })?;
         if let Some(cache) = self.coarse
             && let Some(coarse) = cache.unit(self.base, self.treetop, unit)?
@@ -448,11 +449,11 @@ impl LevelStage {
         }
     }
 
-    fn stage_error(&self, unit: &UnitSpec, message: String) -> StoreError {
+    fn stage_error(&self, unit: &UnitSpec, error: StageError) -> StoreError {
         StoreError::Stage {
             stage: LEVEL_STAGES[usize::from(self.level)].into(),
             unit: unit.label.clone(),
-            message,
+            error: Box::new(error),
         }
     }
 
@@ -501,7 +502,7 @@ impl LevelStage {
         let treetop = self.treetop.get().ok_or_else(|| StoreError::Stage {
             stage: LEVEL_STAGES[usize::from(self.level)].into(),
             unit: format!("unit {unit_index}"),
-            message: "units run before planning".into(),
+            error: Box::new(StageError::internal("units run before planning")),
         })?;
         let level = self.level;
         let members = self
@@ -547,7 +548,7 @@ impl LevelStage {
                 .ok_or_else(|| StoreError::Stage {
                     stage: LEVEL_STAGES[usize::from(level)].into(),
                     unit: format!("unit {member}"),
-                    message: "no histograms for this unit: run the histograms stage first".into(),
+                    error: Box::new(StageError::NoHistograms),
                 })?;
             if let Some(cache) = self.coarse_rows()
                 && let Some(coarse) = cache.unit(base, treetop, member)?
@@ -767,7 +768,7 @@ impl Stage for LevelStage {
             });
         };
         if problem.start.len() != 3 * problem.n + 1 {
-            return Err(self.stage_error(unit, "internal: malformed neighbour lists".into()));
+            return Err(self.stage_error(unit, StageError::internal("malformed neighbour lists")));
         }
         let solved = crate::gpu::solve_on(self.gpu.as_deref(), &problem, &mut state, self.params.stopping());
         let seen = problem.hist.iter().map(seen_weight).collect();
@@ -775,7 +776,7 @@ impl Stage for LevelStage {
         let treetop = self
             .treetop
             .get()
-            .ok_or_else(|| self.stage_error(unit, "units run before planning".into()))?;
+            .ok_or_else(|| self.stage_error(unit, StageError::internal("units run before planning")))?;
         let sampled = self.sampled(base, treetop, &keys)?.into_iter().map(u32::from).collect();
         let values = LevelValues {
             keys,

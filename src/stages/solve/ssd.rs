@@ -18,6 +18,7 @@ use crate::stages::samples::{
     Moments, SAMPLES, SampleRows, cube_centre, normal_disagreement, read_sample_rows, read_samples,
 };
 use crate::stages::treetop::Treetop;
+use crate::store::StageError;
 use crate::store::catalog;
 use crate::store::{Result, Snapshot, StoreError};
 use crate::store::{UnitOutput, UnitSpec};
@@ -276,7 +277,7 @@ fn cut_samples(
     let missing = |unit: usize| StoreError::Stage {
         stage: SAMPLES.into(),
         unit: format!("unit {unit}"),
-        message: "no samples for this unit: run the samples stage first".into(),
+        error: Box::new(StageError::NoSamples),
     };
     let read = |unit: usize| -> Result<SampleRows> {
         match segments.get(&(unit as u64)) {
@@ -509,7 +510,7 @@ impl LevelStage {
         let treetop = self
             .treetop
             .get()
-            .ok_or_else(|| self.stage_error(unit, "units run before planning".into()))?;
+            .ok_or_else(|| self.stage_error(unit, StageError::internal("units run before planning")))?;
         let (f, gradient, solved) = self.solve_ssd(base, treetop, &cut, params)?;
         let n = cut.keys.len();
         let observed = ObservedColumns {
