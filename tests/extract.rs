@@ -10,6 +10,7 @@ use common::*;
 use glam::DVec3;
 use octstore::format::BoundingBox;
 use octstore::mesh::{edge_defects, read_mesh};
+use octstore::quality::self_intersection::self_intersecting_triangles;
 use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
 use octstore::stages::extract::{ExtractOptions, Simplify, extract};
 
@@ -282,6 +283,7 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
         extract_bytes(&store_b, "full.ply", &full_args)
     );
     let full = read_mesh(&full_path).unwrap();
+    let full_crossing = self_intersecting_triangles(&full);
     for (args, lowest, highest) in [(&["--decimate", "0.2"][..], 0.18, 0.22), (&[][..], 0.0, 0.5)] {
         let mut bytes = Vec::new();
         for (store, threads) in [(&store_a, "1"), (&store_b, "2")] {
@@ -291,6 +293,11 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
         assert!(bytes[0] == bytes[1], "{args:?}: meshes differ between 1 and 2 threads");
         let small = read_mesh(&a.path().join("simplified.ply")).unwrap();
         assert_eq!(edge_defects(&small), (0, 0), "{args:?} opened the mesh");
+        let crossing = self_intersecting_triangles(&small);
+        assert!(
+            crossing <= full_crossing,
+            "{args:?}: {crossing} self-intersecting triangles, the full mesh has {full_crossing}"
+        );
         let kept = small.triangles.len() as f64 / full.triangles.len() as f64;
         assert!(
             (lowest..=highest).contains(&kept),

@@ -1,6 +1,7 @@
 //! `octstore-evaluate RECONSTRUCTION GROUND_TRUTH`: accuracy, completeness, Chamfer distance,
 //! precision, recall and F-score at tau (Tanks and Temples), normal consistency, plus the
-//! reconstruction's boundary and non-manifold edge counts. See `octstore::quality::evaluate`
+//! reconstruction's boundary and non-manifold edge counts (and with `--self-intersections` its
+//! self-intersecting triangles). See `octstore::quality::evaluate`
 //! for the definitions. `--gt-faces` (written by `octstore-gt-render`) restricts completeness
 //! and recall to the ground-truth faces some camera saw.
 
@@ -11,6 +12,7 @@ use clap::Parser;
 use octstore::mesh::read_mesh;
 use octstore::quality::evaluate::{EvaluateOptions, evaluate};
 use octstore::quality::ground_truth_views::bounds;
+use octstore::quality::self_intersection::self_intersecting_triangles;
 
 #[derive(Parser)]
 #[command(version, about = "Measure a reconstructed mesh against a ground-truth mesh")]
@@ -35,6 +37,11 @@ struct Args {
     /// (`seen-faces.txt` from `octstore-gt-render`).
     #[arg(long)]
     gt_faces: Option<PathBuf>,
+    /// Also count the reconstruction's self-intersecting triangles (those that cross a
+    /// triangle with which they share no vertex).
+    #[arg(long)]
+    self_intersections: bool,
+    /// Print the report as JSON.
     #[arg(long)]
     json: bool,
 }
@@ -84,11 +91,19 @@ fn main() -> ExitCode {
             seed: 1,
         };
         let r = evaluate(&reconstruction, &truth, &options)?;
+        let crossing = args
+            .self_intersections
+            .then(|| self_intersecting_triangles(&reconstruction));
         Ok(if args.json {
-            serde_json::to_string_pretty(&r).unwrap_or_default()
+            let mut json = serde_json::to_value(&r)?;
+            if let (Some(count), Some(object)) = (crossing, json.as_object_mut()) {
+                object.insert("self_intersecting_triangles".into(), count.into());
+            }
+            serde_json::to_string_pretty(&json).unwrap_or_default()
         } else {
+            let crossing = crossing.map_or_else(String::new, |c| format!(" | self-intersecting triangles {c}"));
             format!(
-                "tau {:.6} | accuracy {:.6} | completeness {:.6} | chamfer {:.6} | precision {:.4} | recall {:.4} | F-score {:.4} | normal consistency {:.4} | boundary edges {} | non-manifold edges {}",
+                "tau {:.6} | accuracy {:.6} | completeness {:.6} | chamfer {:.6} | precision {:.4} | recall {:.4} | F-score {:.4} | normal consistency {:.4} | boundary edges {} | non-manifold edges {}{crossing}",
                 r.tau,
                 r.accuracy,
                 r.completeness,

@@ -93,7 +93,7 @@ fn cells(length: f64) -> usize {
 }
 
 /// Adds a UV sphere, wound outwards.
-fn add_sphere(mesh: &mut Mesh, center: DVec3, radius: f64, segments: usize, rings: usize) {
+pub(crate) fn add_sphere(mesh: &mut Mesh, center: DVec3, radius: f64, segments: usize, rings: usize) {
     let first = mesh.positions.len() as u32;
     for ring in 0..=rings {
         let polar = std::f64::consts::PI * ring as f64 / rings as f64;

@@ -1,12 +1,14 @@
 //! Quality tools: synthetic scenes rendered into depth maps ([`synthetic_scenes`], the demo's
 //! input), depth maps of ground-truth meshes with noise ([`ground_truth_views`]), a furnished
 //! room seen from inside ([`interior_scene`]), and
-//! reconstructions measured against the truth ([`evaluate`]). The binaries in `tools/`
+//! reconstructions measured against the truth ([`evaluate`]), and meshes checked for triangles
+//! that cross each other ([`self_intersection`]). The binaries in `tools/`
 //! (`octstore-gt-render`, `octstore-evaluate`) are thin command lines over these.
 
 pub mod evaluate;
 pub mod ground_truth_views;
 pub mod interior_scene;
+pub mod self_intersection;
 pub mod synthetic_scenes;
 
 /// Errors of the quality tools' library calls.
