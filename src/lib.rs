@@ -14,6 +14,7 @@
 //! - [`stages`]: the pipeline stages that run on the store;
 //! - [`query`]: reading the indicator field of a pinned version from code;
 //! - [`pipeline`]: ingest, solve, the demo and cluster runs as library calls;
+//! - [`divide`]: point clouds into overlapping subspaces (Kuhn and Mayer 2015), and `merge`;
 //! - [`quality`]: synthetic scenes, ground-truth rendering and mesh evaluation;
 //! - [`cli`]: the `octstore` command line.
 //!
@@ -22,6 +23,7 @@
 //! their options ([`IngestOptions`], [`DiscoverOptions`], [`SolveParams`]).
 
 pub mod cli;
+pub mod divide;
 pub mod format;
 #[doc(hidden)]
 pub mod gpu;
@@ -42,10 +44,10 @@ pub mod store;
 )]
 mod sys;
 
+pub use divide::DivideError;
 pub use format::{BoundingBox, CubeKey, Scene};
 pub use inputs::{DiscoverOptions, InputError, PoseProblem};
 pub use mesh::{Mesh, MeshReadError, MeshSummary};
-pub use pipeline::divide::DivideError;
 pub use pipeline::{PipelineError, SolveOptions, SolveUntil};
 pub use quality::synthetic_scenes::SceneSpec;
 pub use query::{CubeInfo, IndicatorField, LeafInfo};

@@ -2,14 +2,14 @@
 //! (each in exactly one core, every file holding the points of its grown cube), no core passes
 //! `--max-points`, the files do not depend on the thread count, the generated cloud of the
 //! benchmarks divides the same way, and a damaged input is an error that names the file. The
-//! library's tests (`src/pipeline/divide/tests.rs`) cover the division's cases one by one.
+//! library's tests (`src/divide/tests.rs`) cover the division's cases one by one.
 
 mod common;
 
 use std::path::Path;
 
 use common::{octstore, stderr, stdout};
-use octstore::pipeline::divide::{Cube, Manifest, read_manifest_file};
+use octstore::divide::{Cube, Manifest, read_manifest_file};
 
 /// A cloud of `count` points spread unevenly over [0, 10)^3 (denser towards the origin, so
 /// the division is deeper there), as `x y z` lines.

@@ -6,9 +6,7 @@ use std::time::Instant;
 use super::args::{DivideArgs, GlobalOptions, MergeArgs};
 use super::error::Result;
 use super::report::peak_rss_bytes;
-use crate::pipeline::divide::{
-    self, DivideOptions, MANIFEST, PointSource, SyntheticCloud, divide_sources, read_manifest_file,
-};
+use crate::divide::{self, DivideOptions, MANIFEST, PointSource, SyntheticCloud, divide_sources, read_manifest_file};
 
 pub(super) fn divide(global: &GlobalOptions, args: DivideArgs) -> Result<()> {
     let started = Instant::now();

@@ -46,3 +46,9 @@ impl From<MeshReadError> for CliError {
 
 /// The result of verbs.
 pub type Result<T, E = CliError> = std::result::Result<T, E>;
+
+impl From<crate::divide::DivideError> for CliError {
+    fn from(error: crate::divide::DivideError) -> Self {
+        CliError::Pipeline(error.into())
+    }
+}

@@ -3,7 +3,10 @@
 
 use std::path::PathBuf;
 
-/// Why `divide` or `merge` cannot go on (the `Divide` variant of [`crate::PipelineError`]).
+use crate::inputs::InputError;
+use crate::store::StoreError;
+
+/// Why `divide` or `merge` cannot go on (the `Divide` variant of [`crate::DivideError`]).
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum DivideError {
@@ -113,7 +116,32 @@ pub enum DivideError {
         /// What is wrong with it.
         source: Box<dyn std::error::Error + Send + Sync>,
     },
+    /// A point cloud or scan could not be read (the error names the file).
+    #[error("{0}")]
+    PointCloud(#[from] InputError),
+    /// Reading or writing a file failed.
+    #[error("{action} {}: {source}", path.display())]
+    Io {
+        /// What was being done.
+        action: &'static str,
+        /// The file.
+        path: PathBuf,
+        /// The system's error.
+        source: std::io::Error,
+    },
+    /// `merge`: a mesh could not be read (the error names the file).
+    #[error(transparent)]
+    Mesh(#[from] crate::mesh::MeshReadError),
+    /// A store given as input failed (boxed: the store's errors are large).
+    #[error(transparent)]
+    Store(Box<StoreError>),
     /// A broken invariant (a bug).
     #[error("internal: {0}")]
     Internal(String),
+}
+
+impl From<StoreError> for DivideError {
+    fn from(error: StoreError) -> Self {
+        DivideError::Store(Box::new(error))
+    }
 }

@@ -18,6 +18,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::Path;
 
 use super::DivideError;
+use super::Result;
 use super::grid::{Lookup, Node};
 use super::manifest::{Cube, Manifest, Subspace};
 use super::subspace_files::fixed_header;
@@ -25,8 +26,7 @@ use super::{
     BLOCK_BYTES, Context, DivideOptions, DivideReport, Feed, MAX_LOOKUP_DEPTH, PointSource, STAGING, commit, io,
     progress, scan, stream,
 };
-use crate::inputs::{PointCloudFile, PointLayout, open_point_cloud};
-use crate::pipeline::{PipelineError, Result};
+use super::{PointCloudFile, PointLayout, open_point_cloud};
 
 /// Where new points fall: an existing subspace (by index) or an empty node.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -51,7 +51,7 @@ pub(super) fn divide_more(
     let feeds: Vec<Feed<'_>> = sources.iter().map(|&source| Feed { source, keep: None }).collect();
     let scanned = scan(&feeds, &layout, options)?;
     if scanned.points == 0 {
-        return Err(DivideError::NoPoints.into());
+        return Err(DivideError::NoPoints);
     }
     if !(root.contains(scanned.low) && root.contains(scanned.high)) {
         return Err(DivideError::BeyondRoot {
@@ -60,8 +60,7 @@ pub(super) fn divide_more(
             high: scanned.high,
             root_min: root.min,
             root_size: root.size,
-        }
-        .into());
+        });
     }
     let feeds: Vec<Feed<'_>> = scanned.order.iter().filter_map(|&i| feeds.get(i).copied()).collect();
     let (new_core, touched) = owners_of_new_points(&feeds, &layout, &subspaces, &division, options)?;
@@ -87,7 +86,7 @@ pub(super) fn divide_more(
         .iter()
         .map(|s| open_point_cloud(&dir.join(&s.file)))
         .collect::<std::result::Result<_, _>>()
-        .map_err(PipelineError::PointCloud)?;
+        .map_err(DivideError::PointCloud)?;
     let mut report = DivideReport {
         input_points: scanned.points,
         ..DivideReport::default()
@@ -226,7 +225,7 @@ impl Context<'_> {
         self.write_targets(Node::ROOT, deepest.min(MAX_LOOKUP_DEPTH), &feeds, files, &grown)?;
         paths
             .iter()
-            .map(|path| open_point_cloud(path).map_err(PipelineError::PointCloud))
+            .map(|path| open_point_cloud(path).map_err(DivideError::PointCloud))
             .collect()
     }
 }
@@ -281,7 +280,7 @@ fn copy_of_new_points(feeds: &[Feed<'_>], layout: &PointLayout, staging: &Path) 
     let path = staging.join("new-points.ply");
     let sources: Vec<&dyn PointSource> = feeds.iter().map(|feed| feed.source).collect();
     concatenate(&path, layout, "new points", &sources)?;
-    open_point_cloud(&path).map_err(PipelineError::PointCloud)
+    open_point_cloud(&path).map_err(DivideError::PointCloud)
 }
 
 /// Writes the points of `sources`, in their order, as one binary PLY of `layout` at `path`
@@ -313,7 +312,7 @@ fn check_compatible(
     sources: &[&dyn PointSource],
     dir: &Path,
     division: &super::Division,
-    layout: &crate::inputs::PointLayout,
+    layout: &PointLayout,
     options: &DivideOptions,
 ) -> Result<()> {
     if options.max_points != division.max_points || options.overlap != division.overlap {
@@ -323,8 +322,7 @@ fn check_compatible(
             overlap: division.overlap,
             asked_max_points: options.max_points,
             asked_overlap: options.overlap,
-        }
-        .into());
+        });
     }
     for source in sources {
         if source.layout() != layout {
@@ -333,8 +331,7 @@ fn check_compatible(
                 properties: super::property_list(source.layout()),
                 other: format!("the division in {}", dir.display()),
                 other_properties: super::property_list(layout),
-            }
-            .into());
+            });
         }
     }
     Ok(())
@@ -343,7 +340,7 @@ fn check_compatible(
 /// New points in each owner's core, and the subspaces whose grown cube receives new points.
 fn owners_of_new_points(
     feeds: &[Feed<'_>],
-    layout: &crate::inputs::PointLayout,
+    layout: &PointLayout,
     subspaces: &[Subspace],
     division: &super::Division,
     options: &DivideOptions,

@@ -8,9 +8,9 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::DivideError;
+use super::PointLayout;
 use super::grid::{Bounds, Node, Root};
 use crate::format::ply_header::PlyScalar;
-use crate::inputs::PointLayout;
 
 /// The manifest's file name in a division's folder.
 pub const MANIFEST: &str = "subspaces.json";

@@ -8,10 +8,10 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
+use super::Result;
 use super::manifest::{Manifest, read_manifest_file};
 use super::{DivideError, io};
 use crate::mesh::{Mesh, edge_defects, read_mesh, write_mesh};
-use crate::pipeline::Result;
 
 /// What a merge did.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -58,8 +58,7 @@ fn match_meshes<'a>(manifest: &Manifest, meshes: &'a [PathBuf]) -> Result<Vec<Op
         let Some((index, _)) = best else {
             return Err(DivideError::UnmatchedMesh {
                 mesh: mesh.to_path_buf(),
-            }
-            .into());
+            });
         };
         match matched.get_mut(index) {
             Some(Some(other)) => {
@@ -67,8 +66,7 @@ fn match_meshes<'a>(manifest: &Manifest, meshes: &'a [PathBuf]) -> Result<Vec<Op
                     first: other.to_path_buf(),
                     second: mesh.to_path_buf(),
                     subspace: stems.get(index).map_or("", String::as_str).to_string(),
-                }
-                .into());
+                });
             }
             Some(slot) => *slot = Some(mesh),
             None => {}
@@ -79,7 +77,7 @@ fn match_meshes<'a>(manifest: &Manifest, meshes: &'a [PathBuf]) -> Result<Vec<Op
 
 /// Merges `meshes` of the subspaces listed in `manifest_path` into `output`.
 pub fn merge(manifest_path: &Path, meshes: &[PathBuf], output: &Path) -> Result<MergeReport> {
-    merge_meshes(manifest_path, meshes, output).map_err(super::in_divide)
+    merge_meshes(manifest_path, meshes, output)
 }
 
 fn merge_meshes(manifest_path: &Path, meshes: &[PathBuf], output: &Path) -> Result<MergeReport> {
@@ -105,8 +103,7 @@ fn merge_meshes(manifest_path: &Path, meshes: &[PathBuf], output: &Path) -> Resu
             let [Some(a), Some(b), Some(c)] = corners else {
                 return Err(DivideError::MissingVertex {
                     mesh: mesh_path.to_path_buf(),
-                }
-                .into());
+                });
             };
             let centroid = [0, 1, 2].map(|k| (f64::from(a[k]) + f64::from(b[k]) + f64::from(c[k])) / 3.0);
             if !subspace.core.contains(centroid) {

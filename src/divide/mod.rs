@@ -21,6 +21,7 @@ mod grid;
 mod incremental;
 mod manifest;
 pub mod merge;
+mod point_clouds;
 mod sources;
 mod subspace_files;
 mod synthetic;
@@ -36,10 +37,12 @@ pub use manifest::{Cube, Division, MANIFEST, Manifest, Subspace, read_manifest_f
 pub use sources::{ScanPoints, StoreSamples, open_input};
 pub use synthetic::SyntheticCloud;
 
-use super::error::{PipelineError, Result};
-use crate::inputs::{PointCloudFile, PointLayout, open_point_cloud};
+/// The division's results.
+pub type Result<T> = std::result::Result<T, DivideError>;
+
 use crate::sys::WideWork;
 use grid::{CellAdder, CountCells, Counts, Lookup, NodeLocator, choose_leaves, counts_bytes};
+pub use point_clouds::{PointCloudFile, PointLayout, open_point_cloud};
 use subspace_files::Appenders;
 
 /// What `divide` is asked for.
@@ -111,7 +114,10 @@ pub trait PointSource: Sync {
     /// what it held: the records [`PointSource::for_each_block`] hands over as its block
     /// `index`.
     fn read_block(&self, _block_points: usize, _index: u64, _block: &mut Vec<u8>) -> Result<()> {
-        Err(DivideError::Internal(format!("{} is read in order, not by blocks", self.describe())).into())
+        Err(DivideError::Internal(format!(
+            "{} is read in order, not by blocks",
+            self.describe()
+        )))
     }
 }
 
@@ -129,7 +135,7 @@ impl PointSource for PointCloudFile {
     }
 
     fn for_each_block(&self, block_points: usize, each: &mut dyn FnMut(&[u8]) -> Result<()>) -> Result<u64> {
-        PointCloudFile::for_each_block::<PipelineError>(self, block_points, |block| each(block))
+        PointCloudFile::for_each_block::<DivideError>(self, block_points, |block| each(block))
     }
 
     fn random_access_blocks(&self, block_points: usize) -> Option<u64> {
@@ -137,7 +143,7 @@ impl PointSource for PointCloudFile {
     }
 
     fn read_block(&self, block_points: usize, index: u64, block: &mut Vec<u8>) -> Result<()> {
-        PointCloudFile::read_block(self, block_points, index, block).map_err(PipelineError::PointCloud)
+        PointCloudFile::read_block(self, block_points, index, block).map_err(DivideError::PointCloud)
     }
 }
 
@@ -162,20 +168,11 @@ const BATCH_PER_THREAD: usize = 8;
 /// The scratch folder inside a division's folder; removed at the start and end of a run.
 const STAGING: &str = ".divide-staging";
 
-fn io<'a>(action: &'static str, path: &'a Path) -> impl Fn(std::io::Error) -> PipelineError + 'a {
-    move |source| PipelineError::Io {
+fn io<'a>(action: &'static str, path: &'a Path) -> impl Fn(std::io::Error) -> DivideError + 'a {
+    move |source| DivideError::Io {
         action,
         path: path.to_path_buf(),
         source,
-    }
-}
-
-/// An input error met while dividing is a point cloud's, not an ingest's: its message says
-/// `divide:`.
-pub(crate) fn in_divide(error: PipelineError) -> PipelineError {
-    match error {
-        PipelineError::Inputs(e) => PipelineError::PointCloud(e),
-        other => other,
     }
 }
 
@@ -183,7 +180,7 @@ pub(crate) fn in_divide(error: PipelineError) -> PipelineError {
 /// [`open_input`]) into the folder `dir`; a folder that already holds a division gets the new
 /// points added to it.
 pub fn divide(inputs: &[PathBuf], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
-    divide_inputs(inputs, dir, options).map_err(in_divide)
+    divide_inputs(inputs, dir, options)
 }
 
 fn divide_inputs(inputs: &[PathBuf], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
@@ -197,21 +194,20 @@ fn divide_inputs(inputs: &[PathBuf], dir: &Path, options: &DivideOptions) -> Res
 
 /// [`divide`] of any point sources (files, or generated clouds for benchmarks).
 pub fn divide_sources(sources: &[&dyn PointSource], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
-    divide_sources_as_given(sources, dir, options).map_err(in_divide)
+    divide_sources_as_given(sources, dir, options)
 }
 
 fn divide_sources_as_given(sources: &[&dyn PointSource], dir: &Path, options: &DivideOptions) -> Result<DivideReport> {
     if options.max_points == 0 {
-        return Err(DivideError::MaxPointsZero.into());
+        return Err(DivideError::MaxPointsZero);
     }
     if !(0.0..1.0).contains(&options.overlap) {
         return Err(DivideError::OverlapOutOfRange {
             overlap: options.overlap,
-        }
-        .into());
+        });
     }
     let Some(first) = sources.first() else {
-        return Err(DivideError::NoInputs.into());
+        return Err(DivideError::NoInputs);
     };
     for source in sources {
         if source.layout() != first.layout() {
@@ -220,8 +216,7 @@ fn divide_sources_as_given(sources: &[&dyn PointSource], dir: &Path, options: &D
                 properties: property_list(source.layout()),
                 other: first.describe(),
                 other_properties: property_list(first.layout()),
-            }
-            .into());
+            });
         }
     }
     std::fs::create_dir_all(dir).map_err(io("create", dir))?;
@@ -788,7 +783,7 @@ impl Context<'_> {
         }
         for ((node, count), (path, _)) in again.iter().zip(files.iter().skip(leaves.len())) {
             self.report.divided_again += 1;
-            let scratch = open_point_cloud(path).map_err(PipelineError::PointCloud)?;
+            let scratch = open_point_cloud(path).map_err(DivideError::PointCloud)?;
             self.divide_node(
                 *node,
                 *count,

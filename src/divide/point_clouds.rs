@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use crate::format::ply_header::{PlyEncoding, PlyProperty, PlyScalar, parse_ply_header};
 
-use super::depth_map::{InputError, bad, extension_of};
+use crate::inputs::{InputError, bad, extension_of};
 
 /// The vertex properties of a point record, in order; records are binary little-endian.
 #[derive(Clone, Debug, PartialEq, Eq)]

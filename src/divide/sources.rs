@@ -16,9 +16,9 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 
 use super::{DivideError, PointSource, Result};
+use super::{PointLayout, open_point_cloud};
 use crate::format::ply_header::PlyScalar;
-use crate::inputs::{PointLayout, extension_of, open_point_cloud, scan_points_in_world};
-use crate::pipeline::PipelineError;
+use crate::inputs::{extension_of, scan_points_in_world};
 use crate::stages::ingest::{DepthMapRecord, SampleStream, open_rows, registered_depth_maps};
 use crate::store::{CATALOG_FILE, Store};
 
@@ -31,13 +31,12 @@ pub fn open_input(path: &Path, memory_budget: u64) -> Result<Box<dyn PointSource
         }
         return Err(DivideError::NotAStore {
             path: path.to_path_buf(),
-        }
-        .into());
+        });
     }
     let extension = extension_of(path);
     match extension.as_str() {
         "ptx" | "e57" => Ok(Box::new(ScanPoints::new(path))),
-        _ => Ok(Box::new(open_point_cloud(path).map_err(PipelineError::PointCloud)?)),
+        _ => Ok(Box::new(open_point_cloud(path).map_err(DivideError::PointCloud)?)),
     }
 }
 
@@ -53,7 +52,7 @@ struct Blocks<'a> {
     bytes: Vec<u8>,
     limit: usize,
     each: &'a mut dyn FnMut(&[u8]) -> Result<()>,
-    failed: Option<PipelineError>,
+    failed: Option<DivideError>,
 }
 
 impl<'a> Blocks<'a> {
@@ -126,7 +125,7 @@ impl PointSource for ScanPoints {
         let points = scan_points_in_world(&self.path, |p| {
             blocks.push([p.x.to_le_bytes(), p.y.to_le_bytes(), p.z.to_le_bytes()].as_flattened())
         })
-        .map_err(PipelineError::PointCloud)?;
+        .map_err(DivideError::PointCloud)?;
         blocks.finish()?;
         Ok(points)
     }
@@ -148,8 +147,7 @@ impl StoreSamples {
         if maps.is_empty() {
             return Err(DivideError::EmptyStore {
                 path: path.to_path_buf(),
-            }
-            .into());
+            });
         }
         Ok(StoreSamples {
             path: path.to_path_buf(),
@@ -202,8 +200,8 @@ impl PointSource for StoreSamples {
         let memory = self.memory_budget / 4;
         for map in &self.maps {
             let source = &map.source;
-            let rows = open_rows(source, memory).map_err(PipelineError::PointCloud)?;
-            let stream = SampleStream::new(source, rows).map_err(PipelineError::PointCloud)?;
+            let rows = open_rows(source, memory).map_err(DivideError::PointCloud)?;
+            let stream = SampleStream::new(source, rows).map_err(DivideError::PointCloud)?;
             let mut going = true;
             stream
                 .for_each(|sample| {
@@ -212,7 +210,7 @@ impl PointSource for StoreSamples {
                         going = blocks.push(&record_of(sample.point, sample.normal, sample.radius));
                     }
                 })
-                .map_err(PipelineError::PointCloud)?;
+                .map_err(DivideError::PointCloud)?;
             if !going {
                 break;
             }

@@ -6,7 +6,7 @@
 use std::fs::{File, OpenOptions};
 use std::path::PathBuf;
 
-use crate::inputs::PointLayout;
+use super::PointLayout;
 
 /// Digits of the largest vertex count.
 const COUNT_DIGITS: usize = 20;
@@ -335,8 +335,8 @@ impl Appenders {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::divide::open_point_cloud;
     use crate::format::ply_header::PlyScalar;
-    use crate::inputs::open_point_cloud;
 
     #[test]
     fn appended_files_are_plys_with_their_count() -> Result<(), Box<dyn std::error::Error>> {

@@ -5,9 +5,9 @@
 
 use rayon::prelude::*;
 
+use super::PointLayout;
 use super::{PointSource, Result};
 use crate::format::ply_header::PlyScalar;
-use crate::inputs::PointLayout;
 use crate::sys::WideWork;
 
 /// `points` generated points of float x, y, z.

@@ -6,8 +6,9 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use super::manifest::{MANIFEST, Manifest, read_manifest_file};
+use super::open_point_cloud;
 use super::{DivideOptions, PointSource, SyntheticCloud, divide, merge::merge};
-use crate::inputs::{InputError, open_point_cloud};
+use crate::inputs::InputError;
 use crate::mesh::{Mesh, edge_defects, read_mesh, write_mesh};
 
 type TestResult = Result<(), Box<dyn std::error::Error>>;
@@ -527,13 +528,9 @@ fn a_store_is_divided_as_its_depth_maps_samples() -> TestResult {
         root_margin: 0.05,
         ..crate::IngestOptions::default()
     };
-    crate::pipeline::ingest(
-        &store,
-        &[manifest_path],
-        &crate::DiscoverOptions::default(),
-        &ingest_options,
-        &Default::default(),
-    )?;
+    let sources = crate::inputs::discover(&[manifest_path], &crate::DiscoverOptions::default())?;
+    let stage = crate::stages::ingest::IngestStage::prepare(&store, sources, &ingest_options)?;
+    store.run_stage(&stage, &Default::default())?;
     // The samples the store's depth maps give, read here without `divide`.
     let mut expected = Vec::new();
     for (_, map) in registered_depth_maps(&store)? {

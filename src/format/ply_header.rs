@@ -1,6 +1,6 @@
 //! The header of a PLY file (ASCII or binary, either endianness): its elements, their
 //! properties and where the body starts. Mesh files (`mesh::io`) and point clouds
-//! (`inputs::point_clouds`) both read it; a malformed header is an error message, never a panic.
+//! (`divide::point_clouds`) both read it; a malformed header is an error message, never a panic.
 
 /// How a PLY body is encoded.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

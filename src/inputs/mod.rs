@@ -16,7 +16,6 @@ mod depth_rows;
 mod discover;
 mod image_files;
 mod lidar;
-mod point_clouds;
 mod tum;
 
 pub use colmap::{WorkspaceWriter, write_colmap_depth};
@@ -29,5 +28,4 @@ pub use depth_rows::DepthRows;
 pub use discover::{DiscoverOptions, InputFormat, discover};
 pub use image_files::{FloatLayout, npy_layout, pfm_layout, read_npy, read_pfm, read_png16, write_pfm};
 pub use lidar::{scan_points_in_world, write_ptx_scan};
-pub use point_clouds::{PointCloudFile, PointLayout, open_point_cloud};
 pub use tum::{MAX_TIME_DIFFERENCE, TUM_DEPTH_SCALE};

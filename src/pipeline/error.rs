@@ -45,12 +45,9 @@ pub enum PipelineError {
     /// The store moved on after the extraction plan was made.
     #[error("stage 'extract': the store changed since the plan was made: run `octstore plan` again")]
     StalePlan,
-    /// A point cloud given to `divide` could not be read.
-    #[error("divide: {0}")]
-    PointCloud(InputError),
     /// `divide` or `merge` cannot go on: what is wrong, naming the file or folder.
     #[error("divide: {0}")]
-    Divide(#[from] super::divide::DivideError),
+    Divide(#[from] crate::divide::DivideError),
     /// A mesh file could not be read.
     #[error(transparent)]
     Mesh(#[from] MeshReadError),

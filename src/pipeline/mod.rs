@@ -35,7 +35,6 @@
 
 pub mod cluster;
 mod demo;
-pub mod divide;
 mod error;
 
 use std::path::{Path, PathBuf};
