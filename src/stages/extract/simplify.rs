@@ -1,6 +1,6 @@
 //! Streaming simplification: the welded mesh, as the weld writes it in unit order, simplified
-//! by quadric edge collapses (meshoptimizer) in batches of bounded size, across treetop leaf
-//! borders.
+//! by quadric edge collapses (meshoptimizer; within an error bound, favouring well-shaped
+//! triangles) in batches of bounded size, across treetop leaf borders.
 //!
 //! The weld writes vertices and triangles in unit order; a seam vertex is *settled* once the
 //! last unit that can produce it is done (its final position and normal arrive with
@@ -397,7 +397,17 @@ fn face_normals(indices: &[u32], positions: &[[f32; 3]]) -> Vec<DVec3> {
 fn simplify(indices: &mut [u32], positions: &mut [[f32; 3]], locks: &[bool], target: Target, carried: usize) -> usize {
     let triangles = indices.len() / 3;
     let (count, error, options) = match target {
-        Target::MaxError(error) => (0, error as f32, meshopt::SimplifyOptions::ErrorAbsolute),
+        // Within an error bound, collapses also weigh the shape of the triangles they leave
+        // (RegularizeLight): without it flat parts became fans of long slivers, which shading
+        // showed as facets on RedKitchen's table. Measured with no flags: RedKitchen
+        // `--max-depth 10` 179,326 -> 287,771 triangles (TSDF 2.56 M), the interior 1,400,246 ->
+        // 2,074,164 of 9,746,627 with F@0.2 % 0.9850 either way and normal consistency 0.9798 ->
+        // 0.9805 (the full mesh's 0.9808). The full Regularize kept 1.04 M on RedKitchen.
+        Target::MaxError(error) => (
+            0,
+            error as f32,
+            meshopt::SimplifyOptions::ErrorAbsolute | meshopt::SimplifyOptions::RegularizeLight,
+        ),
         Target::Fraction(fraction) => {
             let new = triangles.saturating_sub(carried) as f64;
             let kept = carried as f64 + new * f64::from(fraction.clamp(0.0, 1.0));
@@ -533,7 +543,10 @@ mod tests {
     fn a_long_stream_is_simplified_in_bounded_batches_across_unit_borders() {
         let (rows, columns, per_unit, batch) = (401, 60, 4, 4096);
         let wave = |x: f64, y: f64| 0.05 * (x * 9.0).sin() * (y * 3.0).cos();
-        let mut writer = SimplifyingWriter::new(MemoryMesh::default(), Target::MaxError(0.0005), batch);
+        // A bound of a quarter of the grid's spacing, as extraction's default is a quarter of the
+        // finest cube's side.
+        let bound = 0.0025;
+        let mut writer = SimplifyingWriter::new(MemoryMesh::default(), Target::MaxError(bound), batch);
         stream(&mut writer, rows, columns, per_unit, wave);
         let given = writer.triangles_in;
         let most_buffered = writer.most_buffered;
@@ -563,7 +576,7 @@ mod tests {
         // deviates, which the bound's quadrics measure at the vertices only).
         for p in &mesh.positions {
             let off = (f64::from(p[2]) - wave(f64::from(p[0]), f64::from(p[1]))).abs();
-            assert!(off < 0.001, "{p:?} is {off} off the surface");
+            assert!(off < 2.0 * bound, "{p:?} is {off} off the surface");
         }
     }
 }
