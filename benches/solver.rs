@@ -11,8 +11,8 @@ mod common;
 use common::setting;
 use std::time::Instant;
 
-use octstore::gpu::{Gpu, adapters};
-use octstore::kernels::tgv::{Kernel, Operator, Packed, Problem, State, solve};
+use octstore::testing::gpu::{Gpu, adapters};
+use octstore::testing::kernels::tgv::{Kernel, Operator, Packed, Problem, State, solve};
 
 fn main() {
     let n: usize = setting("OCTSTORE_BENCH_GRID", 100);
@@ -103,7 +103,7 @@ fn main() {
         let time = |steps: usize| {
             let mut packed = Packed::of(&state);
             let started = Instant::now();
-            octstore::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut packed, steps)
+            octstore::testing::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut packed, steps)
                 .map(|()| started.elapsed().as_secs_f64())
         };
         match (time(1), time(iterations)) {

@@ -9,7 +9,7 @@ mod common;
 use common::setting;
 use std::time::Instant;
 
-use octstore::kernels::ssd::{CubeSamples, DEFAULT_NORMAL_WEIGHT, DEFAULT_SMOOTHNESS, SsdProblem, solve};
+use octstore::testing::kernels::ssd::{CubeSamples, DEFAULT_NORMAL_WEIGHT, DEFAULT_SMOOTHNESS, SsdProblem, solve};
 
 fn main() {
     let n: usize = setting("OCTSTORE_BENCH_GRID", 100);

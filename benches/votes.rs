@@ -13,9 +13,9 @@ use common::setting;
 use std::time::Instant;
 
 use glam::{DMat4, DVec3};
-use octstore::gpu::{Gpu, adapters};
 use octstore::inputs::{DepthImage, DepthMapSource, ImageFormat, Kind, Projection};
-use octstore::kernels::votes::Pyramid;
+use octstore::testing::gpu::{Gpu, adapters};
+use octstore::testing::kernels::votes::Pyramid;
 use rayon::prelude::*;
 
 fn main() {
@@ -44,7 +44,7 @@ fn main() {
     let pyramid = Pyramid::new(source.clone(), DepthImage { width, height, depth });
     let world_to_camera = camera_to_world.inverse();
     let mut seed = 7u64;
-    let mut uniform = move || octstore::kernels::random::uniform(&mut seed);
+    let mut uniform = move || octstore::testing::kernels::random::uniform(&mut seed);
     let (mut centers, mut radii) = (Vec::with_capacity(cubes), Vec::with_capacity(cubes));
     for _ in 0..cubes {
         let (u, v) = (
@@ -84,21 +84,29 @@ fn main() {
     };
     order.sort_by_key(|&i| tile(centers[i]));
     let (tiled_centers, tiled_radii): (Vec<DVec3>, Vec<f64>) = order.iter().map(|&i| (centers[i], radii[i])).unzip();
-    let runs = octstore::kernels::votes::chunks(&tiled_centers, &tiled_radii);
-    let mut offsets = octstore::kernels::votes::cube_offsets(origin, &tiled_centers, &tiled_radii);
+    let runs = octstore::testing::kernels::votes::chunks(&tiled_centers, &tiled_radii);
+    let mut offsets = octstore::testing::kernels::votes::cube_offsets(origin, &tiled_centers, &tiled_radii);
     let (mut hist, mut distance) = (vec![0f32; 8 * cubes], vec![0f32; 2 * cubes]);
     // The loops read and write whole blocks of cubes in lane layout, as the stage holds them.
-    octstore::kernels::votes::relayout_for_lanes(&mut offsets, &mut hist, &mut distance, true);
-    let chunked = octstore::kernels::votes::ChunkedCubes {
+    octstore::testing::kernels::votes::relayout_for_lanes(&mut offsets, &mut hist, &mut distance, true);
+    let chunked = octstore::testing::kernels::votes::ChunkedCubes {
         offsets: &offsets,
         chunks: &runs,
     };
-    let view = octstore::kernels::votes::UnitView::new(&source, &world_to_camera, origin, 0.0);
+    let view = octstore::testing::kernels::votes::UnitView::new(&source, &world_to_camera, origin, 0.0);
     let seen: Vec<usize> = (0..runs.len()).collect();
     let started = Instant::now();
     let mut cast = 0u64;
     for _ in 0..maps {
-        cast = octstore::kernels::votes::vote_chunks(&chunked, &mut hist, &mut distance, &pyramid, &view, 1.0, &seen);
+        cast = octstore::testing::kernels::votes::vote_chunks(
+            &chunked,
+            &mut hist,
+            &mut distance,
+            &pyramid,
+            &view,
+            1.0,
+            &seen,
+        );
     }
     let seconds = started.elapsed().as_secs_f64();
     println!(
@@ -110,15 +118,15 @@ fn main() {
     );
     // The same maps voted as the stage votes them: a batch of maps at a time, each chunk of
     // cubes meeting every map of the batch while its rows are in cache (`vote_maps`).
-    let per_batch: usize = setting("OCTSTORE_BENCH_BATCH", 9).clamp(1, octstore::kernels::votes::MAPS_AT_ONCE);
-    let batch: Vec<octstore::kernels::votes::MapVote<'_>> = (0..per_batch)
-        .map(|_| octstore::kernels::votes::MapVote::new(&pyramid, view, 1.0, &seen))
+    let per_batch: usize = setting("OCTSTORE_BENCH_BATCH", 9).clamp(1, octstore::testing::kernels::votes::MAPS_AT_ONCE);
+    let batch: Vec<octstore::testing::kernels::votes::MapVote<'_>> = (0..per_batch)
+        .map(|_| octstore::testing::kernels::votes::MapVote::new(&pyramid, view, 1.0, &seen))
         .collect();
     let started = Instant::now();
     let (mut batched, mut voted_maps) = (0u64, 0usize);
     while voted_maps < maps {
         let take = per_batch.min(maps - voted_maps);
-        batched += octstore::kernels::votes::vote_maps(&chunked, &mut hist, &mut distance, &batch[..take]);
+        batched += octstore::testing::kernels::votes::vote_maps(&chunked, &mut hist, &mut distance, &batch[..take]);
         voted_maps += take;
     }
     let seconds = started.elapsed().as_secs_f64();
@@ -141,16 +149,17 @@ fn main() {
                 continue;
             }
         };
-        let time = |passes: usize| -> Result<(f64, u64), octstore::gpu::GpuError> {
+        let time = |passes: usize| -> Result<(f64, u64), octstore::testing::gpu::GpuError> {
             let started = Instant::now();
             let hist = vec![0f32; cubes * 8];
             let distance = vec![0f32; 2 * cubes];
             // The band floor of a scene whose finest cubes match the largest voting radius.
-            let band_floor =
-                octstore::kernels::votes::DISTANCE_BAND_FLOOR_SIDES * 2.0 * radii.iter().copied().fold(0.0, f64::max);
+            let band_floor = octstore::testing::kernels::votes::DISTANCE_BAND_FLOOR_SIDES
+                * 2.0
+                * radii.iter().copied().fold(0.0, f64::max);
             let unit = gpu.upload_unit(
                 origin,
-                &octstore::kernels::votes::cube_offsets(origin, &centers, &radii),
+                &octstore::testing::kernels::votes::cube_offsets(origin, &centers, &radii),
                 &hist,
                 &distance,
                 band_floor,

@@ -31,7 +31,7 @@ fn main() -> ExitCode {
         .without_time()
         .init();
     // A damaged catalog page makes redb panic; it is reported as the damage it is.
-    match octstore::store::catalog::contain_redb_panics(|| octstore::cli::run(cli)) {
+    match octstore::store::contain_redb_panics(|| octstore::cli::run(cli)) {
         Ok(Ok(code)) => code,
         Ok(Err(e)) => {
             eprintln!("error: {e}");

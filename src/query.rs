@@ -9,6 +9,10 @@ use serde::Serialize;
 
 use crate::format::{BoundingBox, CubeKey, MAX_DEPTH, Scene};
 use crate::kernels::votes::BINS;
+
+/// Bins of a cube's vote histogram ([`CubeInfo::histogram`]): the signed distance to the
+/// surface, in units of the cube's noise band, is split into this many equal bins over [-1, 1].
+pub const HISTOGRAM_BINS: usize = BINS;
 use crate::stages::HISTOGRAMS;
 use crate::stages::ingest::scene_at;
 use crate::stages::solve::{CutValue, LEVEL_STAGES, LevelCut, method_of_segment};
@@ -39,7 +43,7 @@ pub struct CubeInfo {
     /// the voting distance; absent when no vote measured one.
     pub offset: Option<f32>,
     /// The cube's vote histogram (8 bins over the signed distance [-1, 1]).
-    pub histogram: [f32; BINS],
+    pub histogram: [f32; HISTOGRAM_BINS],
 }
 
 /// One treetop leaf, as `leaves` lists it.

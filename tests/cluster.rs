@@ -9,7 +9,7 @@ use std::process::{Child, Command, Stdio};
 
 use common::*;
 use glam::DVec3;
-use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
+use octstore::testing::quality::synthetic_scenes::{SceneSpec, Shape};
 
 fn scene() -> SceneSpec {
     let center = DVec3::new(0.2, -0.1, 0.3);

@@ -10,9 +10,9 @@ use common::*;
 use glam::DVec3;
 use octstore::format::BoundingBox;
 use octstore::mesh::{edge_defects, read_mesh};
-use octstore::quality::self_intersection::self_intersecting_triangles;
-use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
-use octstore::stages::extract::{ExtractOptions, Simplify, extract};
+use octstore::testing::quality::self_intersection::self_intersecting_triangles;
+use octstore::testing::quality::synthetic_scenes::{SceneSpec, Shape};
+use octstore::testing::stages::extract::{ExtractOptions, Simplify, extract};
 
 fn sphere() -> SceneSpec {
     let center = DVec3::new(0.2, -0.1, 0.3);
@@ -110,7 +110,7 @@ fn a_closed_object_gives_a_closed_manifold_mesh_on_the_surface() {
     assert!(out.status.success(), "{}", stderr(&out));
     let observed = read_mesh(&observed_path).unwrap();
     let opened = octstore::Store::open_read_only(dir.path().join("store")).unwrap();
-    let scene = octstore::stages::ingest::read_scene(&opened).unwrap().unwrap();
+    let scene = octstore::testing::stages::ingest::read_scene(&opened).unwrap().unwrap();
     let (lo, hi) = (scene.min(), scene.min() + DVec3::splat(scene.root_side));
     let on_walls = |p: DVec3| {
         (p - center).abs().max_element() > 2.6 - 0.15
@@ -220,8 +220,8 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
     // boundary edges are the same whether counted on the seams or on the whole mesh, and the
     // same few as with one big leaf.
     let opened = octstore::Store::open_read_only(&store_a).unwrap();
-    let scene = octstore::stages::ingest::read_scene(&opened).unwrap().unwrap();
-    let finest = octstore::stages::octree_max_depth(&opened).unwrap();
+    let scene = octstore::testing::stages::ingest::read_scene(&opened).unwrap().unwrap();
+    let finest = octstore::testing::stages::octree_max_depth(&opened).unwrap();
     let closed = ExtractOptions {
         closed: true,
         ..ExtractOptions::default()
@@ -404,8 +404,8 @@ fn region_extraction_cuts_cleanly_at_the_box() {
     }
     // The library call agrees with the CLI.
     let opened = octstore::Store::open_read_only(&store).unwrap();
-    let scene = octstore::stages::ingest::read_scene(&opened).unwrap().unwrap();
-    let finest = octstore::stages::octree_max_depth(&opened).unwrap();
+    let scene = octstore::testing::stages::ingest::read_scene(&opened).unwrap().unwrap();
+    let finest = octstore::testing::stages::octree_max_depth(&opened).unwrap();
     let mesh = extract(
         &opened.latest().unwrap(),
         &scene,
@@ -431,7 +431,7 @@ fn the_indicator_field_can_be_read_from_code_and_the_cli() {
     let snapshot = store.latest().unwrap();
     assert_eq!(
         snapshot.finest_level(),
-        Some(octstore::stages::octree_max_depth(&store).unwrap())
+        Some(octstore::testing::stages::octree_max_depth(&store).unwrap())
     );
     let center = DVec3::new(0.2, -0.1, 0.3);
     let inside = snapshot.indicator_at(center).unwrap().unwrap();
@@ -535,11 +535,11 @@ fn the_indicator_field_can_be_read_from_code_and_the_cli() {
 /// within one finest cell of the leaf: on every finest cell of that shell and inside, it must
 /// find the same cut cube and u as the whole level's cut.
 fn assert_cut_around_each_leaf_answers_like_the_whole_cut(store: &Path) {
-    use octstore::stages::solve::LevelCut;
-    use octstore::stages::treetop::Treetop;
+    use octstore::testing::stages::solve::LevelCut;
+    use octstore::testing::stages::treetop::Treetop;
     let opened = octstore::Store::open_read_only(store).unwrap();
     let snapshot = opened.latest().unwrap();
-    let finest = octstore::stages::octree_max_depth(&opened).unwrap();
+    let finest = octstore::testing::stages::octree_max_depth(&opened).unwrap();
     let treetop = Treetop::of(&snapshot).unwrap();
     let cell = 1u64 << (32 - u32::from(finest));
     let mut whole = LevelCut::new(&snapshot, &treetop, finest);
@@ -739,7 +739,7 @@ fn distance_to_mesh(p: DVec3, mesh: &octstore::Mesh) -> f64 {
         .iter()
         .map(|t| {
             let [a, b, c] = t.map(vertex);
-            (octstore::quality::evaluate::closest_point_on_triangle(p, a, b, c) - p).length()
+            (octstore::testing::quality::evaluate::closest_point_on_triangle(p, a, b, c) - p).length()
         })
         .fold(f64::INFINITY, f64::min)
 }

@@ -4,7 +4,7 @@
 mod common;
 
 use common::*;
-use octstore::store::failpoint::FAILPOINTS;
+use octstore::testing::failpoint::FAILPOINTS;
 
 const UNITS: &str = "6";
 const ROWS: &str = "400";

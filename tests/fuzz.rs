@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 use glam::{DMat4, DVec3};
 use octstore::format::segment::SegmentReader;
 use octstore::inputs::{DepthImage, DiscoverOptions, discover, read_npy, read_pfm, read_png16, write_pfm};
-use octstore::store::catalog::{self, SegmentRecord, StageRun, UnitRecord, VersionRecord};
+use octstore::testing::catalog::{self, SegmentRecord, StageRun, UnitRecord, VersionRecord};
 
 fn budget() -> Duration {
     let seconds = std::env::var("OCTSTORE_FUZZ_SECONDS")
@@ -149,7 +149,7 @@ fn load_all(inputs: &[PathBuf]) {
 fn segments() {
     let dir = tempfile::tempdir().unwrap();
     let store = octstore::Store::create(dir.path()).unwrap();
-    let stage = octstore::stages::exercise::ExerciseStage {
+    let stage = octstore::testing::stages::exercise::ExerciseStage {
         units: 1,
         rows_per_unit: 300,
         seed: 3,
@@ -157,7 +157,7 @@ fn segments() {
     };
     store.run_stage(&stage, &octstore::RunOptions::default()).unwrap();
     let snapshot = store.latest().unwrap();
-    let (name, _) = &snapshot.segments(octstore::stages::exercise::NAME)[0];
+    let (name, _) = &snapshot.segments(octstore::testing::stages::exercise::NAME)[0];
     let file = store.segment_path(name);
     let copy = dir.path().join("fuzzed.seg");
     std::fs::copy(&file, &copy).unwrap();
@@ -263,7 +263,7 @@ fn catalog_records() {
         let _ = catalog::unseal_decode::<_, SegmentRecord>("segments", &7u64, &read("segments"));
         let _ = catalog::unseal_decode::<_, octstore::format::Scene>("meta", &7u64, &read("meta"));
         // Decoded as the other tables' records too: a value under the wrong key or table.
-        let _ = catalog::decode::<octstore::stages::ingest::DepthMapRecord>("depth_maps", &read("segments"));
+        let _ = catalog::decode::<octstore::testing::stages::ingest::DepthMapRecord>("depth_maps", &read("segments"));
     });
 }
 
@@ -301,7 +301,7 @@ fn depth_images() {
 fn scene_manifests() {
     let dir = tempfile::tempdir().unwrap();
     let views = (0..2).map(|i| (plane_depth(16, 12), pose() * DMat4::from_rotation_y(0.3 * f64::from(i))));
-    let manifest = octstore::quality::synthetic_scenes::write_pinhole_views(dir.path(), views, 14.0).unwrap();
+    let manifest = octstore::testing::quality::synthetic_scenes::write_pinhole_views(dir.path(), views, 14.0).unwrap();
     let files = vec![manifest.clone(), dir.path().join("view-000.pfm")];
     fuzz_files("manifest", &files, &|| load_all(std::slice::from_ref(&manifest)));
 }
@@ -459,7 +459,7 @@ fn mesh_files() {
 /// A small real store (ingest, solve, extract of a sphere seen by six views) made by the CLI.
 fn small_real_store(dir: &Path) -> PathBuf {
     let spec = octstore::SceneSpec {
-        shapes: vec![octstore::quality::synthetic_scenes::Shape::Sphere {
+        shapes: vec![octstore::testing::quality::synthetic_scenes::Shape::Sphere {
             center: DVec3::new(0.1, -0.2, 0.3),
             radius: 0.5,
         }],
@@ -500,7 +500,7 @@ fn read_flipped(store: &Path, original_dump: &[u8]) -> FlipOutcome {
     let Ok(opened) = octstore::Store::open_read_only(store) else {
         return FlipOutcome::Reported;
     };
-    match opened.verify(&[octstore::stages::octree::verify_octree]) {
+    match opened.verify(&[octstore::testing::stages::octree::verify_octree]) {
         Ok(report) if report.is_ok() => {}
         _ => return FlipOutcome::Reported,
     }

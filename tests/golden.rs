@@ -12,8 +12,8 @@ use octstore::RunOptions;
 use octstore::Store;
 use octstore::format::segment::{self, SegmentReader};
 use octstore::format::{ColumnValues, CubeKey};
-use octstore::stages::exercise::{self, ExerciseStage};
-use octstore::store::catalog::{CATALOG_FORMAT_VERSION, META};
+use octstore::testing::catalog::{CATALOG_FORMAT_VERSION, META};
+use octstore::testing::stages::exercise::{self, ExerciseStage};
 
 fn golden(version: u32) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("tests/data/golden-v{version}"))
@@ -166,12 +166,12 @@ fn version_2_depth_maps_keep_their_ids_and_the_footprint_rule() {
     let sources = octstore::inputs::discover(std::slice::from_ref(&input), &Default::default()).unwrap();
     // This build measures the noise of every map it ingests.
     assert_eq!(sources[0].noise, octstore::inputs::DepthNoise::Auto { sigmas: None });
-    let id = octstore::stages::ingest::depth_map_id(&sources[0]).unwrap();
+    let id = octstore::testing::stages::ingest::depth_map_id(&sources[0]).unwrap();
 
     let read_only = {
         let store = Store::open_read_only(dir.path()).unwrap();
         assert_eq!(store.catalog_format_version().unwrap(), 2);
-        octstore::stages::ingest::registered_depth_maps(&store).unwrap()
+        octstore::testing::stages::ingest::registered_depth_maps(&store).unwrap()
     };
     assert_eq!(read_only.len(), 1);
     let (old_id, record) = &read_only[0];
@@ -186,7 +186,7 @@ fn version_2_depth_maps_keep_their_ids_and_the_footprint_rule() {
     let store = Store::open(dir.path()).unwrap();
     assert_eq!(store.catalog_format_version().unwrap(), CATALOG_FORMAT_VERSION);
     assert_eq!(
-        octstore::stages::ingest::registered_depth_maps(&store).unwrap(),
+        octstore::testing::stages::ingest::registered_depth_maps(&store).unwrap(),
         read_only
     );
     drop(store);
@@ -203,7 +203,7 @@ fn version_2_depth_maps_keep_their_ids_and_the_footprint_rule() {
     let store = Store::open_read_only(dir.path()).unwrap();
     assert_eq!(store.current_version().unwrap(), 1, "{}", stdout(&out));
     assert_eq!(
-        octstore::stages::ingest::registered_depth_maps(&store).unwrap(),
+        octstore::testing::stages::ingest::registered_depth_maps(&store).unwrap(),
         read_only
     );
 }

@@ -6,8 +6,8 @@
 mod common;
 
 use glam::Vec4;
-use octstore::gpu::{DeviceChoice, Gpu, twins};
-use octstore::kernels::tgv::{self, Kernel, Operator, Packed, Problem, State, Stopping};
+use octstore::testing::gpu::{DeviceChoice, Gpu, twins};
+use octstore::testing::kernels::tgv::{self, Kernel, Operator, Packed, Problem, State, Stopping};
 
 /// A g x g x g grid of cubes with D's terms to the `+` neighbour, frozen neighbours on part of
 /// the boundary, rows of four finer terms here and there (level jumps), random weights,
@@ -172,7 +172,7 @@ fn gpu_iterations_match_the_twins() {
         let mut twin = Packed::of(&state);
         twins::iterate(&kernel, &mut twin, 100);
         let mut on_gpu = Packed::of(&state);
-        octstore::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut on_gpu, 100).expect("the GPU runs the unit");
+        octstore::testing::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut on_gpu, 100).expect("the GPU runs the unit");
         for (name, a, b) in [
             ("uv", &twin.uv, &on_gpu.uv),
             ("p", &twin.p, &on_gpu.p),
@@ -194,7 +194,7 @@ fn gpu_iterations_match_the_twins() {
 /// kernel bit for bit, whatever the chunk size; runs on every machine, GPU or not.
 #[test]
 fn split_units_with_halo_exchanges_are_the_kernel_bit_for_bit() {
-    use octstore::gpu::tgv_dispatch::split;
+    use octstore::testing::gpu::tgv_dispatch::split;
     let (problem, state) = grid_problem(9, 3);
     let op = Operator::new(&problem);
     let mut kernel = Kernel::new(&op).expect("short gather lists");
@@ -218,15 +218,15 @@ fn a_unit_over_one_binding_runs_in_chunks_with_the_same_result() {
     let (problem, state) = grid_problem(8, 7);
     let kernel = Kernel::new(&Operator::new(&problem)).expect("short gather lists");
     let mut whole = Packed::of(&state);
-    octstore::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut whole, 30).expect("the GPU runs the unit");
+    octstore::testing::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut whole, 30).expect("the GPU runs the unit");
     // Bindings of 1 KiB: most buffers of the 512-cube unit are larger (dual constants alone are
     // 48 bytes a cube), so it runs in chunks of a few cubes, with halos between them.
     let gpu = gpu.with_binding_limit(1024);
     let mut chunked = Packed::of(&state);
-    octstore::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut chunked, 30).expect("the chunks fit");
+    octstore::testing::gpu::tgv_dispatch::iterate(&gpu, &kernel, &mut chunked, 30).expect("the chunks fit");
     assert_eq!(whole, chunked, "the same shaders on the same values");
     let mut solved = state.clone();
-    octstore::gpu::solve_on(Some(&gpu), &problem, &mut solved, Stopping::after(30));
+    octstore::testing::gpu::solve_on(Some(&gpu), &problem, &mut solved, Stopping::after(30));
     assert_eq!(gpu.counts(), (1, 0), "the unit ran on the GPU");
 }
 
@@ -239,19 +239,19 @@ fn a_unit_over_the_gpu_limits_runs_on_the_cpu_with_the_same_result() {
     let Some(gpu) = open_gpu() else { return };
     let gpu = gpu.with_binding_limit(32);
     let mut fallback_state = state.clone();
-    let fallback = octstore::gpu::solve_on(Some(&gpu), &problem, &mut fallback_state, Stopping::after(30));
+    let fallback = octstore::testing::gpu::solve_on(Some(&gpu), &problem, &mut fallback_state, Stopping::after(30));
     let fallback_energy = (fallback.energy_before, fallback.energy_after);
     assert_eq!(cpu, fallback_state);
     assert_eq!(cpu_energy, fallback_energy);
     assert_eq!(gpu.counts(), (0, 1), "the unit fell back");
-    let too_large = octstore::gpu::tgv_dispatch::iterate(
+    let too_large = octstore::testing::gpu::tgv_dispatch::iterate(
         &gpu,
         &Kernel::new(&Operator::new(&problem)).expect("short gather lists"),
         &mut Packed::of(&state),
         1,
     );
     assert!(
-        matches!(too_large, Err(octstore::gpu::GpuError::TooLarge { .. })),
+        matches!(too_large, Err(octstore::testing::gpu::GpuError::TooLarge { .. })),
         "{too_large:?}"
     );
 }
@@ -263,7 +263,7 @@ fn solve_on_the_gpu_lowers_the_energy_like_the_cpu() {
     let mut cpu = state.clone();
     let (cpu_before, cpu_after) = tgv::solve(&problem, &mut cpu, 60);
     let mut on_gpu = state.clone();
-    let solved = octstore::gpu::solve_on(Some(&gpu), &problem, &mut on_gpu, Stopping::after(60));
+    let solved = octstore::testing::gpu::solve_on(Some(&gpu), &problem, &mut on_gpu, Stopping::after(60));
     let (gpu_before, gpu_after) = (solved.energy_before, solved.energy_after);
     assert_eq!(cpu_before, gpu_before);
     assert!(gpu_after < gpu_before);
@@ -284,8 +284,8 @@ fn solve_on_the_gpu_lowers_the_energy_like_the_cpu() {
 /// a field added on one side only fails here, not as garbage on a GPU.
 #[test]
 fn shared_structs_match_the_shader_layout() {
-    use octstore::gpu::tgv_dispatch::{DUAL_SHADER, PRIMAL_SHADER, Params};
-    use octstore::kernels::tgv::{DualConstants, Gather, PrimalConstants};
+    use octstore::testing::gpu::tgv_dispatch::{DUAL_SHADER, PRIMAL_SHADER, Params};
+    use octstore::testing::kernels::tgv::{DualConstants, Gather, PrimalConstants};
     use std::mem::{offset_of, size_of};
     use wgpu::naga;
 
@@ -346,7 +346,7 @@ fn shared_structs_match_the_shader_layout() {
         )
     );
     {
-        use octstore::gpu::tgv_dispatch::{HALO_SHADER, HaloParams};
+        use octstore::testing::gpu::tgv_dispatch::{HALO_SHADER, HaloParams};
         assert_eq!(
             layout(HALO_SHADER, "HaloParams"),
             (
@@ -369,17 +369,18 @@ fn shared_structs_match_the_shader_layout() {
 /// sign, and the meshes lie within half a cube of each other (F-score 0.99).
 #[test]
 fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
-    use octstore::pipeline::{SolveOptions, solve_with_gpu};
-    use octstore::quality::synthetic_scenes::{Noise, SceneSpec, Shape};
-    use octstore::stages::extract::{ExtractOptions, Simplify, extract};
+    use octstore::pipeline::SolveOptions;
+    use octstore::testing::quality::synthetic_scenes::{Noise, SceneSpec, Shape};
+    use octstore::testing::solve_with_gpu;
+    use octstore::testing::stages::extract::{ExtractOptions, Simplify, extract};
     // Every triangle: the test compares solutions through their surfaces.
     let full_mesh = || ExtractOptions {
         simplify: Simplify::Full,
         ..ExtractOptions::default()
     };
-    use octstore::stages::ingest::read_scene;
-    use octstore::stages::octree_max_depth;
-    use octstore::stages::solve::{LEVEL_STAGES, SolveParams, read_level_values};
+    use octstore::testing::stages::ingest::read_scene;
+    use octstore::testing::stages::octree_max_depth;
+    use octstore::testing::stages::solve::{LEVEL_STAGES, SolveParams, read_level_values};
 
     let dir = tempfile::tempdir().unwrap();
     let center = glam::DVec3::new(0.2, -0.1, 0.3);
@@ -452,14 +453,14 @@ fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
     eprintln!("{n} cubes: {moved} move by more than 1e-3, {flipped} change sign, worst |du| {worst:e}");
     assert!(moved * 100 <= n, "{moved} of {n} cubes moved by more than 1e-3");
     assert!(flipped * 1000 <= n, "{flipped} of {n} cubes changed sign");
-    let options = octstore::quality::evaluate::EvaluateOptions {
+    let options = octstore::testing::quality::evaluate::EvaluateOptions {
         tau: 0.5 * side,
         spacing: Some(0.5 * side),
         crop_margin: None,
         seen_faces: None,
         seed: 1,
     };
-    let report = octstore::quality::evaluate::evaluate(gpu_mesh, cpu_mesh, &options).unwrap();
+    let report = octstore::testing::quality::evaluate::evaluate(gpu_mesh, cpu_mesh, &options).unwrap();
     eprintln!(
         "GPU mesh against the CPU mesh: F {:.4} at half a cube, Chamfer {:.2e} (cube side {side:.2e})",
         report.f_score, report.chamfer
@@ -470,7 +471,7 @@ fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
 /// A depth map seen from far off the origin (pinhole or 360-degree), with holes, and cubes of
 /// many sizes around its surface and outside its view; with the unit origin near the cubes.
 struct VoteCase {
-    pyramid: octstore::kernels::votes::Pyramid,
+    pyramid: octstore::testing::kernels::votes::Pyramid,
     world_to_camera: glam::DMat4,
     centers: Vec<glam::DVec3>,
     radii: Vec<f64>,
@@ -558,7 +559,7 @@ fn vote_case(spherical: bool, seed: u64) -> VoteCase {
     }
     let origin = centers.iter().copied().sum::<DVec3>() / centers.len() as f64 + DVec3::splat(0.37);
     VoteCase {
-        pyramid: octstore::kernels::votes::Pyramid::new(source, DepthImage { width, height, depth }),
+        pyramid: octstore::testing::kernels::votes::Pyramid::new(source, DepthImage { width, height, depth }),
         world_to_camera: camera_to_world.inverse(),
         centers,
         radii,
@@ -574,10 +575,10 @@ fn voted_bins(hist: &[f32]) -> Vec<Option<usize>> {
 
 /// The twin's histogram rows and distance sums.
 fn twin_votes(case: &VoteCase) -> (Vec<f32>, Vec<f32>) {
-    use octstore::gpu::votes_dispatch::{cube_offsets, pyramid_arrays, vote_map};
+    use octstore::testing::gpu::votes_dispatch::{cube_offsets, pyramid_arrays, vote_map};
     let n = case.centers.len();
     let (levels, depths) = pyramid_arrays(&case.pyramid);
-    let map = octstore::gpu::votes_dispatch::VoteMap {
+    let map = octstore::testing::gpu::votes_dispatch::VoteMap {
         levels: levels.len() as u32,
         ..vote_map(
             &case.pyramid.source,
@@ -631,7 +632,7 @@ fn votes_twin_matches_the_cpu_reference() {
         {
             if let (Some((bin, Some(d))), Some(twin_bin), [sum, weight]) = (reference, twin, sums)
                 && bin == twin_bin
-                && octstore::kernels::votes::measures(*bin)
+                && octstore::testing::kernels::votes::measures(*bin)
             {
                 assert_eq!(*weight, 1.0);
                 compared += 1;
@@ -674,7 +675,7 @@ fn votes_shader_matches_the_twin() {
         let unit = gpu
             .upload_unit(
                 case.origin,
-                &octstore::gpu::votes_dispatch::cube_offsets(case.origin, &case.centers, &case.radii),
+                &octstore::testing::gpu::votes_dispatch::cube_offsets(case.origin, &case.centers, &case.radii),
                 &previous,
                 &previous_distance,
                 case.band_floor,
@@ -729,7 +730,7 @@ fn votes_shader_matches_the_twin() {
 
 #[test]
 fn vote_map_matches_the_shader_layout() {
-    use octstore::gpu::votes_dispatch::{VOTES_SHADER, VoteMap};
+    use octstore::testing::gpu::votes_dispatch::{VOTES_SHADER, VoteMap};
     use std::mem::{offset_of, size_of};
     use wgpu::naga;
     let module = naga::front::wgsl::parse_str(VOTES_SHADER).expect("the shader parses");
@@ -773,7 +774,8 @@ fn vote_map_matches_the_shader_layout() {
 /// origin, so each cube computes the same f32 values.
 #[test]
 fn votes_in_batches_that_fit_a_binding_are_the_whole_units_votes() {
-    use octstore::pipeline::{SolveOptions, SolveUntil, solve_with_gpu};
+    use octstore::pipeline::{SolveOptions, SolveUntil};
+    use octstore::testing::solve_with_gpu;
 
     let Some(gpu) = open_gpu() else { return };
     let dir = tempfile::tempdir().unwrap();
@@ -800,7 +802,7 @@ fn votes_in_batches_that_fit_a_binding_are_the_whole_units_votes() {
             ..SolveOptions::default()
         };
         solve_with_gpu(&store, &solve_options, Some(gpu.clone()), |_| {}).unwrap();
-        digests.push(store.latest().unwrap().digest(octstore::stages::HISTOGRAMS));
+        digests.push(store.latest().unwrap().digest(octstore::testing::stages::HISTOGRAMS));
     }
     for gpu in [&full, &batched] {
         let (units, fallbacks) = gpu.counts();
@@ -881,7 +883,8 @@ fn cluster_workers_on_the_gpu_equal_a_single_gpu_solve() {
 #[test]
 fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
     use common::{assert_same_store, fingerprint};
-    use octstore::pipeline::{SolveOptions, SolveUntil, solve, solve_with_gpu};
+    use octstore::pipeline::{SolveOptions, SolveUntil, solve};
+    use octstore::testing::solve_with_gpu;
 
     let Some(healthy) = open_gpu() else { return };
     let healthy = std::sync::Arc::new(healthy);
@@ -894,7 +897,7 @@ fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
     let options = SolveOptions {
         leaf_cubes: 300,
         memory_budget: 256 << 20,
-        params: octstore::stages::solve::SolveParams {
+        params: octstore::testing::stages::solve::SolveParams {
             iterations: 20,
             ..Default::default()
         },
@@ -919,7 +922,7 @@ fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
             solve(&store, &on_cpu, |_| {}).unwrap();
         } else {
             solve_with_gpu(&store, &options, Some(lost.clone()), |report| {
-                if report.stage == octstore::stages::HISTOGRAMS {
+                if report.stage == octstore::testing::stages::HISTOGRAMS {
                     lost.destroy();
                 }
             })
@@ -945,7 +948,7 @@ fn a_lost_device_sends_the_rest_of_the_run_to_the_cpu() {
 /// small enough for a whole pipeline in a few seconds on llvmpipe.
 fn small_sphere(center: glam::DVec3, room: Option<f64>) -> octstore::SceneSpec {
     octstore::SceneSpec {
-        shapes: vec![octstore::quality::synthetic_scenes::Shape::Sphere { center, radius: 0.5 }],
+        shapes: vec![octstore::testing::quality::synthetic_scenes::Shape::Sphere { center, radius: 0.5 }],
         cameras: 6,
         distance: 2.0,
         target: center,

@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 
 use common::*;
 use octstore::mesh::read_mesh;
-use octstore::quality::evaluate::{EvaluateOptions, evaluate};
-use octstore::stages::ingest::{read_scene, scene_at};
+use octstore::testing::quality::evaluate::{EvaluateOptions, evaluate};
+use octstore::testing::stages::ingest::{read_scene, scene_at};
 
 fn frame(n: u32) -> String {
     shared_path("7scenes-redkitchen")
@@ -55,7 +55,7 @@ fn solve_and_extract(store: &Path) -> PathBuf {
 
 fn f_score(a: &Path, b: &Path, tau_fraction: f64) -> f64 {
     let (a, b) = (read_mesh(a).unwrap(), read_mesh(b).unwrap());
-    let (lo, hi) = octstore::quality::ground_truth_views::bounds(&b).unwrap();
+    let (lo, hi) = octstore::testing::quality::ground_truth_views::bounds(&b).unwrap();
     let options = EvaluateOptions {
         tau: (hi - lo).length() * tau_fraction,
         spacing: None,

@@ -10,10 +10,10 @@ use octstore::RunOptions;
 use octstore::Store;
 use octstore::inputs::{DepthImage, ImageFormat, write_pfm};
 use octstore::inputs::{DiscoverOptions, discover};
-use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
-use octstore::stages::ingest::{IngestOptions, IngestStage, back_project};
-use octstore::stages::octree::{OctreeStage, check_octree_keys};
-use octstore::stages::{INGEST, OCTREE};
+use octstore::testing::quality::synthetic_scenes::{SceneSpec, Shape};
+use octstore::testing::stages::ingest::{IngestOptions, IngestStage, back_project};
+use octstore::testing::stages::octree::{OctreeStage, check_octree_keys};
+use octstore::testing::stages::{INGEST, OCTREE};
 
 fn kitchen() -> PathBuf {
     shared_path("7scenes-redkitchen")
@@ -89,7 +89,7 @@ fn build_with_runs_of(
         .unwrap();
         store.run_stage(&stage, &options()).unwrap();
     }
-    let scene = octstore::stages::ingest::read_scene(&store).unwrap().unwrap();
+    let scene = octstore::testing::stages::ingest::read_scene(&store).unwrap().unwrap();
     let scratch = store.scratch_dir(OCTREE).unwrap();
     let stage = OctreeStage::new(scene, leaf_cubes, 1 << 20, scratch);
     store.run_stage(&stage, &options()).unwrap();
@@ -122,7 +122,9 @@ fn redkitchen_frames_give_a_complete_balanced_octree() {
     // The treetop: every leaf segment below the limit, and ranges are contiguous.
     assert!(snap.segments(OCTREE).len() > 2);
     assert!(snap.segments(OCTREE).iter().all(|(_, r)| r.rows < 3000));
-    let report = store.verify(&[octstore::stages::octree::verify_octree]).unwrap();
+    let report = store
+        .verify(&[octstore::testing::stages::octree::verify_octree])
+        .unwrap();
     assert!(report.is_ok(), "{:?}", report.problems);
     // Every requested cube is a node with its radius sums.
     let requested: u64 = snap.rows(INGEST);
@@ -351,7 +353,9 @@ fn incremental_ingest_equals_all_at_once_in_any_order() {
 
     // A second solve with nothing new does nothing; a new depth map rewrites only the leaves
     // whose cubes changed.
-    let scene = octstore::stages::ingest::read_scene(&incremental).unwrap().unwrap();
+    let scene = octstore::testing::stages::ingest::read_scene(&incremental)
+        .unwrap()
+        .unwrap();
     let again = OctreeStage::new(scene, 2000, 1 << 20, incremental.scratch_dir(OCTREE).unwrap());
     assert_eq!(incremental.run_stage(&again, &options()).unwrap().version, None);
     let leaves_before = si.segments(OCTREE).len();
@@ -370,7 +374,7 @@ fn incremental_ingest_equals_all_at_once_in_any_order() {
     );
     assert!(
         incremental
-            .verify(&[octstore::stages::octree::verify_octree])
+            .verify(&[octstore::testing::stages::octree::verify_octree])
             .unwrap()
             .is_ok()
     );
@@ -452,7 +456,7 @@ fn radius_stats(
 
 #[test]
 fn merging_more_runs_than_the_fan_in_keeps_every_radius_sum() {
-    use octstore::stages::octree::MERGE_FAN_IN;
+    use octstore::testing::stages::octree::MERGE_FAN_IN;
     let dir = tempfile::tempdir().unwrap();
     let spec = SceneSpec {
         cameras: 2 * MERGE_FAN_IN + 7,
@@ -651,7 +655,7 @@ fn rgbd_frames_measure_their_noise_unless_told_otherwise() {
     };
     let recorded = |path: &Path| {
         let store = Store::open_read_only(path).unwrap();
-        let maps = octstore::stages::ingest::registered_depth_maps(&store).unwrap();
+        let maps = octstore::testing::stages::ingest::registered_depth_maps(&store).unwrap();
         assert_eq!(maps.len(), 2);
         let cubes: u64 = maps.iter().map(|(_, r)| r.stats.cubes).sum();
         (maps[0].1.source.noise, cubes)
@@ -696,7 +700,7 @@ fn rgbd_frames_measure_their_noise_unless_told_otherwise() {
                     ..
                 } => {
                     assert!(quadratic > 0.0 && offset == 0.0, "{recorded_noise:?}");
-                    assert_eq!(sigmas, octstore::stages::ingest::noise::QUANTIZED_SIGMAS);
+                    assert_eq!(sigmas, octstore::testing::stages::ingest::noise::QUANTIZED_SIGMAS);
                 }
                 other => panic!("the default recorded {other:?}"),
             },
@@ -937,7 +941,7 @@ fn a_far_off_pose_is_named_and_does_not_collapse_the_root() {
         &[],
     );
     assert!(out.status.success(), "{}", stderr(&out));
-    let scene = octstore::stages::ingest::read_scene(&Store::open_read_only(&store).unwrap())
+    let scene = octstore::testing::stages::ingest::read_scene(&Store::open_read_only(&store).unwrap())
         .unwrap()
         .unwrap();
     assert!(scene.root_side < 3.0, "root side {}", scene.root_side);

@@ -11,8 +11,8 @@ use octstore::inputs::write_ptx_scan;
 use octstore::inputs::{DepthImage, ImageFormat, Kind, Projection};
 use octstore::inputs::{DiscoverOptions, InputFormat, discover};
 use octstore::inputs::{WorkspaceWriter, write_colmap_depth};
-use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
-use octstore::stages::ingest::back_project;
+use octstore::testing::quality::synthetic_scenes::{SceneSpec, Shape};
+use octstore::testing::stages::ingest::back_project;
 
 fn sphere_scene() -> SceneSpec {
     SceneSpec {

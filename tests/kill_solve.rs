@@ -5,7 +5,7 @@ mod common;
 
 use common::*;
 use glam::DVec3;
-use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
+use octstore::testing::quality::synthetic_scenes::{SceneSpec, Shape};
 
 /// Kills of the TGV run, each at a random moment of it (fixed seed), spread over the histogram
 /// stage and the levels; fewer than the 20 of `tests/kill.rs` because each trial also resumes a

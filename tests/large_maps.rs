@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use common::{assert_same_store, fingerprint, octstore, stderr, stdout, write_png16};
 use glam::DVec3;
 use octstore::inputs::{DepthImage, read_pfm, read_png16};
-use octstore::quality::synthetic_scenes::SceneSpec;
+use octstore::testing::quality::synthetic_scenes::SceneSpec;
 
 /// One 2000x1500 view of the demo's sphere and box inside its room, without noise (every
 /// pixel valid: 3 M samples).

@@ -203,3 +203,33 @@ fn sources_cite_only_documents_in_the_repository() {
         assert!(root.join(document).is_file(), "{document} is missing");
     }
 }
+
+/// The inside stays private (ARCHITECTURE.md, "Public and private"): the crate root declares
+/// the private layers without `pub`, and no module anywhere is public but hidden from the docs.
+#[test]
+fn private_layers_stay_private() {
+    let private = ["gpu", "kernels", "quality", "stages"];
+    for (path, text) in sources() {
+        let code: Vec<&str> = text
+            .lines()
+            .map(|l| l.trim())
+            .filter(|l| !l.starts_with("//"))
+            .collect();
+        for pair in code.windows(2) {
+            let [attribute, item] = pair else { continue };
+            assert!(
+                !(attribute.contains("doc(hidden)") && item.starts_with("pub mod")),
+                "src/{}: `{item}` is public but hidden from the docs: make it private and reach it from tests through src/testing.rs",
+                path.display()
+            );
+        }
+        if path == Path::new("lib.rs") {
+            for layer in private {
+                assert!(
+                    code.contains(&format!("mod {layer};").as_str()),
+                    "src/lib.rs must declare `mod {layer};` (private; tests reach it through `octstore::testing`)"
+                );
+            }
+        }
+    }
+}

@@ -10,9 +10,9 @@ use std::path::Path;
 
 use common::*;
 use octstore::Mesh;
-use octstore::mesh::read_mesh;
-use octstore::quality::evaluate::{EvaluateOptions, Report, evaluate};
-use octstore::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig, bounds};
+use octstore::mesh::{connected_components, read_mesh};
+use octstore::testing::quality::evaluate::{EvaluateOptions, Report, evaluate};
+use octstore::testing::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig, bounds};
 
 /// The bunny, scaled by `scale` (it is about 1 unit across).
 fn bunny(scale: f32) -> Mesh {
@@ -85,28 +85,6 @@ fn measure(mesh: &Mesh, truth: &Mesh, fraction: f64) -> Report {
     .unwrap()
 }
 
-/// Connected components of a mesh's triangles (through shared vertices).
-fn components(mesh: &Mesh) -> usize {
-    let mut parent: Vec<u32> = (0..mesh.positions.len() as u32).collect();
-    fn root(parent: &mut [u32], mut v: u32) -> u32 {
-        while parent[v as usize] != v {
-            parent[v as usize] = parent[parent[v as usize] as usize];
-            v = parent[v as usize];
-        }
-        v
-    }
-    for t in &mesh.triangles {
-        for k in 1..3 {
-            let (a, b) = (root(&mut parent, t[0]), root(&mut parent, t[k]));
-            parent[a as usize] = b;
-        }
-    }
-    let mut roots: Vec<u32> = mesh.triangles.iter().map(|t| root(&mut parent, t[0])).collect();
-    roots.sort_unstable();
-    roots.dedup();
-    roots.len()
-}
-
 /// A clean capture written as a 7-Scenes folder (16-bit PNG depths in thousandths of a unit,
 /// background 0), the layout that used to be taken for a Kinect at room scale: one closed
 /// component, within 1 % of the diagonal everywhere, and a measured noise model recorded.
@@ -123,12 +101,12 @@ fn a_clean_object_in_a_seven_scenes_folder_comes_out_closed_and_whole() {
         .unwrap();
     let (mesh, info) = reconstruct(&frames, dir.path());
     let report = measure(&mesh, &truth_mesh, 0.01);
-    eprintln!("{report:?}, {} components", components(&mesh));
+    eprintln!("{report:?}, {} components", connected_components(&mesh));
     assert!(info.contains("depth noise"), "{info}");
     assert!(!info.contains("0.0012 + 0.0019"), "a Kinect table was assumed: {info}");
     assert_eq!(report.boundary_edges, 0, "{report:?}");
     assert_eq!(report.non_manifold_edges, 0, "{report:?}");
-    assert_eq!(components(&mesh), 1);
+    assert_eq!(connected_components(&mesh), 1);
     assert!(report.f_score >= 0.99, "{report:?}");
 }
 
@@ -148,7 +126,7 @@ fn a_noisy_object_with_outliers_stays_closed_and_close() {
         .unwrap();
     let (mesh, _) = reconstruct(&manifest, dir.path());
     let report = measure(&mesh, &truth_mesh, 0.01);
-    eprintln!("{report:?}, {} components", components(&mesh));
+    eprintln!("{report:?}, {} components", connected_components(&mesh));
     assert_eq!(report.boundary_edges, 0, "{report:?}");
     assert!(report.f_score >= 0.97, "{report:?}");
 }

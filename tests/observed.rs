@@ -7,9 +7,9 @@ mod common;
 
 use common::*;
 use octstore::mesh::read_mesh;
-use octstore::quality::evaluate::{EvaluateOptions, Report, evaluate};
-use octstore::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig, bounds};
-use octstore::quality::interior_scene::interior_room;
+use octstore::testing::quality::evaluate::{EvaluateOptions, Report, evaluate};
+use octstore::testing::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig, bounds};
+use octstore::testing::quality::interior_scene::interior_room;
 
 #[test]
 fn an_interior_capture_gives_the_room_not_a_box_around_it() {

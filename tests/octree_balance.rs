@@ -3,9 +3,9 @@
 use octstore::Scene;
 use octstore::Store;
 use octstore::format::{Column, ColumnValues, CubeKey};
-use octstore::stages::octree::{OctreeStage, check_octree_keys};
-use octstore::stages::{INGEST, OCTREE};
 use octstore::store::{Plan, Replace, Result, RunOptions, Snapshot, Stage, UnitOutput, UnitSpec};
+use octstore::testing::stages::octree::{OctreeStage, check_octree_keys};
+use octstore::testing::stages::{INGEST, OCTREE};
 use proptest::prelude::*;
 
 /// Stands in for ingest: writes given sorted runs of requested cubes.
@@ -88,7 +88,7 @@ proptest! {
                 prop_assert!(keys.binary_search(k).is_ok(), "requested {:?} missing", k);
             }
         }
-        prop_assert!(store.verify(&[octstore::stages::octree::verify_octree]).unwrap().is_ok());
+        prop_assert!(store.verify(&[octstore::testing::stages::octree::verify_octree]).unwrap().is_ok());
     }
 }
 
@@ -99,11 +99,11 @@ fn the_checker_catches_an_unbalanced_tree() {
     // missing at depth 2.
     let root = CubeKey::new(0, 0, 0, 0);
     let mut keys = vec![root];
-    let c = octstore::stages::octree::children(root);
+    let c = octstore::testing::stages::octree::children(root);
     keys.extend(c);
-    let g = octstore::stages::octree::children(c[0]);
+    let g = octstore::testing::stages::octree::children(c[0]);
     keys.extend(g);
-    keys.extend(octstore::stages::octree::children(g[7]));
+    keys.extend(octstore::testing::stages::octree::children(g[7]));
     keys.sort();
     let problems = check_octree_keys(&keys);
     assert!(problems.iter().any(|p| p.contains("not 2:1 balanced")), "{problems:?}");

@@ -7,8 +7,8 @@ mod common;
 
 use common::*;
 use octstore::mesh::read_mesh;
-use octstore::quality::evaluate::{EvaluateOptions, evaluate};
-use octstore::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig, bounds};
+use octstore::testing::quality::evaluate::{EvaluateOptions, evaluate};
+use octstore::testing::quality::ground_truth_views::{GroundTruth, Layout, NoiseModel, Rig, bounds};
 
 fn bunny() -> octstore::Mesh {
     read_mesh(&shared_path("meshes/bunny00.off")).unwrap()
@@ -45,7 +45,7 @@ fn run_quietly(args: &[&str]) -> String {
 
 /// Renders the bunny inside a room of half-size `room` diagonals with `noise`, reconstructs it
 /// through the CLI (max depth 9, 100 iterations) and measures it at tau = 1 % of its diagonal.
-fn reconstruct_bunny(room: f64, rig: &Rig, noise: &NoiseModel) -> octstore::quality::evaluate::Report {
+fn reconstruct_bunny(room: f64, rig: &Rig, noise: &NoiseModel) -> octstore::testing::quality::evaluate::Report {
     let truth_mesh = bunny();
     // A room around the bunny, so that every ray ends on a surface and all space is observed.
     let truth = GroundTruth::new(truth_mesh.clone(), Some(room)).unwrap();

@@ -5,13 +5,13 @@ use octstore::RunOptions;
 use octstore::Scene;
 use octstore::Store;
 use octstore::inputs::{DiscoverOptions, discover};
-use octstore::kernels::tgv::{Operator, State, energy, solve};
-use octstore::quality::synthetic_scenes::{Noise, SceneSpec, Shape};
-use octstore::stages::histograms::HistogramsStage;
-use octstore::stages::ingest::{IngestOptions, IngestStage, registered_depth_maps};
-use octstore::stages::octree::OctreeStage;
-use octstore::stages::solve::{COARSE_ROWS_LEVEL, CoarseRowsCache, LEVEL_STAGES, LevelStage, SolveParams};
-use octstore::stages::{OCTREE, octree_max_depth};
+use octstore::testing::kernels::tgv::{Operator, State, energy, solve};
+use octstore::testing::quality::synthetic_scenes::{Noise, SceneSpec, Shape};
+use octstore::testing::stages::histograms::HistogramsStage;
+use octstore::testing::stages::ingest::{IngestOptions, IngestStage, registered_depth_maps};
+use octstore::testing::stages::octree::OctreeStage;
+use octstore::testing::stages::solve::{COARSE_ROWS_LEVEL, CoarseRowsCache, LEVEL_STAGES, LevelStage, SolveParams};
+use octstore::testing::stages::{OCTREE, octree_max_depth};
 
 fn options() -> RunOptions {
     RunOptions {
@@ -108,7 +108,7 @@ fn field_and_seen(store: &Store, scene: &Scene) -> Vec<(octstore::CubeKey, DVec3
     let finest = LEVEL_STAGES[usize::from(octree_max_depth(store).unwrap())];
     let mut out = Vec::new();
     for (name, _) in snap.segments(finest) {
-        let (keys, values) = octstore::stages::solve::read_level_u(&snap, name).unwrap();
+        let (keys, values) = octstore::testing::stages::solve::read_level_u(&snap, name).unwrap();
         for (k, value) in keys.iter().zip(&values) {
             out.push((
                 *k,
@@ -388,7 +388,7 @@ fn sphere_maps(root: &std::path::Path, cameras: usize) -> (Vec<octstore::inputs:
 
 /// Brings the octree and the histograms of `store` up to date.
 fn derive_histograms(store: &Store) -> octstore::store::RunReport {
-    let scene = octstore::stages::ingest::read_scene(store).unwrap().unwrap();
+    let scene = octstore::testing::stages::ingest::read_scene(store).unwrap().unwrap();
     let octree = OctreeStage::new(scene, 400, 1 << 20, store.scratch_dir(OCTREE).unwrap());
     store.run_stage(&octree, &options()).unwrap();
     let histograms = HistogramsStage::new(scene, registered_depth_maps(store).unwrap());
@@ -416,8 +416,8 @@ fn incremental_histograms_equal_a_from_scratch_run() {
     let (a, b) = (scratch.latest().unwrap(), incremental.latest().unwrap());
     assert_eq!(a.digest(OCTREE), b.digest(OCTREE));
     assert_eq!(
-        a.digest(octstore::stages::HISTOGRAMS),
-        b.digest(octstore::stages::HISTOGRAMS),
+        a.digest(octstore::testing::stages::HISTOGRAMS),
+        b.digest(octstore::testing::stages::HISTOGRAMS),
         "incremental votes differ from a from-scratch run"
     );
 }
@@ -434,7 +434,7 @@ fn histogram_groups_of_any_size_give_the_same_segments() {
         let store = Store::create(root.path().join(format!("groups-{group_leaves}"))).unwrap();
         let stage = IngestStage::prepare(&store, all.clone(), &fixed).unwrap();
         store.run_stage(&stage, &options()).unwrap();
-        let scene = octstore::stages::ingest::read_scene(&store).unwrap().unwrap();
+        let scene = octstore::testing::stages::ingest::read_scene(&store).unwrap().unwrap();
         let octree = OctreeStage::new(scene, 400, 1 << 20, store.scratch_dir(OCTREE).unwrap());
         let octree_units = store.run_stage(&octree, &options()).unwrap().units;
         let histograms =
@@ -446,7 +446,7 @@ fn histogram_groups_of_any_size_give_the_same_segments() {
             octree_units > 1 && groups == expected,
             "{groups} groups of {octree_units} units"
         );
-        digests.push(store.latest().unwrap().digest(octstore::stages::HISTOGRAMS));
+        digests.push(store.latest().unwrap().digest(octstore::testing::stages::HISTOGRAMS));
     }
     assert_eq!(digests[0], digests[1]);
 }
@@ -457,7 +457,7 @@ type MapSets = std::collections::BTreeMap<u64, Vec<u64>>;
 /// The histogram states of a store's catalog (key -> raw value) and its `map_set/` entries
 /// (digest -> ids), read straight from redb.
 fn histogram_catalog(path: &std::path::Path) -> (RawStates, MapSets) {
-    use octstore::store::catalog::{self, META, UNIT_STATE};
+    use octstore::testing::catalog::{self, META, UNIT_STATE};
     use redb::{ReadableDatabase, ReadableTable};
     let db = redb::Database::open(path.join("catalog.redb")).unwrap();
     let txn = db.begin_read().unwrap();
@@ -488,8 +488,8 @@ fn histogram_catalog(path: &std::path::Path) -> (RawStates, MapSets) {
 
 #[test]
 fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
-    use octstore::stages::histograms::HistogramState;
-    use octstore::store::catalog::{self, META, UNIT_STATE};
+    use octstore::testing::catalog::{self, META, UNIT_STATE};
+    use octstore::testing::stages::histograms::HistogramState;
     use redb::ReadableTable;
     let root = tempfile::tempdir().unwrap();
     let (mut all, fixed) = sphere_maps(root.path(), 6);
@@ -580,8 +580,8 @@ fn histogram_states_share_one_map_set_and_version_1_catalogs_migrate() {
     derive_histograms(&scratch);
     let (a, b) = (scratch.latest().unwrap(), migrated.latest().unwrap());
     assert_eq!(
-        a.digest(octstore::stages::HISTOGRAMS),
-        b.digest(octstore::stages::HISTOGRAMS),
+        a.digest(octstore::testing::stages::HISTOGRAMS),
+        b.digest(octstore::testing::stages::HISTOGRAMS),
         "votes after a migration differ from a from-scratch run"
     );
 }

@@ -4,11 +4,11 @@
 use glam::DVec3;
 use octstore::inputs::DiscoverOptions;
 use octstore::pipeline::{ingest, solve};
-use octstore::quality::synthetic_scenes::{SceneSpec, Shape};
-use octstore::stages::extract::{ExtractOptions, Simplify, extract};
-use octstore::stages::octree_max_depth;
-use octstore::stages::samples::{SAMPLES, SamplesStage};
-use octstore::stages::solve::LEVEL_STAGES;
+use octstore::testing::quality::synthetic_scenes::{SceneSpec, Shape};
+use octstore::testing::stages::extract::{ExtractOptions, Simplify, extract};
+use octstore::testing::stages::octree_max_depth;
+use octstore::testing::stages::samples::{SAMPLES, SamplesStage};
+use octstore::testing::stages::solve::LEVEL_STAGES;
 use octstore::{IndicatorField, IngestOptions, Method, RunOptions, SolveOptions, SsdParams, Store};
 
 const CENTRE: DVec3 = DVec3::new(0.1, -0.05, 0.2);
@@ -67,7 +67,7 @@ fn ssd_options() -> SolveOptions {
     SolveOptions {
         method: Method::Ssd(SsdParams::default()),
         run: run(2),
-        device: octstore::gpu::DeviceChoice::Cpu,
+        device: octstore::testing::gpu::DeviceChoice::Cpu,
         ..SolveOptions::default()
     }
 }
@@ -95,7 +95,7 @@ fn ssd_solves_a_plain_store_by_adding_its_sample_sums_once() {
     .to_string();
     assert!(error.contains("created without sample sums"), "{error}");
     assert_eq!(plain.current_version().unwrap(), before);
-    assert!(!octstore::stages::ingest::records_sample_sums(&plain).unwrap());
+    assert!(!octstore::testing::stages::ingest::records_sample_sums(&plain).unwrap());
 
     let mut reports = Vec::new();
     solve(&plain, &ssd_options(), |report| reports.push(report.summary.clone())).unwrap();
@@ -105,11 +105,11 @@ fn ssd_solves_a_plain_store_by_adding_its_sample_sums_once() {
             .is_some_and(|summary| summary.contains("sample sums added: 16 depth map(s)")),
         "{reports:?}"
     );
-    assert!(octstore::stages::ingest::records_sample_sums(&plain).unwrap());
+    assert!(octstore::testing::stages::ingest::records_sample_sums(&plain).unwrap());
     let summed = ingested_sphere_with(&dir.path().join("summed"), 5, true);
     solve(&summed, &ssd_options(), |_| {}).unwrap();
     let mesh = |store: &Store| {
-        let scene = octstore::stages::ingest::read_scene(store).unwrap().unwrap();
+        let scene = octstore::testing::stages::ingest::read_scene(store).unwrap().unwrap();
         let finest = octree_max_depth(store).unwrap();
         extract(&store.latest().unwrap(), &scene, finest, &full_mesh()).unwrap()
     };
@@ -124,7 +124,11 @@ fn ssd_solves_a_plain_store_by_adding_its_sample_sums_once() {
         "{again:?}"
     );
 
-    let maps = |store: &Store| octstore::stages::ingest::registered_depth_maps(store).unwrap().len();
+    let maps = |store: &Store| {
+        octstore::testing::stages::ingest::registered_depth_maps(store)
+            .unwrap()
+            .len()
+    };
     ingest(
         &summed,
         &[closer],
@@ -146,7 +150,7 @@ fn solve_in_leaves(store: &Store, method: Method, threads: usize, leaf_cubes: u6
         method,
         leaf_cubes,
         run: run(threads),
-        device: octstore::gpu::DeviceChoice::Cpu,
+        device: octstore::testing::gpu::DeviceChoice::Cpu,
         ..SolveOptions::default()
     };
     solve(store, &options, |_| {}).unwrap();
@@ -156,7 +160,7 @@ fn solve_in_leaves(store: &Store, method: Method, threads: usize, leaf_cubes: u6
 /// the sphere, in finest cubes.
 fn sphere_error(store: &Store) -> (f64, f64) {
     let snapshot = store.latest().unwrap();
-    let scene = octstore::stages::ingest::read_scene(store).unwrap().unwrap();
+    let scene = octstore::testing::stages::ingest::read_scene(store).unwrap().unwrap();
     let finest = octree_max_depth(store).unwrap();
     let mesh = extract(&snapshot, &scene, finest, &full_mesh()).unwrap();
     let side = scene.cube_side(finest);
@@ -192,7 +196,7 @@ fn ssd_places_a_clean_sphere_closer_than_tgv() {
         octstore::cli::info(&store, None).unwrap().solver.as_deref(),
         Some("ssd")
     );
-    let scene = octstore::stages::ingest::read_scene(&store).unwrap().unwrap();
+    let scene = octstore::testing::stages::ingest::read_scene(&store).unwrap().unwrap();
     let centre = f64::from(snapshot.indicator_at(CENTRE).unwrap().unwrap()) * scene.root_side;
     assert!(
         (centre + RADIUS / 2.0).abs() < 0.15 * RADIUS,
@@ -273,7 +277,11 @@ fn a_damaged_sample_chunk_is_refused_by_file_name() {
     };
     solve(&store, &octree, |_| {}).unwrap();
     let snapshot = store.latest().unwrap();
-    let (name, _) = snapshot.segments(octstore::stages::INGEST).iter().next().unwrap();
+    let (name, _) = snapshot
+        .segments(octstore::testing::stages::INGEST)
+        .iter()
+        .next()
+        .unwrap();
     let path = dir.path().join("store").join("segments").join(name);
     let mut bytes = std::fs::read(&path).unwrap();
     let directory = octstore::format::segment::SegmentReader::parse(&bytes)
@@ -325,7 +333,7 @@ fn seams_between_units_cost_the_ssd_sphere_a_twentieth_of_a_cube() {
         let dir = tempfile::tempdir().unwrap();
         let store = ingested_sphere(dir.path(), 7);
         solve_in_leaves(&store, Method::Ssd(SsdParams::default()), 2, leaf_cubes);
-        let units = octstore::stages::treetop::Treetop::of(&store.latest().unwrap())
+        let units = octstore::testing::stages::treetop::Treetop::of(&store.latest().unwrap())
             .unwrap()
             .units
             .len();

@@ -5,8 +5,8 @@ mod common;
 use common::*;
 use octstore::Store;
 use octstore::format::{ColumnValues, CubeKey};
-use octstore::stages::exercise::{self, ExerciseStage};
 use octstore::store::{IoFaults, RunOptions, StoreError};
+use octstore::testing::stages::exercise::{self, ExerciseStage};
 
 fn stage(units: u32, seed: u64) -> ExerciseStage {
     ExerciseStage {
@@ -478,10 +478,10 @@ fn a_flipped_catalog_value_is_a_corruption_error_naming_table_and_key() {
     // The scene of a real ingest: its root minimum's bytes, flipped, stop extraction and verify.
     let ingested = dir.path().join("ingested");
     ingest_one_kitchen_frame(&ingested);
-    let scene = octstore::stages::ingest::read_scene(&Store::open(&ingested).unwrap())
+    let scene = octstore::testing::stages::ingest::read_scene(&Store::open(&ingested).unwrap())
         .unwrap()
         .unwrap();
-    let bytes = octstore::store::catalog::encode(&scene);
+    let bytes = octstore::testing::catalog::encode(&scene);
     assert!(flip_in_catalog(&ingested, &bytes, 3) > 0);
     for args in [vec!["verify"], vec!["solve", "--until", "octree"], vec!["info"]] {
         let mut all = args.clone();

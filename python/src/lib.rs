@@ -222,7 +222,7 @@ impl Snapshot {
         )?;
         dict.set_item("u", cubes.iter().map(|c| c.u).collect::<Vec<_>>().into_pyarray(py))?;
         let histogram: Vec<f32> = cubes.iter().flat_map(|c| c.histogram).collect();
-        dict.set_item("histogram", rows(py, histogram, n, octstore::kernels::votes::BINS)?)?;
+        dict.set_item("histogram", rows(py, histogram, n, octstore::query::HISTOGRAM_BINS)?)?;
         dict.set_item(
             "observed",
             cubes.iter().map(|c| c.seen).collect::<Vec<_>>().into_pyarray(py),

@@ -230,6 +230,7 @@ pub struct IngestArgs {
 /// Arguments of `octstore solve`.
 #[derive(Args, Debug)]
 pub struct SolveArgs {
+    /// The store's folder.
     pub store: PathBuf,
     /// Continue an interrupted run from its last committed unit.
     #[arg(long)]
@@ -237,6 +238,7 @@ pub struct SolveArgs {
     /// Run the pending stages up to and including this one.
     #[arg(long, value_enum, default_value = "solution")]
     pub until: SolveUntil,
+    /// The solver and its weights.
     #[command(flatten)]
     pub solver: SolverArgs,
     /// Treetop leaves hold fewer cubes than this.
@@ -252,12 +254,15 @@ pub struct SolveArgs {
 /// Arguments of `octstore plan`.
 #[derive(Args, Debug)]
 pub struct PlanArgs {
+    /// The store's folder.
     pub store: PathBuf,
     /// `histograms`, `solution-LL` or `extract`.
     #[arg(long)]
     pub stage: String,
+    /// Chunks to split the stage's units into: one worker task each.
     #[arg(long, default_value_t = 16)]
     pub chunks: u32,
+    /// The solver and its weights (recorded in the plan, so every worker uses the same).
     #[command(flatten)]
     pub solver: SolverArgs,
     /// extract: the mesh file the commit writes (.ply, .glb or .obj).
@@ -280,9 +285,12 @@ pub struct PlanArgs {
 /// Arguments of `octstore work`.
 #[derive(Args, Debug)]
 pub struct WorkArgs {
+    /// The store's folder (shared by every worker).
     pub store: PathBuf,
+    /// The planned stage this worker runs a chunk of.
     #[arg(long)]
     pub stage: String,
+    /// The chunk to run, from 0 to the plan's chunks - 1.
     #[arg(long)]
     pub chunk: u32,
     /// Where this chunk's votes and iterations run, as for `solve`. Every chunk of a stage
@@ -295,7 +303,9 @@ pub struct WorkArgs {
 /// Arguments of `octstore commit`.
 #[derive(Args, Debug)]
 pub struct CommitArgs {
+    /// The store's folder.
     pub store: PathBuf,
+    /// The planned stage whose workers' output to adopt as one new version.
     #[arg(long)]
     pub stage: String,
 }
@@ -303,9 +313,12 @@ pub struct CommitArgs {
 /// Arguments of `octstore slurm`.
 #[derive(Args, Debug)]
 pub struct SlurmArgs {
+    /// The store's folder, on a file system every node mounts.
     pub store: PathBuf,
+    /// Chunks (array tasks) per stage.
     #[arg(long, default_value_t = 16)]
     pub chunks: u32,
+    /// The Slurm partition to submit to (sbatch's default when absent).
     #[arg(long)]
     pub partition: Option<String>,
     /// Extra sbatch option for every job, e.g. --sbatch-arg=--time=02:00:00 (repeatable).
@@ -320,6 +333,7 @@ pub struct SlurmArgs {
     /// Also extract the mesh into this file (.ply or .obj), chunked like the other stages.
     #[arg(short, long, value_parser = parse_mesh_path)]
     pub output: Option<PathBuf>,
+    /// The solver and its weights.
     #[command(flatten)]
     pub solver: SolverArgs,
     /// `--device` of the work jobs (ask Slurm for GPUs with --sbatch-arg=--gres=gpu:1).
@@ -344,6 +358,7 @@ pub struct DemoArgs {
 /// Arguments of `octstore extract`.
 #[derive(Args, Debug)]
 pub struct ExtractArgs {
+    /// The store's folder.
     pub store: PathBuf,
     /// The mesh file: binary PLY, or GLB (glTF binary) or OBJ by the extension `.glb` or `.obj`.
     #[arg(short, long, value_parser = parse_mesh_path)]
@@ -426,6 +441,7 @@ pub struct MergeArgs {
 /// Arguments of `octstore query`.
 #[derive(Args, Debug)]
 pub struct QueryArgs {
+    /// The store's folder.
     pub store: PathBuf,
     /// x,y,z in world coordinates.
     #[arg(long, value_parser = parse_point, required_unless_present_any = ["levels", "leaves", "cubes"])]
@@ -495,12 +511,14 @@ pub struct InfoArgs {
 /// Arguments of `octstore verify`.
 #[derive(Args, Debug)]
 pub struct VerifyArgs {
+    /// The store's folder.
     pub store: PathBuf,
 }
 
 /// Arguments of `octstore log`.
 #[derive(Args, Debug)]
 pub struct LogArgs {
+    /// The store's folder.
     pub store: PathBuf,
     /// Print the versions as JSON.
     #[arg(long)]
@@ -510,6 +528,7 @@ pub struct LogArgs {
 /// Arguments of `octstore gc`.
 #[derive(Args, Debug)]
 pub struct GcArgs {
+    /// The store's folder.
     pub store: PathBuf,
     /// Versions to keep readable, counting the latest (at least 1).
     #[arg(long, default_value_t = 1, value_parser = parse_positive::<u64>)]
@@ -519,15 +538,21 @@ pub struct GcArgs {
 /// Arguments of `octstore debug-synthetic`.
 #[derive(Args, Debug)]
 pub struct DebugSyntheticArgs {
+    /// The store's folder (created if absent).
     pub store: PathBuf,
+    /// Units of work of the synthetic stage.
     #[arg(long, default_value_t = 8)]
     pub units: u32,
+    /// Rows each unit writes.
     #[arg(long, default_value_t = 2000)]
     pub rows: u32,
+    /// Seed of the generated keys and values.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Sleep per unit, in milliseconds (lets the kill tests stop a run midway).
     #[arg(long, default_value_t = 0)]
     pub delay_ms: u64,
+    /// Resume an interrupted run of the stage.
     #[arg(long)]
     pub resume: bool,
 }

@@ -1,4 +1,4 @@
-//! The `octstore` command line: [`args`] declares it, [`run`] dispatches each verb to one
+//! The `octstore` command line: `args` declares it, [`run`] dispatches each verb to one
 //! function (`verbs` for one machine, `cluster` for cluster runs), and every verb reports
 //! typed errors ([`CliError`]) that `main` prints.
 
@@ -6,6 +6,8 @@ mod args;
 mod cluster;
 mod divide;
 mod error;
+mod evaluate;
+mod gt_render;
 mod parse;
 mod report;
 mod verbs;
@@ -13,8 +15,14 @@ mod verbs;
 use std::path::Path;
 use std::process::ExitCode;
 
-pub use self::args::{Cli, Command, GlobalOptions};
+pub use self::args::{
+    Cli, Command, CommitArgs, DebugSyntheticArgs, DemoArgs, DivideArgs, ExtractArgs, GcArgs, GlobalOptions, InfoArgs,
+    IngestArgs, LogArgs, MergeArgs, MethodChoice, PlanArgs, QueryArgs, RenderArgs, SlurmArgs, SolveArgs, SolverArgs,
+    VerifyArgs, WorkArgs,
+};
 pub use self::error::CliError;
+pub use self::evaluate::evaluate_main;
+pub use self::gt_render::gt_render_main;
 pub use self::report::{InfoJson, info, peak_rss_bytes};
 use crate::store::{RunOptions, Store, StoreError};
 

@@ -142,8 +142,8 @@ impl Root {
         ]
     }
 
-    /// Finds the nodes of `level` that hold points, quickly ([`NodeLocator`]).
-    pub fn locator(&self, level: u32) -> NodeLocator {
+    /// Finds the nodes of `level` that hold points, quickly (`NodeLocator`).
+    pub(crate) fn locator(&self, level: u32) -> NodeLocator {
         let level = level.min(GRID_BITS);
         let nodes = (1u64 << level) as f64;
         NodeLocator {
@@ -210,11 +210,6 @@ pub struct NodeLocator {
 }
 
 impl NodeLocator {
-    /// The level of the nodes it finds.
-    pub fn level(&self) -> u32 {
-        self.level
-    }
-
     /// The index of the node that holds `p`.
     #[inline(always)]
     pub fn index(&self, p: [f64; 3]) -> [u32; 3] {

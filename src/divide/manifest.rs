@@ -62,7 +62,7 @@ pub struct Subspace {
 /// What a later `divide` into the folder needs.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Division {
-    /// [`FORMAT_VERSION`].
+    /// `FORMAT_VERSION`.
     pub version: u32,
     /// The root cube every node lies in.
     pub root: Root,

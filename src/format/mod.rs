@@ -7,8 +7,7 @@
 // (format-spec.md), so no unwrap, expect or unchecked index outside tests.
 #![deny(clippy::unwrap_used, clippy::expect_used, clippy::indexing_slicing)]
 
-#[doc(hidden)]
-pub mod bytes;
+pub(crate) mod bytes;
 pub mod key;
 pub mod ply_header;
 pub mod segment;

@@ -10,7 +10,15 @@
 //! without a GPU; `cpu` opens nothing. `WGPU_BACKEND` (and the other `wgpu` environment
 //! variables) choose the backends.
 
+// A private layer: its `pub` items are the crate's own API and, with the `testing` feature, its
+// integration tests' and benches' (`octstore::testing`). Some exist only for those (reference
+// kernels, the GPU tests' reading helpers), so a build without the feature sees them unused.
+#![cfg_attr(not(feature = "testing"), allow(dead_code, unused_imports))]
+// `octstore::testing` is not the documented public surface: its items need no docs there.
+#![cfg_attr(feature = "testing", allow(missing_docs))]
+
 pub mod tgv_dispatch;
+#[cfg(any(test, feature = "testing"))]
 pub mod twins;
 pub mod votes_dispatch;
 
@@ -39,24 +47,41 @@ impl DeviceChoice {
     }
 }
 
+/// Why the GPU could not be opened or could not run a unit. wgpu reports these as text, which
+/// the variants carry; a unit that fails on the GPU runs on the CPU instead, with a warning.
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
+    /// `--device gpu` found no adapter (wgpu's reason follows).
     #[error("no GPU adapter found (backends from WGPU_BACKEND, default all); {0}")]
     NoAdapter(String),
+    /// The adapter was found but its device would not open.
     #[error("opening the device of adapter {adapter} failed: {message}")]
-    RequestDevice { adapter: String, message: String },
+    RequestDevice {
+        /// The adapter's name.
+        adapter: String,
+        /// wgpu's reason.
+        message: String,
+    },
+    /// A unit needs a buffer larger than the adapter allows.
     #[error("the unit needs a {what} buffer of {needed} bytes; the adapter allows {limit}")]
     TooLarge {
+        /// Which buffer.
         what: &'static str,
+        /// Its size in bytes.
         needed: u64,
+        /// The adapter's largest buffer, in bytes.
         limit: u64,
     },
+    /// An allocation on the device failed.
     #[error("out of GPU memory: {0}")]
     OutOfMemory(String),
+    /// The device was lost (driver reset, removal); it is not used again by this process.
     #[error("GPU device lost: {0}")]
     DeviceLost(String),
+    /// wgpu rejected a call (a bug in octstore or the driver).
     #[error("GPU validation error: {0}")]
     Validation(String),
+    /// Mapping a result buffer for reading failed.
     #[error("reading results back from the GPU failed: {0}")]
     Readback(String),
 }
@@ -64,9 +89,13 @@ pub enum GpuError {
 /// One adapter as `octstore info --devices` lists it.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct AdapterSummary {
+    /// The adapter's name, as the driver reports it.
     pub name: String,
+    /// The wgpu backend (Vulkan, Metal, ...).
     pub backend: String,
+    /// Discrete, integrated, virtual or CPU.
     pub device_type: String,
+    /// The driver's name and version.
     pub driver: String,
     /// A software rasteriser (llvmpipe, SwiftShader): never chosen by `auto`.
     pub software: bool,

@@ -614,7 +614,7 @@ impl DepthMapSource {
     }
 
     /// Checks that the image size fits the intrinsics: positive focal lengths, and a principal
-    /// point within [`PRINCIPAL_POINT_REACH`] of the image's size from its centre.
+    /// point within `PRINCIPAL_POINT_REACH` of the image's size from its centre.
     pub fn check_intrinsics(&self) -> Result<(), InputError> {
         if let Projection::Pinhole { fx, fy, cx, cy } = self.projection {
             let (w, h) = (f64::from(self.width), f64::from(self.height));

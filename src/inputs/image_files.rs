@@ -232,7 +232,7 @@ pub(super) fn read_floats(path: &Path, layout: FloatLayout) -> Result<DepthImage
     collect_rows(layout.width, layout.height, |row, out| rows.read_row(path, row, out))
 }
 
-/// The layout of a grey PFM from its header: "Pf\n<w> <h>\n<scale>\n" (whitespace-separated
+/// The layout of a grey PFM from its header: `"Pf\n<w> <h>\n<scale>\n"` (whitespace-separated
 /// tokens), then float32 rows from the bottom row up; a negative scale means little-endian.
 pub fn pfm_layout(path: &Path) -> Result<FloatLayout, InputError> {
     let bytes = read_head(path, 4096)?;

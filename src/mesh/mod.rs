@@ -152,6 +152,38 @@ pub fn edge_defects(mesh: &Mesh) -> (usize, usize) {
     (boundary, non_manifold)
 }
 
+/// Counts the connected components of a mesh's triangles: two triangles are connected when
+/// they share a vertex (index), directly or through others. Unused vertices count for nothing.
+pub fn connected_components(mesh: &Mesh) -> usize {
+    fn root(parent: &mut [u32], mut v: u32) -> u32 {
+        while let Some(&up) = parent.get(v as usize) {
+            if up == v {
+                break;
+            }
+            // Path halving: point v at its grandparent.
+            let grand = parent.get(up as usize).copied().unwrap_or(up);
+            if let Some(slot) = parent.get_mut(v as usize) {
+                *slot = grand;
+            }
+            v = grand;
+        }
+        v
+    }
+    let mut parent: Vec<u32> = (0..mesh.positions.len() as u32).collect();
+    for t in &mesh.triangles {
+        for corner in [t[1], t[2]] {
+            let (a, b) = (root(&mut parent, t[0]), root(&mut parent, corner));
+            if let Some(slot) = parent.get_mut(a as usize) {
+                *slot = b;
+            }
+        }
+    }
+    let mut roots: Vec<u32> = mesh.triangles.iter().map(|t| root(&mut parent, t[0])).collect();
+    roots.sort_unstable();
+    roots.dedup();
+    roots.len()
+}
+
 /// Counts of a written mesh.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct MeshSummary {
@@ -163,4 +195,26 @@ pub struct MeshSummary {
     pub boundary_edges: u64,
     /// Edges of more than two triangles.
     pub non_manifold_edges: u64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn components_join_through_shared_vertices_only() {
+        let mut mesh = Mesh {
+            positions: vec![[0.0; 3]; 8],
+            ..Mesh::default()
+        };
+        assert_eq!(connected_components(&mesh), 0);
+        // Two triangles sharing vertex 2, one apart, and vertex 7 unused.
+        mesh.triangles = vec![[0, 1, 2], [2, 3, 4], [5, 6, 0]];
+        assert_eq!(connected_components(&mesh), 1);
+        mesh.triangles = vec![[0, 1, 2], [2, 3, 4], [5, 6, 3], [1, 0, 2]];
+        assert_eq!(connected_components(&mesh), 1);
+        mesh.triangles = vec![[0, 1, 2], [3, 4, 5], [5, 6, 3]];
+        assert_eq!(connected_components(&mesh), 2);
+        assert_eq!(edge_defects(&mesh).0, 7);
+    }
 }

@@ -23,7 +23,7 @@ use crate::store::{Stage, Store};
 /// `solution-LL`. The
 /// octree is one global merge and is built by a single process (`solve --until octree`).
 /// `gpu`, when given, runs the votes or the iterations (with the CPU fallback per unit).
-pub fn cluster_stage(
+pub(crate) fn cluster_stage(
     store: &Store,
     name: &str,
     params: SolveParams,
@@ -58,7 +58,7 @@ pub fn cluster_stage(
 }
 
 /// The stage of a recorded cluster plan, rebuilt with the plan's solver parameters.
-pub fn stage_of_plan(store: &Store, stage: &str, gpu: Option<Arc<Gpu>>) -> Result<Box<dyn Stage>> {
+pub(crate) fn stage_of_plan(store: &Store, stage: &str, gpu: Option<Arc<Gpu>>) -> Result<Box<dyn Stage>> {
     let plan = store
         .cluster_plan(stage)?
         .ok_or_else(|| PipelineError::NoPlan { stage: stage.into() })?;

@@ -151,7 +151,7 @@ pub fn solve(store: &Store, options: &SolveOptions, on_report: impl FnMut(&RunRe
 
 /// [`solve`] with the votes and the solver's iterations on an already open `gpu`
 /// (`options.device` unused).
-pub fn solve_with_gpu(
+pub(crate) fn solve_with_gpu(
     store: &Store,
     options: &SolveOptions,
     gpu: Option<Arc<Gpu>>,
@@ -236,7 +236,7 @@ pub fn solve_with_gpu(
 
 /// The device `choice` names: an error only when `gpu` was asked for and none opens; `auto`
 /// falls back to the CPU with a warning.
-pub fn open_gpu(choice: DeviceChoice) -> Result<Option<Arc<Gpu>>> {
+pub(crate) fn open_gpu(choice: DeviceChoice) -> Result<Option<Arc<Gpu>>> {
     match Gpu::open(choice) {
         Ok(gpu) => Ok(gpu.map(std::sync::Arc::new)),
         Err(error) if choice == DeviceChoice::Auto => {

@@ -64,6 +64,8 @@ pub struct Report {
     pub ground_truth_samples: usize,
     pub boundary_edges: usize,
     pub non_manifold_edges: usize,
+    /// Connected components of the reconstruction's triangles (through shared vertices).
+    pub components: usize,
 }
 
 /// Samples of a mesh: positions and the triangle each lies on.
@@ -283,6 +285,7 @@ pub fn evaluate(reconstruction: &Mesh, ground_truth: &Mesh, options: &EvaluateOp
         ground_truth_samples: measured_truth.points.len(),
         boundary_edges,
         non_manifold_edges,
+        components: crate::mesh::connected_components(reconstruction),
     })
 }
 

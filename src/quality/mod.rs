@@ -5,6 +5,13 @@
 //! that cross each other ([`self_intersection`]). The binaries in `tools/`
 //! (`octstore-gt-render`, `octstore-evaluate`) are thin command lines over these.
 
+// A private layer: its `pub` items are the crate's own API and, with the `testing` feature, its
+// integration tests' and benches' (`octstore::testing`). Some exist only for those (reference
+// kernels, the GPU tests' reading helpers), so a build without the feature sees them unused.
+#![cfg_attr(not(feature = "testing"), allow(dead_code, unused_imports))]
+// `octstore::testing` is not the documented public surface: its items need no docs there.
+#![cfg_attr(feature = "testing", allow(missing_docs))]
+
 pub mod evaluate;
 pub mod ground_truth_views;
 pub mod interior_scene;

@@ -10,15 +10,21 @@ use serde_json::json;
 use crate::inputs::{DepthImage, write_pfm};
 use crate::kernels::random::{gaussian, uniform};
 
+/// An analytic solid of a [`SceneSpec`].
 #[derive(Clone, Copy, Debug)]
 pub enum Shape {
+    /// A ball.
     Sphere {
+        /// Its centre.
         center: DVec3,
+        /// Its radius.
         radius: f64,
     },
     /// Axis-aligned box.
     Box {
+        /// The corner with the smallest coordinates.
         min: DVec3,
+        /// The corner with the largest coordinates.
         max: DVec3,
     },
 }
@@ -66,26 +72,36 @@ impl Shape {
     }
 }
 
+/// Depth noise and outliers added to a [`SceneSpec`]'s depth maps.
 #[derive(Clone, Debug)]
 pub struct Noise {
     /// Gaussian depth noise, as a fraction of the depth.
     pub relative_sigma: f64,
     /// Fraction of valid pixels replaced by a random depth between 0.2 and 2 times the true one.
     pub outliers: f64,
+    /// Seed of the noise and outlier draws: the same seed gives the same depth maps.
     pub seed: u64,
 }
 
+/// A synthetic scene made of analytic shapes, and the ring of pinhole cameras that sees it
+/// (`octstore demo` renders [`SceneSpec::demo`]).
 #[derive(Clone, Debug)]
 pub struct SceneSpec {
+    /// The shapes; the surface is the boundary of their union.
     pub shapes: Vec<Shape>,
     /// Number of cameras on a ring around `target`, alternating above and below it.
     pub cameras: usize,
+    /// The cameras' distance from `target`, in scene units.
     pub distance: f64,
+    /// The point every camera looks at.
     pub target: DVec3,
+    /// Depth map width in pixels.
     pub width: u32,
+    /// Depth map height in pixels.
     pub height: u32,
     /// Horizontal field of view in degrees.
     pub fov_degrees: f64,
+    /// Depth noise and outliers; `None` renders exact depths.
     pub noise: Option<Noise>,
     /// Half-size of a room (walls seen from inside, centred on the target) behind the shapes:
     /// without a background, rays that miss the object carry no free-space evidence.
@@ -129,6 +145,7 @@ impl SceneSpec {
             .fold(f64::INFINITY, f64::min)
     }
 
+    /// The cameras' focal length in pixels, from the width and the field of view.
     pub fn focal(&self) -> f64 {
         f64::from(self.width) * 0.5 / (self.fov_degrees.to_radians() * 0.5).tan()
     }

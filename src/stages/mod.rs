@@ -3,6 +3,13 @@
 //! stage over generated keys that tests the runner. Each is a [`Stage`](crate::store::Stage)
 //! run by the store's stage runner, or (extract) reads a pinned snapshot.
 
+// A private layer: its `pub` items are the crate's own API and, with the `testing` feature, its
+// integration tests' and benches' (`octstore::testing`). Some exist only for those (reference
+// kernels, the GPU tests' reading helpers), so a build without the feature sees them unused.
+#![cfg_attr(not(feature = "testing"), allow(dead_code, unused_imports))]
+// `octstore::testing` is not the documented public surface: its items need no docs there.
+#![cfg_attr(feature = "testing", allow(missing_docs))]
+
 pub mod exercise;
 pub mod extract;
 pub mod histograms;

@@ -3,6 +3,9 @@
 //! Values are bincode 2 with a fixed configuration (little-endian, fixed-width integers), so
 //! every byte is specified by the struct definitions below, in field order.
 
+// Private to the crate; `octstore::testing` re-exports it for the tests, undocumented there.
+#![cfg_attr(feature = "testing", allow(missing_docs))]
+
 use redb::{ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition};
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
 
@@ -476,8 +479,10 @@ pub fn decode<T: DeserializeOwned>(table: &'static str, bytes: &[u8]) -> Result<
     Ok(value)
 }
 
+/// One committed version of the store (format-spec.md, table `versions`).
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Eq)]
 pub struct VersionRecord {
+    /// The version it was made from.
     pub parent: u64,
     /// What made it: `create`, `ingest`, or a stage name.
     pub kind: String,
@@ -485,16 +490,26 @@ pub struct VersionRecord {
     pub summary: String,
 }
 
+/// What the catalog knows of one segment file (format-spec.md, table `segments`).
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Eq)]
 pub struct SegmentRecord {
+    /// The stage that wrote it.
     pub stage: String,
+    /// The unit of work that wrote it.
     pub unit: u64,
+    /// Its index among the unit's segments.
     pub part: u32,
+    /// Rows (cubes or samples) it holds.
     pub rows: u64,
+    /// The file's size in bytes.
     pub bytes: u64,
+    /// Checksum of the whole file, checked by `verify`.
     pub file_checksum: u64,
+    /// Digest of the decoded columns: equal content gives equal digests.
     pub content_digest: u64,
+    /// Its first row's key (a raw [`crate::CubeKey`]).
     pub first_key: u128,
+    /// Its last row's key.
     pub last_key: u128,
     /// First version that sees the segment.
     pub created: u64,
@@ -526,6 +541,7 @@ impl SegmentRecord {
         }
     }
 
+    /// Whether version `version` sees the segment.
     pub fn visible_at(&self, version: u64) -> bool {
         self.created <= version && self.dropped.is_none_or(|d| version < d)
     }
@@ -541,8 +557,10 @@ pub struct StageRun {
     pub units: u64,
 }
 
+/// A finished unit of a stage run (format-spec.md, table `units_done`).
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Eq)]
 pub struct UnitRecord {
+    /// The names of the segments it wrote.
     pub segments: Vec<String>,
     /// Stage-specific result of the unit (counts, a leaf's statistics).
     pub extra: Vec<u8>,

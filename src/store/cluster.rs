@@ -39,6 +39,7 @@ const CHECKSUM_LEN: usize = size_of::<u64>();
 /// The work of one cluster run of a stage.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 pub struct ClusterPlan {
+    /// The stage's name.
     pub stage: String,
     /// The version the workers read; the commit creates `base_version + 1`.
     pub base_version: u64,
@@ -46,12 +47,14 @@ pub struct ClusterPlan {
     pub fingerprint: Vec<u8>,
     /// Unit ids in plan order; chunk i takes a contiguous slice.
     pub units: Vec<u64>,
+    /// Chunks the units are split into, one per worker task.
     pub chunks: u32,
     /// Opaque to the store: what the caller needs to rebuild the same stage (solver params).
     pub args: Vec<u8>,
 }
 
 impl ClusterPlan {
+    /// The version the commit creates.
     pub fn target(&self) -> u64 {
         self.base_version + 1
     }
@@ -107,8 +110,10 @@ struct UnitManifest {
     extra: Vec<u8>,
 }
 
+/// What one worker did with its chunk.
 #[derive(Clone, Debug, PartialEq)]
 pub struct WorkReport {
+    /// Units of the chunk.
     pub units: usize,
     /// Units already complete from an earlier attempt.
     pub skipped: usize,

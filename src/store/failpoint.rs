@@ -5,10 +5,18 @@
 //! makes segment writes fail with "no space left on device" once that many bytes were written by
 //! this process; `OCTSTORE_INJECT_FSYNC_ERROR=1` makes every segment fsync fail.
 
+// Private to the crate; `octstore::testing` re-exports it for the tests, undocumented there.
+#![cfg_attr(feature = "testing", allow(missing_docs))]
+
 use std::sync::OnceLock;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// Every failpoint, in the order the commit protocol reaches them.
+/// Every failpoint, in the order the commit protocol reaches them (the failpoint tests walk
+/// this list; the code names each where it is reached).
+#[cfg_attr(
+    not(feature = "testing"),
+    allow(dead_code, reason = "read by the failpoint tests only")
+)]
 pub const FAILPOINTS: &[&str] = &[
     "segment.after_write",
     "segment.after_fsync",
@@ -63,6 +71,8 @@ pub struct IoFaults {
 }
 
 impl IoFaults {
+    /// The faults the environment asks for: `OCTSTORE_INJECT_ENOSPC_AFTER=BYTES` and
+    /// `OCTSTORE_INJECT_FSYNC_ERROR=1` (tests of the commit protocol set them).
     pub fn from_env() -> IoFaults {
         IoFaults {
             enospc_after_bytes: std::env::var("OCTSTORE_INJECT_ENOSPC_AFTER")
@@ -73,6 +83,7 @@ impl IoFaults {
         }
     }
 
+    /// No fault: writes and fsyncs go through.
     pub fn none() -> IoFaults {
         IoFaults::default()
     }

@@ -4,7 +4,7 @@
 //! of truth; a segment file exists on its own only as crash debris (removed on the next writable
 //! open) or while its unit of work is being committed.
 //!
-//! Commit protocol of a unit of work (each step is a failpoint, see [`failpoint::FAILPOINTS`]):
+//! Commit protocol of a unit of work (each step is a failpoint, see `failpoint::FAILPOINTS`):
 //! write `NAME.seg.tmp`, fsync it, rename it to `NAME.seg`, fsync the directory, then one catalog
 //! write transaction that records the unit and its segments.
 
@@ -12,12 +12,9 @@
 // (format-spec.md), so no unwrap, expect or unchecked index outside tests.
 #![deny(clippy::unwrap_used, clippy::expect_used, clippy::indexing_slicing)]
 
-#[doc(hidden)]
-pub mod catalog;
-#[doc(hidden)]
-pub mod cluster;
-#[doc(hidden)]
-pub mod failpoint;
+pub(crate) mod catalog;
+pub(crate) mod cluster;
+pub(crate) mod failpoint;
 mod pins;
 pub mod runner;
 pub mod snapshot;
@@ -36,8 +33,10 @@ use crate::format::segment::{DEFAULT_BLOCK_ROWS, encode_segment_streamed, encode
 use crate::format::{DecodeError, SegmentSummary};
 use catalog::{
     CATALOG_FORMAT_VERSION, META, META_CURRENT_VERSION, META_FORMAT_VERSION, META_GC_HORIZON, SEGMENTS, STAGE_RUNS,
-    UNIT_STATE, UNITS_DONE, VERSION_TIMES, VERSIONS, VersionRecord,
+    UNIT_STATE, UNITS_DONE, VERSION_TIMES, VERSIONS,
 };
+pub use catalog::{SegmentRecord, UnitRecord, VersionRecord, contain_redb_panics};
+pub use cluster::{ClusterPlan, WorkReport};
 pub use failpoint::IoFaults;
 pub use pins::ReaderPin;
 pub use runner::{Plan, Replace, RunOptions, RunReport, Stage, UnitOutput, UnitSpec};
@@ -226,7 +225,7 @@ impl Catalog {
         })
     }
 
-    /// Values that are unsealed or fail their seal ([`catalog::sealing_problems`]).
+    /// Values that are unsealed or fail their seal (`catalog::sealing_problems`).
     pub fn sealing_problems(&self) -> Result<Vec<String>> {
         match self {
             Catalog::Writable(db) => catalog::sealing_problems(db),
@@ -609,7 +608,7 @@ impl Store {
         Ok(out)
     }
 
-    /// The catalog's canonical content (see [`catalog::canonical_dump`]); a page redb cannot
+    /// The catalog's canonical content (see `catalog::canonical_dump`); a page redb cannot
     /// read is [`StoreError::DamagedCatalog`].
     pub fn canonical_dump(&self) -> Result<Vec<u8>> {
         catalog::contain_redb_panics(|| match &self.catalog {

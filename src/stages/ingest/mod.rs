@@ -136,21 +136,23 @@ pub fn depth_map_id(source: &DepthMapSource) -> std::result::Result<u64, InputEr
     Ok(hasher.digest())
 }
 
+/// How `ingest` reads depth maps and builds the store's root cube and sample runs.
 #[derive(Clone, Debug)]
 pub struct IngestOptions {
     /// The root cube as (min corner, side); computed from the first ingest's samples if absent.
     pub root: Option<([f64; 3], f64)>,
     /// Margin around the first ingest's bounding box, as a fraction of its largest extent.
     pub root_margin: f64,
+    /// The deepest octree level a sample may reach (the cap on cube sizes the noise asks for).
     pub max_depth: u8,
     /// The memory the ingest may use, shared by the depth maps read at once.
     pub memory_budget: u64,
     /// Gather the samples' SSD sums (weights, centroids, normals per cube) that `solve
     /// --method ssd|hybrid` needs: set at a store's first ingest and kept by later ones
-    /// ([`META_SAMPLE_SUMS`]). They make ingest about 1.6 times slower and its runs about 6
+    /// (`META_SAMPLE_SUMS`). They make ingest about 1.6 times slower and its runs about 6
     /// times larger (RedKitchen), for data the default TGV solver does not use.
     pub sample_sums: bool,
-    /// Depth maps a unit reads into one run ([`MAPS_PER_RUN`] by default; at least 1). The
+    /// Depth maps a unit reads into one run (`MAPS_PER_RUN` by default; at least 1). The
     /// octree and every later stage are the same for any value; fewer maps a run mean more
     /// run rows for the octree merge and the samples stage to read, more mean a larger table.
     pub maps_per_run: usize,

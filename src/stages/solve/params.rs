@@ -14,13 +14,16 @@ use serde::{Deserialize, Serialize};
 /// outliers (BENCHMARKS.md, "Ground truth").
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
 pub struct SolveParams {
+    /// TGV's weight on the first-order term |grad u - v| (the paper's alpha_1).
     pub alpha1: f32,
+    /// TGV's weight on the second-order term |e(v)| (the paper's alpha_0).
     pub alpha0: f32,
+    /// The data term's weight against the regulariser (the paper's lambda).
     pub lambda: f32,
     /// The most primal-dual iterations a unit runs at each level.
     pub iterations: u32,
     /// A unit stops early at the first check where its energy moved by at most this fraction
-    /// since the check before ([`crate::kernels::tgv::Stopping`]); 0 runs every iteration.
+    /// since the check before (`crate::kernels::tgv::Stopping`); 0 runs every iteration.
     pub tolerance: f32,
 }
 
@@ -41,7 +44,7 @@ impl Default for SolveParams {
 
 impl SolveParams {
     /// When each unit's iterations stop.
-    pub fn stopping(&self) -> crate::kernels::tgv::Stopping {
+    pub(crate) fn stopping(&self) -> crate::kernels::tgv::Stopping {
         crate::kernels::tgv::Stopping {
             max_iterations: self.iterations as usize,
             tolerance: f64::from(self.tolerance),
