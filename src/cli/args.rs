@@ -165,7 +165,9 @@ pub enum Command {
     /// Fuse meshes reconstructed per subspace of a division: each keeps the triangles whose
     /// centroid lies in its core cube.
     Merge(MergeArgs),
-    /// Run the synthetic test stage (exercises the stage runner without input files).
+    /// Run the synthetic test stage (exercises the stage runner without input files). Only in
+    /// builds with the `testing` feature, which the crate's own tests turn on.
+    #[cfg(feature = "testing")]
     #[command(hide = true)]
     DebugSynthetic(DebugSyntheticArgs),
 }
@@ -535,6 +537,7 @@ pub struct GcArgs {
     pub keep: u64,
 }
 
+#[cfg(feature = "testing")]
 /// Arguments of `octstore debug-synthetic`.
 #[derive(Args, Debug)]
 pub struct DebugSyntheticArgs {

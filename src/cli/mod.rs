@@ -15,10 +15,11 @@ mod verbs;
 use std::path::Path;
 use std::process::ExitCode;
 
+#[cfg(feature = "testing")]
+pub use self::args::DebugSyntheticArgs;
 pub use self::args::{
-    Cli, Command, CommitArgs, DebugSyntheticArgs, DemoArgs, DivideArgs, ExtractArgs, GcArgs, GlobalOptions, InfoArgs,
-    IngestArgs, LogArgs, MergeArgs, MethodChoice, PlanArgs, QueryArgs, RenderArgs, SlurmArgs, SolveArgs, SolverArgs,
-    VerifyArgs, WorkArgs,
+    Cli, Command, CommitArgs, DemoArgs, DivideArgs, ExtractArgs, GcArgs, GlobalOptions, InfoArgs, IngestArgs, LogArgs,
+    MergeArgs, MethodChoice, PlanArgs, QueryArgs, RenderArgs, SlurmArgs, SolveArgs, SolverArgs, VerifyArgs, WorkArgs,
 };
 pub use self::error::CliError;
 pub use self::evaluate::evaluate_main;
@@ -112,6 +113,7 @@ pub fn run(cli: Cli) -> Result<ExitCode, CliError> {
         Command::Gc(args) => verbs::gc(args)?,
         Command::Divide(args) => divide::divide(&global, args)?,
         Command::Merge(args) => divide::merge(args)?,
+        #[cfg(feature = "testing")]
         Command::DebugSynthetic(args) => verbs::debug_synthetic(&global, args)?,
     }
     Ok(ExitCode::SUCCESS)

@@ -5,8 +5,8 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use super::args::{
-    DebugSyntheticArgs, DemoArgs, ExtractArgs, GcArgs, GlobalOptions, InfoArgs, IngestArgs, LogArgs, QueryArgs,
-    RenderArgs, SolveArgs, VerifyArgs,
+    DemoArgs, ExtractArgs, GcArgs, GlobalOptions, InfoArgs, IngestArgs, LogArgs, QueryArgs, RenderArgs, SolveArgs,
+    VerifyArgs,
 };
 use super::error::{CliError, Result};
 use super::report::{info, print_extract_summary, summary};
@@ -15,7 +15,6 @@ use crate::IndicatorField;
 use crate::inputs::DiscoverOptions;
 use crate::mesh::{View, read_mesh, render_view};
 use crate::pipeline::{self, DemoOptions, save_png};
-use crate::stages::exercise::ExerciseStage;
 use crate::stages::extract::ExtractOptions;
 use crate::stages::ingest::{IngestOptions, scene_at};
 use crate::store::{RunOptions, Store};
@@ -342,9 +341,10 @@ pub(super) fn gc(args: GcArgs) -> Result<()> {
     Ok(())
 }
 
-pub(super) fn debug_synthetic(global: &GlobalOptions, args: DebugSyntheticArgs) -> Result<()> {
+#[cfg(feature = "testing")]
+pub(super) fn debug_synthetic(global: &GlobalOptions, args: super::args::DebugSyntheticArgs) -> Result<()> {
     let store = open_or_create(&args.store)?;
-    let stage = ExerciseStage {
+    let stage = crate::stages::exercise::ExerciseStage {
         units: args.units,
         rows_per_unit: args.rows,
         seed: args.seed,

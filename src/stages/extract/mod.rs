@@ -483,6 +483,15 @@ pub fn extract_to_file(
 ) -> Result<MeshSummary> {
     let units = extract_units(snapshot, scene, finest, options.region)?;
     let treetop = Treetop::of(snapshot)?;
+    let leaf_rows = treetop.units.iter().filter(|u| !u.top).map(|u| u.record.rows);
+    if let Some((largest, fits)) = leaves_over_budget(leaf_rows, memory_budget) {
+        tracing::warn!(
+            "the store's treetop leaves hold up to {largest} cubes, sized by a solve at a larger --memory-budget \
+             (at this budget a solve makes leaves of fewer than {fits}); extraction holds one leaf's piece whole \
+             and may use more than this budget (`octstore solve --memory-budget` with this budget rebuilds the \
+             octree into smaller leaves)"
+        );
+    }
     let threads = rayon::current_num_threads().max(1);
     let window = Window {
         pieces: PIECES_AHEAD_MOST,
@@ -493,6 +502,18 @@ pub fn extract_to_file(
     in_order_while_computing(&units, threads, window, weigh, compute, |pieces| {
         write_pieces(pieces, &treetop, scene, finest, options, path, memory_budget)
     })
+}
+
+/// The largest treetop leaf (in octree cubes) and the most a solve at `memory_budget` puts in
+/// one, when the first exceeds the second. Extraction holds a leaf's piece whole: its surface
+/// vertices with their names, moves and edge ends, its triangles and the leaf's level cut, about
+/// 300 MB for the interior scene's largest leaf of a solve at 1 GiB (a heap profile of
+/// `extract --threads 1`), so leaves made for a larger budget take it past a smaller one; leaves
+/// made at the same budget keep it within (the interior at 256 MiB: 222 MB, BENCHMARKS.md).
+fn leaves_over_budget(leaf_rows: impl Iterator<Item = u64>, memory_budget: u64) -> Option<(u64, u64)> {
+    let fits = super::octree::effective_leaf_cubes(u64::MAX, memory_budget);
+    let largest = leaf_rows.max()?;
+    (largest >= fits).then_some((largest, fits))
 }
 
 /// Unit `unit`'s piece with its index and treetop cube.
@@ -514,4 +535,30 @@ fn piece(
             error: Box::new(StageError::internal("no such treetop unit")),
         })?;
     Ok((unit, key, unit_mesh(snapshot, treetop, scene, finest, unit, closed)?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stages::octree::effective_leaf_cubes;
+
+    #[test]
+    fn leaves_made_at_a_larger_budget_are_named() {
+        const MIB: u64 = 1 << 20;
+        let small = effective_leaf_cubes(u64::MAX, 256 * MIB);
+        let large = effective_leaf_cubes(u64::MAX, 1024 * MIB);
+        assert!(small < large);
+        // A solve makes leaves of fewer cubes than its budget's limit: at that budget, or any
+        // larger one, extraction says nothing.
+        let made_at_256 = [10, small - 1, 3];
+        assert_eq!(leaves_over_budget(made_at_256.into_iter(), 256 * MIB), None);
+        assert_eq!(leaves_over_budget(made_at_256.into_iter(), 1024 * MIB), None);
+        let made_at_1024 = [small + 1, large - 1, 5];
+        assert_eq!(leaves_over_budget(made_at_1024.into_iter(), 1024 * MIB), None);
+        assert_eq!(
+            leaves_over_budget(made_at_1024.into_iter(), 256 * MIB),
+            Some((large - 1, small))
+        );
+        assert_eq!(leaves_over_budget(std::iter::empty(), 256 * MIB), None);
+    }
 }
