@@ -418,6 +418,59 @@ fn region_extraction_cuts_cleanly_at_the_box() {
     )
     .unwrap();
     assert_eq!(mesh.triangles.len(), half.triangles.len());
+
+    // The cut is streamed as the mesh is welded, not made on the whole mesh in memory. With
+    // every triangle it is the in-memory cut of the whole mesh, triangle for triangle (the
+    // units beside the box give the seam vertices inside it all their shares), and a box
+    // around everything gives the uncut mesh: byte for byte when simplified (the simplifier
+    // hands on vertices in the order triangles use them, as the cut writes them), the same
+    // vertices and triangles in another order with every triangle.
+    let box_args = ["--closed", "--max-error", "0", "--region", "0.2,-2,-2,2,2,2"];
+    extract_bytes(&store, "every.ply", &["--closed", "--max-error", "0"]);
+    extract_bytes(&store, "every-half.ply", &box_args);
+    let every = read_mesh(&dir.path().join("every.ply")).unwrap();
+    let every_half = read_mesh(&dir.path().join("every-half.ply")).unwrap();
+    let reference = octstore::mesh::clip(&every, region);
+    assert!(every_half.triangles.len() > half.triangles.len());
+    assert!(
+        triangles_by_position(&every_half) == triangles_by_position(&reference),
+        "the streamed cut ({} triangles) differs from the cut of the whole mesh ({})",
+        every_half.triangles.len(),
+        reference.triangles.len()
+    );
+    for args in [&["--closed"][..], &["--closed", "--max-error", "0"][..]] {
+        let uncut = extract_bytes(&store, "uncut.ply", args);
+        let around = extract_bytes(&store, "around.ply", &[args, &["--region=-9,-9,-9,9,9,9"][..]].concat());
+        if args.len() == 1 {
+            assert!(uncut == around, "{args:?}: a box around everything changed the mesh");
+        }
+        let (uncut, around) = (
+            read_mesh(&dir.path().join("uncut.ply")).unwrap(),
+            read_mesh(&dir.path().join("around.ply")).unwrap(),
+        );
+        assert_eq!(uncut.positions.len(), around.positions.len(), "{args:?}");
+        assert!(
+            triangles_by_position(&uncut) == triangles_by_position(&around),
+            "{args:?}: a box around everything changed the mesh"
+        );
+    }
+}
+
+/// A mesh's triangles as triples of position bits, each rotated to start at its least corner
+/// (orientation kept), sorted: comparable whatever the vertex numbering.
+fn triangles_by_position(mesh: &octstore::Mesh) -> Vec<[[u32; 3]; 3]> {
+    let mut out: Vec<[[u32; 3]; 3]> = mesh
+        .triangles
+        .iter()
+        .map(|t| {
+            let mut corners = t.map(|i| mesh.positions[i as usize].map(f32::to_bits));
+            let least = (0..3).min_by_key(|&k| corners[k]).unwrap();
+            corners.rotate_left(least);
+            corners
+        })
+        .collect();
+    out.sort_unstable();
+    out
 }
 
 #[test]

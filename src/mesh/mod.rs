@@ -14,6 +14,7 @@ mod preview;
 mod write;
 
 pub use clip::clip;
+pub(crate) use clip::{Corner, clip_triangle};
 pub(crate) use glb::{GLB_VERTEX_BYTES, is_glb, write_glb_head};
 pub use io::{MeshReadError, read_mesh};
 pub use preview::{View, render, render_view};

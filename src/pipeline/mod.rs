@@ -248,7 +248,7 @@ pub(crate) fn open_gpu(choice: DeviceChoice) -> Result<Option<Arc<Gpu>>> {
 }
 
 /// Extracts the surface of the latest solved version (or of `version`) into `output`: PLY, GLB
-/// or OBJ by extension; streamed leaf by leaf, and welded in memory where a region asks for it.
+/// or OBJ by extension; streamed leaf by leaf, and cut at the region, if there is one, as it streams.
 /// An eighth of `memory_budget` holds leaves' pieces computed ahead of the weld.
 pub fn extract(
     store: &Store,

@@ -63,6 +63,7 @@
 mod dual_cells;
 mod in_order;
 mod mesh_file;
+mod region;
 mod relax;
 mod simplify;
 mod weld;
@@ -76,6 +77,7 @@ use rayon::prelude::*;
 use self::dual_cells::dual_cells_of_unit;
 use self::in_order::{Window, in_order_while_computing};
 use self::mesh_file::{MemoryMesh, MeshFile};
+use self::region::RegionWriter;
 use self::relax::smooth_private_vertices;
 use self::simplify::{SimplifyingWriter, Target};
 use self::weld::{MeshWriter, StreamingWeld, private_to};
@@ -83,7 +85,7 @@ use super::solve::{LEVEL_STAGES, LevelCut};
 use super::treetop::Treetop;
 use crate::format::{BoundingBox, CubeKey, Scene};
 pub use crate::mesh::MeshSummary;
-use crate::mesh::{Mesh, UnitMesh, clip, edge_defects, write_mesh};
+use crate::mesh::{Mesh, UnitMesh};
 use crate::store::StageError;
 use crate::store::{Result, Snapshot, StoreError};
 
@@ -225,11 +227,56 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &Ext
         .map(|&unit| piece(snapshot, &treetop, scene, finest, unit, options.closed))
         .collect::<Result<_>>()?;
     let target = options.simplify.target(scene, finest);
-    let mesh = weld_in_memory(pieces.into_iter().map(Ok), &treetop, target, simplify_batch(1 << 30))?;
-    Ok(match options.region {
-        Some(region) => clip(&mesh, region),
-        None => mesh,
-    })
+    let pieces = pieces.into_iter().map(Ok);
+    let batch = simplify_batch(1 << 30);
+    let io = |source: std::io::Error| StoreError::Io {
+        action: "weld mesh",
+        path: std::path::PathBuf::new(),
+        source,
+    };
+    let welded = match options.region {
+        Some(region) => {
+            let cut = RegionWriter::new(MemoryMesh::default(), region);
+            finish_cut(weld_pieces(pieces, &treetop, cut, target, batch, &io), &io)
+        }
+        None => weld_pieces(pieces, &treetop, MemoryMesh::default(), target, batch, &io),
+    };
+    match welded {
+        (Some(memory), Ok(_)) => Ok(memory.into_mesh()),
+        (_, result) => Err(result
+            .err()
+            .unwrap_or_else(|| io(std::io::Error::other("weld lost its mesh")))),
+    }
+}
+
+/// The writer inside a region's cut and the cut's counts, once the weld into it is done (the
+/// writer also after an error, to be abandoned, if there is one).
+fn finish_cut<W: MeshWriter>(
+    welded: (Option<RegionWriter<W>>, Result<MeshSummary>),
+    io: &dyn Fn(std::io::Error) -> StoreError,
+) -> (Option<W>, Result<MeshSummary>) {
+    match welded {
+        (Some(cut), Ok(full)) => {
+            let most_open = cut.most_open;
+            let (inner, summary) = cut.finish();
+            if let Ok(summary) = &summary {
+                tracing::info!(
+                    "extract: cut {} triangles to {} inside the region, holding at most {} vertices and {} edges open",
+                    full.triangles,
+                    summary.triangles,
+                    most_open.0,
+                    most_open.1
+                );
+            }
+            (Some(inner), summary.map_err(io))
+        }
+        (cut, result) => (
+            cut.map(|cut| cut.inner),
+            Err(result
+                .err()
+                .unwrap_or_else(|| io(std::io::Error::other("weld lost its mesh")))),
+        ),
+    }
 }
 
 /// The treetop units whose dual cells can reach the region (all leaves without one), in order.
@@ -383,30 +430,10 @@ fn weld_pieces<W: MeshWriter>(
     }
 }
 
-/// Welds pieces in memory, simplified towards `target` if there is one.
-fn weld_in_memory(
-    pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
-    treetop: &Treetop,
-    target: Option<Target>,
-    batch: usize,
-) -> Result<Mesh> {
-    let io = |source: std::io::Error| StoreError::Io {
-        action: "weld mesh",
-        path: std::path::PathBuf::new(),
-        source,
-    };
-    match weld_pieces(pieces, treetop, MemoryMesh::default(), target, batch, &io) {
-        (Some(memory), Ok(_)) => Ok(memory.into_mesh()),
-        (_, result) => Err(result
-            .err()
-            .unwrap_or_else(|| io(std::io::Error::other("weld lost its mesh")))),
-    }
-}
-
 /// Writes pieces (unit index, treetop cube, mesh), in increasing unit order, into the mesh file
 /// at `path`, simplified and cut to the region as `options` say. Without a region, memory holds
 /// the pieces computed ahead, the open seams and one simplification batch
-/// ([`simplify_batch`] of `memory_budget`); a region's mesh is welded in memory and clipped.
+/// ([`simplify_batch`] of `memory_budget`); a region's cut is streamed too (`region`).
 pub fn write_pieces(
     pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
     treetop: &Treetop,
@@ -418,16 +445,20 @@ pub fn write_pieces(
 ) -> Result<MeshSummary> {
     let target = options.simplify.target(scene, finest);
     let batch = simplify_batch(memory_budget);
-    if let Some(region) = options.region {
-        return write_assembled(path, &clip(&weld_in_memory(pieces, treetop, target, batch)?, region));
-    }
     let io = |source: std::io::Error| StoreError::Io {
         action: "write mesh",
         path: path.to_path_buf(),
         source,
     };
     let file = MeshFile::create(path).map_err(io)?;
-    match weld_pieces(pieces, treetop, file, target, batch, &io) {
+    let written = match options.region {
+        Some(region) => {
+            let cut = RegionWriter::new(file, region);
+            finish_cut(weld_pieces(pieces, treetop, cut, target, batch, &io), &io)
+        }
+        None => weld_pieces(pieces, treetop, file, target, batch, &io),
+    };
+    match written {
         (Some(file), Ok(summary)) => {
             file.finish(&summary).map_err(io)?;
             Ok(summary)
@@ -441,18 +472,6 @@ pub fn write_pieces(
                 .unwrap_or_else(|| io(std::io::Error::other("weld lost its mesh file"))))
         }
     }
-}
-
-/// Writes a mesh assembled in memory and counts it like the streaming path does.
-fn write_assembled(path: &Path, mesh: &Mesh) -> Result<MeshSummary> {
-    write_mesh(path, mesh).map_err(crate::store::io_error("write mesh", path))?;
-    let (boundary, non_manifold) = edge_defects(mesh);
-    Ok(MeshSummary {
-        vertices: mesh.positions.len() as u64,
-        triangles: mesh.triangles.len() as u64,
-        boundary_edges: boundary as u64,
-        non_manifold_edges: non_manifold as u64,
-    })
 }
 
 /// The share of `--memory-budget` that finished pieces waiting for the weld may hold.

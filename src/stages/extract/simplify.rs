@@ -185,12 +185,15 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
         let mut keep: Vec<u32> = carried.iter().flatten().copied().collect();
         keep.sort_unstable();
         keep.dedup();
+        let mut spent: Vec<u32> = Vec::new();
         for (&global, &locked) in used.iter().zip(&locks) {
             // An unsettled vertex stays even if the batch collapsed every triangle it had so
             // far: later triangles will name it.
             let settled = self.vertices.get(&global).is_some_and(|v| v.settled);
             if settled && keep.binary_search(&global).is_err() {
-                self.vertices.remove(&global);
+                if let Some(index) = self.vertices.remove(&global).and_then(|v| v.written) {
+                    spent.push(index);
+                }
             } else if let Some(vertex) = self.vertices.get_mut(&global)
                 && !locked
             {
@@ -218,7 +221,9 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
         }
         self.carried = carried.len();
         self.triangles = carried;
-        Ok(())
+        // The output names these no more: a cut at a region may forget them.
+        spent.sort_unstable();
+        self.inner.settle(&spent)
     }
 }
 
