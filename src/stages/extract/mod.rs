@@ -528,7 +528,7 @@ pub fn extract_to_file(
 /// vertices with their names, moves and edge ends, its triangles and the leaf's level cut, about
 /// 300 MB for the interior scene's largest leaf of a solve at 1 GiB (a heap profile of
 /// `extract --threads 1`), so leaves made for a larger budget take it past a smaller one; leaves
-/// made at the same budget keep it within (the interior at 256 MiB: 264 MB, BENCHMARKS.md).
+/// made at the same budget keep it within (the interior at 256 MiB: 247 to 264 MB over two bench runs, BENCHMARKS.md).
 fn leaves_over_budget(leaf_rows: impl Iterator<Item = u64>, memory_budget: u64) -> Option<(u64, u64)> {
     let fits = super::octree::effective_leaf_cubes(u64::MAX, memory_budget);
     let largest = leaf_rows.max()?;
