@@ -156,33 +156,57 @@ pub fn edge_defects(mesh: &Mesh) -> (usize, usize) {
 /// Counts the connected components of a mesh's triangles: two triangles are connected when
 /// they share a vertex (index), directly or through others. Unused vertices count for nothing.
 pub fn connected_components(mesh: &Mesh) -> usize {
-    fn root(parent: &mut [u32], mut v: u32) -> u32 {
-        while let Some(&up) = parent.get(v as usize) {
+    let mut sets = DisjointSets::new(mesh.positions.len());
+    for t in &mesh.triangles {
+        sets.union(t[0], t[1]);
+        sets.union(t[0], t[2]);
+    }
+    let mut roots: Vec<u32> = mesh.triangles.iter().map(|t| sets.find(t[0])).collect();
+    roots.sort_unstable();
+    roots.dedup();
+    roots.len()
+}
+
+/// Disjoint sets over `0..n` (union-find with path halving). A union makes the lower of the
+/// two roots the parent, so every set's root is its least member, whatever the order of the
+/// unions: what is keyed by roots does not depend on it.
+pub(crate) struct DisjointSets {
+    parent: Vec<u32>,
+}
+
+impl DisjointSets {
+    /// `n` sets of one member each.
+    pub(crate) fn new(n: usize) -> DisjointSets {
+        DisjointSets {
+            parent: (0..n as u32).collect(),
+        }
+    }
+
+    /// The root of `v`'s set (`v` itself if it is out of range).
+    pub(crate) fn find(&mut self, mut v: u32) -> u32 {
+        while let Some(&up) = self.parent.get(v as usize) {
             if up == v {
                 break;
             }
             // Path halving: point v at its grandparent.
-            let grand = parent.get(up as usize).copied().unwrap_or(up);
-            if let Some(slot) = parent.get_mut(v as usize) {
+            let grand = self.parent.get(up as usize).copied().unwrap_or(up);
+            if let Some(slot) = self.parent.get_mut(v as usize) {
                 *slot = grand;
             }
             v = grand;
         }
         v
     }
-    let mut parent: Vec<u32> = (0..mesh.positions.len() as u32).collect();
-    for t in &mesh.triangles {
-        for corner in [t[1], t[2]] {
-            let (a, b) = (root(&mut parent, t[0]), root(&mut parent, corner));
-            if let Some(slot) = parent.get_mut(a as usize) {
-                *slot = b;
-            }
+
+    /// Joins the sets of `a` and `b`.
+    pub(crate) fn union(&mut self, a: u32, b: u32) {
+        let (a, b) = (self.find(a), self.find(b));
+        if a != b
+            && let Some(slot) = self.parent.get_mut(a.max(b) as usize)
+        {
+            *slot = a.min(b);
         }
     }
-    let mut roots: Vec<u32> = mesh.triangles.iter().map(|t| root(&mut parent, t[0])).collect();
-    roots.sort_unstable();
-    roots.dedup();
-    roots.len()
 }
 
 /// Counts of a written mesh.

@@ -4,7 +4,7 @@
 use glam::DVec3;
 
 use super::{Corner, Piece, mesh_tetrahedron, polygon_edges, vertex_name};
-use crate::mesh::VertexId;
+use crate::mesh::{DisjointSets, VertexId};
 
 /// A cut tetrahedron of an observed dual cell that its own corners do not support
 /// ([`super::tetrahedron_supported`]), held until the unit's kept surface is known
@@ -46,33 +46,15 @@ pub(super) fn fill_pinholes(piece: &mut Piece) {
             .filter_map(|i| Some(edge_name(*polygon.get(i)?, *polygon.get((i + 1) % polygon.len())?)))
             .collect()
     };
-    // Held polygons joined by shared edges (union-find with path halving).
-    let mut parent: Vec<usize> = (0..held.len()).collect();
-    let find = |parent: &mut Vec<usize>, mut i: usize| {
-        while let Some(&p) = parent.get(i) {
-            if p == i {
-                break;
-            }
-            let grand = parent.get(p).copied().unwrap_or(p);
-            if let Some(slot) = parent.get_mut(i) {
-                *slot = grand;
-            }
-            i = grand;
-        }
-        i
-    };
+    // Held polygons joined by shared edges.
+    let mut sets = DisjointSets::new(held.len());
     let mut held_edges: crate::stages::extract::FastMap<EdgeName, (usize, u32)> =
         crate::stages::extract::FastMap::default();
     for (i, polygon) in polygons.iter().enumerate() {
         for edge in ring(polygon) {
             let entry = held_edges.entry(edge).or_insert((i, 0));
             entry.1 += 1;
-            let (a, b) = (find(&mut parent, entry.0), find(&mut parent, i));
-            if a != b
-                && let Some(slot) = parent.get_mut(a.max(b))
-            {
-                *slot = a.min(b);
-            }
+            sets.union(entry.0 as u32, i as u32);
         }
     }
     // Edges of kept triangles between vertices that held polygons use.
@@ -91,10 +73,10 @@ pub(super) fn fill_pinholes(piece: &mut Piece) {
         }
     }
     // A group fills a pinhole if each of its edges is shared within it or kept.
-    let mut group_size: crate::stages::extract::FastMap<usize, usize> = crate::stages::extract::FastMap::default();
-    let mut group_closed: crate::stages::extract::FastMap<usize, bool> = crate::stages::extract::FastMap::default();
+    let mut group_size: crate::stages::extract::FastMap<u32, usize> = crate::stages::extract::FastMap::default();
+    let mut group_closed: crate::stages::extract::FastMap<u32, bool> = crate::stages::extract::FastMap::default();
     for (i, polygon) in polygons.iter().enumerate() {
-        let root = find(&mut parent, i);
+        let root = sets.find(i as u32);
         *group_size.entry(root).or_insert(0) += 1;
         let closed = ring(polygon)
             .iter()
@@ -103,7 +85,7 @@ pub(super) fn fill_pinholes(piece: &mut Piece) {
         *slot = *slot && closed;
     }
     for (i, h) in held.iter().enumerate() {
-        let root = find(&mut parent, i);
+        let root = sets.find(i as u32);
         let size = group_size.get(&root).copied().unwrap_or(usize::MAX);
         if size <= PINHOLE_TETRAHEDRA && group_closed.get(&root).copied().unwrap_or(false) {
             mesh_tetrahedron(&h.corners.each_ref(), h.gradient, piece);
