@@ -55,8 +55,8 @@ pub const UNSAMPLED_ANCHOR: f64 = 0.1;
 /// lambda1 and lambda2 by default, in the cube-relative units above: on a sphere 4.8 cubes in
 /// radius (the kernel's test), 1 and 1 put the zero set 0.07 cubes off on average, 0.1 and
 /// 0.1 0.02 cubes; 10 times more normal weight or smoothness doubles to sextuples the error.
-/// The level stages raise the normal weight where the depth maps are noisy
-/// (`stages::solve::ssd::noise_normal_weight`).
+/// The level stages raise both where the depth maps are noisy
+/// (`stages::solve::ssd::noise_normal_weight` and `noise_smoothness`).
 pub const DEFAULT_NORMAL_WEIGHT: f64 = 0.1;
 /// See [`DEFAULT_NORMAL_WEIGHT`]. More smoothness smooths noisy surfaces but pulls them inwards
 /// where they curve (docs/parameters.md, "Solvers").

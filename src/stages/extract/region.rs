@@ -212,8 +212,9 @@ impl<W: MeshWriter> RegionWriter<W> {
         Ok(index)
     }
 
-    /// Marks vertices fixed (and done, if `done`), cutting the triangles that waited on them.
-    fn fix(&mut self, indices: impl Iterator<Item = (u32, Option<(DVec3, DVec3)>)>, done: bool) -> std::io::Result<()> {
+    /// Marks vertices fixed and done (both callers mean that no later triangle names them),
+    /// cutting the triangles that waited on them.
+    fn fix(&mut self, indices: impl Iterator<Item = (u32, Option<(DVec3, DVec3)>)>) -> std::io::Result<()> {
         let mut released: Vec<[u32; 3]> = Vec::new();
         let mut closing: Vec<u32> = Vec::new();
         for (index, value) in indices {
@@ -223,7 +224,7 @@ impl<W: MeshWriter> RegionWriter<W> {
                 v.normal = normal;
             }
             v.fixed = true;
-            v.done |= done;
+            v.done = true;
             released.append(&mut v.waiters);
             closing.push(index);
         }
@@ -340,11 +341,11 @@ impl<W: MeshWriter> MeshWriter for RegionWriter<W> {
     }
 
     fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()> {
-        self.fix(fixes.iter().map(|&(i, p, n)| (i, Some((p, n)))), true)
+        self.fix(fixes.iter().map(|&(i, p, n)| (i, Some((p, n)))))
     }
 
     fn settle(&mut self, indices: &[u32]) -> std::io::Result<()> {
-        self.fix(indices.iter().map(|&i| (i, None)), true)
+        self.fix(indices.iter().map(|&i| (i, None)))
     }
 }
 

@@ -838,13 +838,14 @@ impl Stage for LevelStage {
                 self.params.lambda
             ),
             Method::Ssd(ssd) | Method::Hybrid(ssd) => format!(
-                "{}, at most {}, residual {}; lambda1 {} (up to {} in noisy units), lambda2 {}",
+                "{}, at most {}, residual {}; lambda1 {} (up to {} in noisy units), lambda2 {} (up to {} in noisy units)",
                 self.method.name(),
                 ssd.iterations,
                 ssd.tolerance,
                 ssd.normal_weight,
                 ssd::noise_normal_weight(ssd.normal_weight, f64::INFINITY),
-                ssd.smoothness
+                ssd.smoothness,
+                ssd::noise_smoothness(ssd.smoothness, Some(f64::INFINITY))
             ),
         };
         let line = format!(
