@@ -6,6 +6,7 @@ use glam::DVec3;
 
 use crate::format::CubeKey;
 use crate::kernels::ssd::CubeSamples;
+use crate::stages::samples::cube_centre;
 
 /// The [`normal_disagreement`](super::normal_disagreement) up to which a unit keeps `--ssd-normal-weight`, and from which
 /// on it takes [`NOISY_NORMAL_FACTOR`] times it (log-linear between). Measured on the
@@ -51,9 +52,8 @@ pub fn centroid_scatter(keys: &[CubeKey], samples: &[CubeSamples], start: &[u32]
             return None;
         }
         let normal = DVec3::from_array(s.normal).try_normalize()?;
-        let side = key.side();
-        let centre = DVec3::from_array(key.coords().map(|x| (f64::from(x) + 0.5) * side));
-        Some((centre + DVec3::from_array(s.centroid), normal, side, s.weight))
+        let centre = DVec3::from_array(cube_centre(*key));
+        Some((centre + DVec3::from_array(s.centroid), normal, key.side(), s.weight))
     };
     let mut pairs: Vec<(f64, f64)> = Vec::new();
     for c in 0..keys.len() {
