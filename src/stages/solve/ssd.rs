@@ -24,10 +24,11 @@ use crate::store::{Result, Snapshot, StoreError};
 use crate::store::{UnitOutput, UnitSpec};
 
 use super::{Method, SsdParams};
+use crate::kernels::votes::BINS;
 
 mod weights;
-use crate::kernels::votes::BINS;
-pub use weights::{centroid_scatter, noise_normal_weight, noise_smoothness};
+use weights::centroid_scatter;
+pub use weights::{noise_normal_weight, noise_smoothness};
 
 /// The column that marks an SSD level segment: 1 for `ssd`, 2 for `hybrid` in every row (a
 /// TGV segment has none), so a reader knows u is a signed distance.

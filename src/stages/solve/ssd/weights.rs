@@ -29,8 +29,13 @@ const NOISY_NORMAL_FACTOR: f64 = 10.0;
 /// The normal weight of a unit whose samples' normals disagree by `disagreement`
 /// ([`normal_disagreement`](super::normal_disagreement)), from `--ssd-normal-weight` (`base`).
 pub fn noise_normal_weight(base: f64, disagreement: f64) -> f64 {
-    let t = ((disagreement - QUIET_DISAGREEMENT) / (NOISY_DISAGREEMENT - QUIET_DISAGREEMENT)).clamp(0.0, 1.0);
-    base * NOISY_NORMAL_FACTOR.powf(t)
+    base * NOISY_NORMAL_FACTOR.powf(share_of_the_way(disagreement, QUIET_DISAGREEMENT, NOISY_DISAGREEMENT))
+}
+
+/// Where `x` lies from `quiet` (0) to `noisy` (1), clamped to [0, 1]: how far a unit's noise
+/// measure has gone from the level that keeps a weight to the one that takes it whole.
+fn share_of_the_way(x: f64, quiet: f64, noisy: f64) -> f64 {
+    ((x - quiet) / (noisy - quiet)).clamp(0.0, 1.0)
 }
 
 /// How far the sample centroids of neighbouring cubes lie off the surface through them, in
@@ -135,7 +140,7 @@ fn noisy_factor(scatter: f64) -> f64 {
 /// blend keeps the first rule where the noise is (from 0.22 on) and the base where it is not.
 pub fn noise_smoothness(base: f64, scatter: Option<f64>) -> f64 {
     let scatter = scatter.unwrap_or(0.0);
-    let t = ((scatter - QUIET_SCATTER) / (NOISY_SCATTER - QUIET_SCATTER)).clamp(0.0, 1.0);
+    let t = share_of_the_way(scatter, QUIET_SCATTER, NOISY_SCATTER);
     let blend = t * t * (3.0 - 2.0 * t);
     let full = noisy_factor(scatter).clamp(1.0, MOST_SMOOTHNESS_FACTOR);
     base * (1.0 + blend * (full - 1.0))
