@@ -987,7 +987,7 @@ def table_one(stages, run, row, heading):
              f"{row['peak_mb']:.0f} MB.", "", "| processing stage | time | time in % |", "|---|---|---|"]
     for name, seconds in breakdown:
         lines.append(f"| {name} | {seconds:.1f} s | {100 * seconds / total:.0f} % |")
-    return lines
+    return lines + [""]
 
 
 def machine():
