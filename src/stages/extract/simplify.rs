@@ -99,9 +99,9 @@ pub(super) struct SimplifyingWriter<W: MeshWriter> {
     pub(super) batches: u64,
     /// Triangles handed to meshoptimizer, summed over the batches (the work).
     pub(super) batched_triangles: u64,
-    rounds: std::cell::Cell<u64>,
+    rounds: u64,
     /// Batches kept as they came after `MANIFOLD_ROUNDS` rounds.
-    kept_whole: std::cell::Cell<u64>,
+    kept_whole: u64,
 }
 
 /// A batch's triangles in local numbering: `used` maps local to weld indices.
@@ -134,8 +134,8 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
             largest_batch: 0,
             batches: 0,
             batched_triangles: 0,
-            rounds: std::cell::Cell::new(0),
-            kept_whole: std::cell::Cell::new(0),
+            rounds: 0,
+            kept_whole: 0,
         }
     }
 
@@ -157,8 +157,8 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
             self.batches,
             self.largest_batch,
             self.most_buffered,
-            self.rounds.get(),
-            self.kept_whole.get()
+            self.rounds,
+            self.kept_whole
         );
         Ok((self.inner, self.summary))
     }
@@ -264,7 +264,10 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
             .map(|v| !v.settled || v.written.is_some() || v.simplified)
             .collect();
         let written: Vec<Option<u32>> = records.iter().map(|v| v.written).collect();
-        let (indices, positions) = self.simplify_manifold(indices, positions, locks.clone(), &used, &written, carried);
+        let (indices, positions, rounds) =
+            self.simplify_manifold(indices, positions, locks.clone(), &used, &written, carried);
+        self.rounds += u64::from(rounds.unwrap_or(MANIFOLD_ROUNDS));
+        self.kept_whole += u64::from(rounds.is_none());
         let normals = face_normals(&indices, &positions);
         let position_of = |l: u32| {
             positions
@@ -358,8 +361,9 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
     /// edges. Where that happens the batch is simplified again from its input with every
     /// vertex near such an edge locked as well, the neighbourhood doubling each round; after
     /// `MANIFOLD_ROUNDS` rounds the batch is kept as it came. The simplified indices and the
-    /// positions (free vertices moved). `used` gives the weld index of each local vertex, and
-    /// the first `carried` triangles were simplified in an earlier batch.
+    /// positions (free vertices moved), with the rounds it took (`None`: kept as it came).
+    /// `used` gives the weld index of each local vertex, and the first `carried` triangles were
+    /// simplified in an earlier batch.
     fn simplify_manifold(
         &self,
         indices: Vec<u32>,
@@ -368,17 +372,16 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
         used: &[u32],
         written: &[Option<u32>],
         carried: usize,
-    ) -> (Vec<u32>, Vec<[f32; 3]>) {
+    ) -> (Vec<u32>, Vec<[f32; 3]>, Option<u32>) {
         let mut rings: Option<Grouped> = None;
         for round in 0..MANIFOLD_ROUNDS {
-            self.rounds.set(self.rounds.get() + 1);
             let (mut simplified, mut moved) = (indices.clone(), positions.clone());
             let kept = simplify(&mut simplified, &mut moved, &locks, self.target, carried);
             simplified.truncate(kept);
             let simplified = without_folded_pairs(simplified);
             let bad = self.overused_edges(&simplified, used, written);
             if bad.is_empty() {
-                return (simplified, moved);
+                return (simplified, moved, Some(round + 1));
             }
             // Freeze the stars of the edge's ends: a vertex whose ring is locked, and that is
             // locked itself, keeps its original triangles. The rings widen each round.
@@ -418,8 +421,7 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
                 front = next;
             }
         }
-        self.kept_whole.set(self.kept_whole.get() + 1);
-        (indices, positions)
+        (indices, positions, None)
     }
 
     /// Edges (local ends) of a simplified batch that more than two triangles use, counting
