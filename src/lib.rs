@@ -65,7 +65,7 @@ pub use stages::extract::{DEFAULT_MAX_ERROR, ExtractOptions, Simplify};
 pub use stages::ingest::IngestOptions;
 pub use stages::solve::{Method, SolveParams, SsdParams};
 pub use store::{RunOptions, RunReport, Snapshot, StageError, Store, StoreError};
-pub use sys::{die_quietly_on_closed_pipe, set_env_defaults_at_start};
+pub use sys::{die_quietly_on_closed_pipe, purge_freed_pages_at_once, set_env_defaults_at_start};
 
 /// The guide's Rust examples (`docs/api.md`), compiled and run by `cargo test --doc` so that
 /// they cannot drift from the API.

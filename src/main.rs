@@ -20,6 +20,7 @@ const QUIET_VULKAN_PROBES: &[(&str, &str)] = &[("NODEVICE_SELECT", "1")];
 
 fn main() -> ExitCode {
     octstore::die_quietly_on_closed_pipe();
+    octstore::purge_freed_pages_at_once();
     octstore::set_env_defaults_at_start(QUIET_VULKAN_PROBES);
     let cli = octstore::cli::Cli::parse();
     // `--quiet` keeps warnings and errors; OCTSTORE_LOG, when set, decides instead.

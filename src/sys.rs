@@ -29,6 +29,34 @@ pub fn return_freed_memory() {
     }
 }
 
+/// mimalloc's option index of `mi_option_purge_delay` (mimalloc.h, enum `mi_option_e`: the
+/// same in its v2 and v3). The crate's bindings do not name it; a unit test reads its default.
+const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
+
+/// Makes mimalloc hand pages that its heaps no longer use back to the operating system at once,
+/// instead of a second later (the default of the mimalloc v3 that libmimalloc-sys builds). The
+/// stages free and allocate buffers of a few megabytes per depth map or unit, many of them on
+/// worker threads; until the delay passes, every freed page stays resident, so the peak resident
+/// size counted about a second's worth of buffers that no stage held any more. Measured figures
+/// are in CHANGELOG.md. `MIMALLOC_PURGE_DELAY` in the environment, when set, decides instead.
+/// Only the binary calls it, first thing, where mimalloc is the global allocator.
+pub fn purge_freed_pages_at_once() {
+    if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
+        // SAFETY: mi_option_set stores a value in mimalloc's option table; it takes no
+        // pointers. It is called at the start of `main`, before any other thread exists, so no
+        // allocation reads the option while it changes.
+        unsafe { libmimalloc_sys::mi_option_set(MI_OPTION_PURGE_DELAY, 0) }
+    }
+}
+
+/// Reads mimalloc's purge delay in milliseconds (see [`purge_freed_pages_at_once`]).
+#[cfg(test)]
+fn purge_delay_ms() -> std::ffi::c_long {
+    // SAFETY: mi_option_get reads mimalloc's option table (reading the environment the first
+    // time); it takes no pointers.
+    unsafe { libmimalloc_sys::mi_option_get(MI_OPTION_PURGE_DELAY) }
+}
+
 /// Lets a closed pipe end the process quietly, as it ends other command-line tools:
 /// `octstore info STORE | head -1` otherwise panicked in `println!` once `head` had exited
 /// (Rust ignores SIGPIPE, so every write after that fails with EPIPE). Only the binary calls it,
@@ -241,7 +269,22 @@ impl<'a> LevelGather<'a> {
 mod tests {
     use fearless_simd::{SimdFrom, i32x16};
 
-    use super::LevelGather;
+    use super::{LevelGather, purge_delay_ms, purge_freed_pages_at_once};
+
+    #[test]
+    fn the_purge_delay_option_is_the_one_mimalloc_reads() {
+        // The default of the mimalloc v3 that libmimalloc-sys builds is 1000 ms: reading it
+        // through the index proves the index names that option (its neighbours,
+        // eager_commit_delay and use_numa_nodes, default to 1 and 0), unless the environment
+        // set it.
+        if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
+            assert_eq!(purge_delay_ms(), 1000);
+        }
+        purge_freed_pages_at_once();
+        if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
+            assert_eq!(purge_delay_ms(), 0);
+        }
+    }
 
     #[test]
     fn gathered_squares_are_the_level_s_pixels_and_only_where_the_level_holds_them() {

@@ -84,6 +84,39 @@ fn ingested_twice(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
     (cluster, single)
 }
 
+/// The cubes `octstore info --json` counts in `store`.
+fn store_cubes(store: &Path) -> u64 {
+    let info: serde_json::Value = serde_json::from_str(&run(&["info", store.to_str().unwrap(), "--json"])).unwrap();
+    info["cubes"].as_u64().unwrap()
+}
+
+/// Checks `plan`'s chunk lines and critical path: the chunks' cubes add up (to `total` where
+/// known: the histogram stage works on every cube), and the critical path names the chunk with
+/// the most of them, with its share.
+fn check_plan_weights(plan: &str, chunks: u32, total: Option<u64>) {
+    let cubes: Vec<u64> = (0..chunks)
+        .map(|chunk| {
+            let prefix = format!("  chunk {chunk}: ");
+            let line = plan
+                .lines()
+                .find(|l| l.starts_with(&prefix))
+                .unwrap_or_else(|| panic!("{plan}"));
+            let count = line.rsplit(", ").next().unwrap().trim_end_matches(" cubes");
+            count.parse().unwrap_or_else(|_| panic!("{line}"))
+        })
+        .collect();
+    let sum: u64 = cubes.iter().sum();
+    assert!(sum > 0, "{plan}");
+    if let Some(total) = total {
+        assert_eq!(sum, total, "{plan}");
+    }
+    let most = *cubes.iter().max().unwrap();
+    let largest = cubes.iter().position(|&c| c == most).unwrap();
+    let share = 100.0 * most as f64 / sum as f64;
+    let expected = format!("  critical path: chunk {largest}, {most} of the stage's {sum} cubes: {share:.1} %");
+    assert!(plan.contains(&expected), "{expected}\n{plan}");
+}
+
 #[test]
 fn plan_work_commit_equals_a_single_process_solve() {
     let dir = tempfile::tempdir().unwrap();
@@ -106,6 +139,7 @@ fn plan_work_commit_equals_a_single_process_solve() {
             "30",
         ]);
         assert!(plan.contains(&format!("in {chunks} chunk(s)")), "{plan}");
+        check_plan_weights(&plan, chunks, (index == 0).then(|| store_cubes(&single)));
         // All chunks at once, chunk 1 twice; on the histogram stage chunk 3 comes late.
         let late = (index == 0).then_some(3u32);
         let mut workers: Vec<(u32, Child)> = (0..chunks)

@@ -21,6 +21,7 @@ impl Stage for Runs {
                 .map(|id| UnitSpec {
                     id,
                     label: format!("run {id}"),
+                    cubes: 0,
                 })
                 .collect(),
             replace: Replace::Nothing,

@@ -12,6 +12,7 @@ use crate::pipeline::cluster::{self, EXTRACT, SlurmOptions};
 use crate::pipeline::{io_error, open_gpu, required_scene};
 use crate::stages::extract::ExtractOptions;
 use crate::store::Store;
+use crate::store::cluster::ClusterPlan;
 
 pub(super) fn plan(args: PlanArgs) -> Result<()> {
     let store = Store::open(&args.store)?;
@@ -23,7 +24,7 @@ pub(super) fn plan(args: PlanArgs) -> Result<()> {
             simplify: super::args::simplify_of(args.decimate, args.max_error),
             closed: args.closed,
         };
-        let plan = cluster::plan_extract(&store, args.chunks, options, output.clone())?;
+        let (plan, cubes) = cluster::plan_extract(&store, args.chunks, options, output.clone())?;
         println!(
             "plan extract: {} unit(s) in {} chunk(s) at version {} -> {}",
             plan.units.len(),
@@ -31,11 +32,12 @@ pub(super) fn plan(args: PlanArgs) -> Result<()> {
             plan.base_version,
             output.display()
         );
+        print_chunks(&plan, &cubes);
         return Ok(());
     }
     let (params, method) = (args.solver.params(), args.solver.method());
     let runnable = cluster::cluster_stage(&store, &args.stage, params, method, None)?;
-    let plan = store.plan_cluster_run(
+    let (plan, cubes) = store.plan_cluster_run(
         runnable.as_ref(),
         args.chunks,
         crate::store::catalog::encode(&(params, method)),
@@ -48,10 +50,42 @@ pub(super) fn plan(args: PlanArgs) -> Result<()> {
         plan.base_version,
         plan.target()
     );
-    for chunk in 0..plan.chunks {
-        println!("  chunk {chunk}: {} unit(s)", plan.chunk_units(chunk).len());
-    }
+    print_chunks(&plan, &cubes);
     Ok(())
+}
+
+/// Prints each chunk's units and cubes, then the chunk with the most cubes: the stage's
+/// critical path when every worker runs at the same rate per cube, which the stage's time on
+/// one process (or the rates of BENCHMARKS.md) turns into seconds. `cubes` are the plan's
+/// units' cubes in plan order.
+fn print_chunks(plan: &ClusterPlan, cubes: &[u64]) {
+    let mut units_before = 0;
+    let mut chunk_cubes = Vec::with_capacity(plan.chunks as usize);
+    for chunk in 0..plan.chunks {
+        let units = plan.chunk_units(chunk).len();
+        let sum: u64 = cubes.iter().skip(units_before).take(units).sum();
+        units_before += units;
+        chunk_cubes.push(sum);
+        println!("  chunk {chunk}: {units} unit(s), {sum} cubes");
+    }
+    let total: u64 = chunk_cubes.iter().sum();
+    let Some((largest, &most)) = chunk_cubes
+        .iter()
+        .enumerate()
+        .max_by_key(|&(i, c)| (*c, std::cmp::Reverse(i)))
+    else {
+        return;
+    };
+    if total == 0 {
+        return;
+    }
+    let share = |cubes: f64| 100.0 * cubes / total as f64;
+    println!(
+        "  critical path: chunk {largest}, {most} of the stage's {total} cubes: {:.1} % of its time on one worker \
+         (an even split: {:.1} %)",
+        share(most as f64),
+        share(total as f64 / f64::from(plan.chunks.max(1))),
+    );
 }
 
 pub(super) fn work(args: WorkArgs) -> Result<()> {

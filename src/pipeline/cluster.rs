@@ -233,13 +233,25 @@ fn extract_fingerprint(snapshot: &crate::Snapshot<'_>, finest: u8, args: &Extrac
 }
 
 /// Plans a chunked extraction of the latest solution into `output`.
-pub fn plan_extract(store: &Store, chunks: u32, options: ExtractOptions, output: PathBuf) -> Result<ClusterPlan> {
+/// Also gives each unit's cubes in plan order (the treetop unit's rows), which the catalog does
+/// not record.
+pub fn plan_extract(
+    store: &Store,
+    chunks: u32,
+    options: ExtractOptions,
+    output: PathBuf,
+) -> Result<(ClusterPlan, Vec<u64>)> {
     let scene = required_scene(store, EXTRACT)?;
     let snapshot = store.latest()?;
     // As `octstore extract`: a solution older than the latest ingest is refused, not meshed.
     crate::query::ensure_solution_is_current(&snapshot)?;
     let finest = octree_max_depth(store)?;
     let units = extract_units(&snapshot, &scene, finest, options.region)?;
+    let treetop = Treetop::of(&snapshot)?;
+    let cubes = units
+        .iter()
+        .map(|&u| treetop.units.get(u).map_or(0, |unit| unit.record.rows))
+        .collect();
     let args = ExtractPlanArgs { options, output };
     let plan = ClusterPlan {
         stage: EXTRACT.into(),
@@ -251,7 +263,7 @@ pub fn plan_extract(store: &Store, chunks: u32, options: ExtractOptions, output:
     };
     drop(snapshot);
     store.record_cluster_plan(&plan)?;
-    Ok(plan)
+    Ok((plan, cubes))
 }
 
 /// The extraction plan, checked against the store it was made for.

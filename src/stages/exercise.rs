@@ -97,6 +97,7 @@ impl Stage for ExerciseStage {
                 .map(|id| UnitSpec {
                     id,
                     label: format!("unit {id}"),
+                    cubes: 0,
                 })
                 .collect(),
             replace: Replace::All,

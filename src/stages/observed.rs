@@ -177,11 +177,21 @@ pub fn sampled_of(base: &Snapshot<'_>, treetop: &Treetop, keys: &[CubeKey]) -> R
     // keys come in order, so each search starts there.
     let mut units: BTreeMap<usize, (Option<UnitSampled>, usize)> = BTreeMap::new();
     let mut top = None;
+    // The leaf unit the keys are in. Leaf units are disjoint key ranges and the keys ascend, so
+    // a unit the keys have left is never asked again: it is dropped, and a group of many units
+    // (a coarse level's) holds the nodes of one leaf unit and the internal unit, not of all
+    // (415 M samples: 1,990 units in 5 groups at level 8, whose nodes kept 1.7 GB resident).
+    let mut current_leaf = None;
     let mut out = Vec::with_capacity(keys.len());
     for key in keys {
         let unit = treetop.unit_of(*key);
         if let std::collections::btree_map::Entry::Vacant(slot) = units.entry(unit) {
             slot.insert((unit_sampled(base, treetop, unit, &mut top)?, 0));
+            if treetop.units.get(unit).is_some_and(|u| !u.top)
+                && let Some(left) = current_leaf.replace(unit)
+            {
+                units.remove(&left);
+            }
         }
         let flag = units.get_mut(&unit).and_then(|(entry, last)| {
             let (nodes, flags) = entry.as_ref()?;

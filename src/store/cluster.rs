@@ -193,8 +193,9 @@ impl Store {
     }
 
     /// Plans a cluster run of `stage` in `chunks` chunks and records it (replacing an earlier
-    /// plan of the stage). An up-to-date stage gets a plan with no units.
-    pub fn plan_cluster_run(&self, stage: &dyn Stage, chunks: u32, args: Vec<u8>) -> Result<ClusterPlan> {
+    /// plan of the stage). An up-to-date stage gets a plan with no units. Also gives each
+    /// unit's cubes ([`UnitSpec::cubes`]) in plan order, which the catalog does not record.
+    pub fn plan_cluster_run(&self, stage: &dyn Stage, chunks: u32, args: Vec<u8>) -> Result<(ClusterPlan, Vec<u64>)> {
         self.writable()?;
         let name = stage.name();
         if self.run_in_progress(name)? {
@@ -205,11 +206,13 @@ impl Store {
         let mut fingerprint = stage.params();
         fingerprint.extend(stage.input_digest(&base));
         let up_to_date = self.stage_fingerprint(name)?.as_deref() == Some(fingerprint.as_slice());
-        let units = if up_to_date {
+        let planned = if up_to_date {
             Vec::new()
         } else {
-            stage.plan(&base)?.units.iter().map(|u| u.id).collect()
+            stage.plan(&base)?.units
         };
+        let units = planned.iter().map(|u| u.id).collect();
+        let cubes = planned.iter().map(|u| u.cubes).collect();
         let plan = ClusterPlan {
             stage: name.to_string(),
             base_version: base.version(),
@@ -219,7 +222,7 @@ impl Store {
             args,
         };
         self.record_cluster_plan(&plan)?;
-        Ok(plan)
+        Ok((plan, cubes))
     }
 
     /// Records `plan` (replacing an earlier plan of its stage) and prepares its chunk folder.

@@ -29,6 +29,9 @@ pub struct UnitSpec {
     pub id: u64,
     /// For messages: a depth map's file name, a leaf's key range.
     pub label: String,
+    /// The cubes the unit works on (for a solution level, its cut's bound), 0 where the stage
+    /// does not count them: the measure by which `octstore plan` weighs a cluster run's chunks.
+    pub cubes: u64,
 }
 
 /// Which previously visible segments of the stage a finished run replaces.

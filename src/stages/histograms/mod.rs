@@ -278,13 +278,8 @@ impl Stage for HistogramsStage {
                 }
             }
         }
-        let label = |members: &[usize]| -> Option<String> {
+        let label = |members: &[usize], cubes: u64| -> Option<String> {
             let key = |i: usize| treetop.units.get(i).map(|u| u.key);
-            let cubes: u64 = members
-                .iter()
-                .filter_map(|&i| treetop.units.get(i))
-                .map(|u| u.record.rows)
-                .sum();
             Some(match members {
                 [only] => format!("leaf {:?} ({cubes} cubes)", key(*only)?),
                 _ => format!(
@@ -298,18 +293,22 @@ impl Stage for HistogramsStage {
         let units = groups
             .iter()
             .filter_map(|members| {
+                let cubes = members
+                    .iter()
+                    .filter_map(|&i| treetop.units.get(i))
+                    .map(|u| u.record.rows)
+                    .sum();
                 Some(UnitSpec {
                     id: *members.first()? as u64,
-                    label: label(members)?,
+                    label: label(members, cubes)?,
+                    cubes,
                 })
             })
             .collect();
-        let _ = self.groups.set(
-            groups
-                .into_iter()
-                .filter_map(|members| Some((*members.first()? as u64, members)))
-                .collect(),
-        );
+        let by_id = groups
+            .into_iter()
+            .filter_map(|members| Some((*members.first()? as u64, members)));
+        let _ = self.groups.set(by_id.collect());
         let _ = self.units.set(plans);
         Ok(Plan {
             units,

@@ -711,6 +711,7 @@ impl Stage for IngestStage {
             .map(|(index, group)| UnitSpec {
                 id: index as u64,
                 label: self.group_label(group),
+                cubes: 0,
             })
             .collect();
         if self.adding_sums {
@@ -732,6 +733,7 @@ impl Stage for IngestStage {
         units.extend(runs.iter().enumerate().map(|(index, (name, _))| UnitSpec {
             id: (self.groups.len() + index) as u64,
             label: format!("re-key {name}"),
+            cubes: 0,
         }));
         Ok(Plan {
             units,

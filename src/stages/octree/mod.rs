@@ -506,6 +506,7 @@ impl Stage for OctreeStage {
                 } else {
                     format!("leaf {:?} ({} cubes)", unit.key, unit.cubes())
                 },
+                cubes: unit.cubes(),
             });
         }
         let replaced: BTreeSet<String> = existing.into_values().filter(|name| !kept.contains(name)).collect();

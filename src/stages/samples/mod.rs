@@ -726,6 +726,7 @@ impl Stage for SamplesStage {
                 } else {
                     format!("leaf {:?}", unit.key)
                 },
+                cubes: unit.record.rows,
             })
             .collect();
         let _ = self.treetop.set(treetop);

@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use super::HISTOGRAMS;
 use super::observed::{measured_weight, sampled_of, seen_weight, surface_offset};
-use super::treetop::{Treetop, UnitKeys, children_on_min_face};
+use super::treetop::{Treetop, TreetopUnit, UnitKeys, children_on_min_face};
 use crate::format::Scene;
 use crate::format::key::{find_sorted_from, last_at_or_below_from};
 use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
@@ -410,13 +410,9 @@ impl LevelStage {
         // Whether the last group is one of small units that may take more.
         let mut open = false;
         for (index, unit) in treetop.units.iter().enumerate() {
-            let depth = CubeKey::from_raw(unit.record.first_key).depth();
-            if depth > level {
+            let Some(cubes) = cut_bound(unit, level) else {
                 continue;
-            }
-            let below = u32::from(level - depth);
-            let bound = if below >= 21 { u64::MAX } else { 8u64.pow(below) };
-            let cubes = bound.min(unit.record.rows);
+            };
             // Only small units are batched; a unit with more than an eighth of the cap solves
             // alone. A group also reads its neighbours' previous-level values, so fine levels
             // (where most units are large) keep the memory of one unit per worker.
@@ -434,6 +430,15 @@ impl LevelStage {
             }
         }
         groups
+    }
+
+    /// The cut cubes of a group of treetop units, each counted at its bound ([`cut_bound`]).
+    fn group_cubes(treetop: &Treetop, members: &[usize], level: u8) -> u64 {
+        members
+            .iter()
+            .filter_map(|&i| treetop.units.get(i))
+            .filter_map(|unit| cut_bound(unit, level))
+            .fold(0, u64::saturating_add)
     }
 
     fn previous_stage(&self) -> Option<&'static str> {
@@ -677,6 +682,16 @@ impl LevelStage {
 
 /// A histogram segment's `hist` and `distance` values, checked against its octree unit's
 /// `rows`.
+/// A treetop unit's cut cubes at `level`, at most: no more cubes than it has, and no more than
+/// 8^(level - depth) for a leaf at `depth` (the cut tiles the leaf's cube with cubes of depth at
+/// most `level`). None when the leaf lies below the level (the unit has no cut cubes).
+fn cut_bound(unit: &TreetopUnit, level: u8) -> Option<u64> {
+    let depth = CubeKey::from_raw(unit.record.first_key).depth();
+    let below = u32::from(level.checked_sub(depth)?);
+    let bound = if below >= 21 { u64::MAX } else { 8u64.pow(below) };
+    Some(bound.min(unit.record.rows))
+}
+
 fn read_histograms(base: &Snapshot<'_>, segment: &str, rows: usize) -> Result<(Vec<f32>, Vec<f32>)> {
     let file = base.open_segment(segment)?;
     let reader = file.reader()?;
@@ -742,6 +757,7 @@ impl Stage for LevelStage {
                             members.len()
                         )
                     },
+                    cubes: Self::group_cubes(&treetop, members, self.level),
                 })
             })
             .collect();
