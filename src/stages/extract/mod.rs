@@ -55,11 +55,14 @@
 //! the vertices only their unit produces (Taubin's steps, each vertex within half its edge of
 //! where it was; seam vertices stay).
 //!
-//! Files: `dual_cells` (a unit's piece; `dual_cells/pinholes` fills its pinholes), `weld`
-//! (streaming weld in unit order), `mesh_file` (the temporary vertex and face files and the
-//! final PLY), `in_order` (workers compute pieces ahead while the weld consumes them in
-//! order).
+//! Files: `dual_cells` (a unit's piece; `dual_cells/pinholes` fills its pinholes), `relax`
+//! (smoothing a piece's private vertices), `weld` (streaming weld in unit order), `simplify`
+//! (streaming simplification of the welded mesh; `carried` holds its triangles waiting at open
+//! seams), `region` (the cut at `--region`), `mesh_file` (the temporary vertex and face files
+//! and the final PLY), `in_order` (workers compute pieces ahead while the weld consumes them
+//! in order).
 
+mod carried;
 mod dual_cells;
 mod in_order;
 mod mesh_file;

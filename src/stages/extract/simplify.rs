@@ -28,7 +28,9 @@
 //! unit order), and meshoptimizer is deterministic for a given input order.
 
 use glam::DVec3;
+use smallvec::SmallVec;
 
+use super::carried::CarriedStrip;
 use super::weld::MeshWriter;
 use super::{FastMap, Grouped, MeshSummary};
 
@@ -41,17 +43,42 @@ pub(super) enum Target {
     Fraction(f32),
 }
 
-/// A buffered vertex.
+/// A buffered vertex, in 32 bytes: the strip along the open seams holds millions of them at
+/// scale (2.3 M buffered triangles at 415 M samples), where records of f64 vectors took 72
+/// bytes and a table of them 306 MB. f32 loses nothing: meshoptimizer reads positions in f32,
+/// the batch's positions come back in f32, and the output is written in f32; the normal, used
+/// only where a batch's triangles give a vertex none, is kept normalized as it is written.
 #[derive(Clone, Copy)]
 struct Buffered {
-    position: DVec3,
-    normal: DVec3,
+    position: [f32; 3],
+    /// Unit normal, or zero.
+    normal: [f32; 3],
+    /// Its index in the output once written, else [`NOT_WRITTEN`].
+    written: u32,
     /// Its final position and normal are known.
     settled: bool,
-    /// Its index in the output, once written.
-    written: Option<u32>,
     /// An earlier batch collapsed around it while it was free.
     simplified: bool,
+}
+
+/// [`Buffered::written`] of a vertex not written yet (an output index is below 2^32 - 1:
+/// `write_vertex` refuses more vertices).
+const NOT_WRITTEN: u32 = u32::MAX;
+
+impl Buffered {
+    fn new(position: DVec3, normal: DVec3, settled: bool) -> Self {
+        Buffered {
+            position: position.as_vec3().to_array(),
+            normal: normal.normalize_or_zero().as_vec3().to_array(),
+            written: NOT_WRITTEN,
+            settled,
+            simplified: false,
+        }
+    }
+
+    fn written(&self) -> Option<u32> {
+        (self.written != NOT_WRITTEN).then_some(self.written)
+    }
 }
 
 /// A [`MeshWriter`] that simplifies what it is given before passing it on to `inner`, in
@@ -74,20 +101,15 @@ pub(super) struct SimplifyingWriter<W: MeshWriter> {
     vertices: FastMap<u32, Buffered>,
     /// Triangles given since the last batch, by the weld's indices.
     fresh: Vec<[u32; 3]>,
-    /// Triangles earlier batches left (a vertex unsettled), by increasing id: the order in
-    /// which the batches left them.
-    carried: FastMap<u64, [u32; 3]>,
-    /// Id of the next carried triangle.
-    next_carried: u64,
-    /// The carried triangles at each vertex.
-    carried_at: FastMap<u32, Vec<u64>>,
+    /// Triangles earlier batches left (a vertex unsettled).
+    carried: CarriedStrip,
     /// Vertices settled since the last batch: their carried triangles take part in the next.
     newly_settled: Vec<u32>,
     /// Uses of output edges whose two ends may still get triangles.
     open_edges: FastMap<(u32, u32), u32>,
-    /// The open output edges at each output vertex still buffered (an edge whose other end
-    /// was retired first may linger here until this end is retired).
-    open_at: FastMap<u32, Vec<(u32, u32)>>,
+    /// The other ends of the open output edges at each output vertex still buffered (an edge
+    /// whose other end was retired first may linger here until this end is retired).
+    open_at: FastMap<u32, SmallVec<[u32; 4]>>,
     summary: MeshSummary,
     /// Triangles given, over all batches.
     pub(super) triangles_in: u64,
@@ -122,9 +144,7 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
             incoming: 0,
             vertices: FastMap::default(),
             fresh: Vec::new(),
-            carried: FastMap::default(),
-            next_carried: 0,
-            carried_at: FastMap::default(),
+            carried: CarriedStrip::default(),
             newly_settled: Vec::new(),
             open_edges: FastMap::default(),
             open_at: FastMap::default(),
@@ -168,58 +188,10 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
         self.summary.non_manifold_edges += u64::from(uses > 2);
     }
 
-    /// Removes from the carried strip, and returns in the order they were carried, the
-    /// triangles at a vertex settled since the last batch.
-    fn take_active_carried(&mut self) -> Vec<[u32; 3]> {
-        let mut ids: Vec<u64> = std::mem::take(&mut self.newly_settled)
-            .iter()
-            .filter_map(|v| self.carried_at.get(v))
-            .flatten()
-            .copied()
-            .collect();
-        ids.sort_unstable();
-        ids.dedup();
-        let mut active = Vec::with_capacity(ids.len());
-        for id in ids {
-            let Some(triangle) = self.carried.remove(&id) else {
-                continue;
-            };
-            for corner in triangle {
-                if let Some(at) = self.carried_at.get_mut(&corner) {
-                    at.retain(|&other| other != id);
-                    if at.is_empty() {
-                        self.carried_at.remove(&corner);
-                    }
-                }
-            }
-            active.push(triangle);
-        }
-        active
-    }
-
-    /// Leaves `triangle` (weld indices) for a later batch.
-    fn carry(&mut self, triangle: [u32; 3]) {
-        let id = self.next_carried;
-        self.next_carried += 1;
-        self.carried.insert(id, triangle);
-        for corner in triangle {
-            self.carried_at.entry(corner).or_default().push(id);
-        }
-    }
-
-    /// Uses of the edge between weld vertices `a` and `b` by carried triangles.
-    fn carried_uses(&self, a: u32, b: u32) -> u32 {
-        self.carried_at.get(&a).map_or(0, |ids| {
-            ids.iter()
-                .filter(|id| self.carried.get(id).is_some_and(|t| t.contains(&b)))
-                .count() as u32
-        })
-    }
-
     /// The next batch: the carried triangles a newly settled vertex frees, then the fresh
     /// ones, numbered locally by increasing weld index (deterministic).
     fn gather(&mut self) -> std::io::Result<Batch> {
-        let mut triangles = self.take_active_carried();
+        let mut triangles = self.carried.take_at(&std::mem::take(&mut self.newly_settled));
         let carried = triangles.len();
         triangles.append(&mut self.fresh);
         let mut used: Vec<u32> = triangles.iter().flatten().copied().collect();
@@ -258,12 +230,12 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
         self.largest_batch = self.largest_batch.max(indices.len() / 3);
         self.batches += 1;
         self.batched_triangles += indices.len() as u64 / 3;
-        let positions: Vec<[f32; 3]> = records.iter().map(|v| v.position.as_vec3().to_array()).collect();
+        let positions: Vec<[f32; 3]> = records.iter().map(|v| v.position).collect();
         let locks: Vec<bool> = records
             .iter()
-            .map(|v| !v.settled || v.written.is_some() || v.simplified)
+            .map(|v| !v.settled || v.written().is_some() || v.simplified)
             .collect();
-        let written: Vec<Option<u32>> = records.iter().map(|v| v.written).collect();
+        let written: Vec<Option<u32>> = records.iter().map(Buffered::written).collect();
         let (indices, positions, rounds) =
             self.simplify_manifold(indices, positions, locks.clone(), &used, &written, carried);
         self.rounds += u64::from(rounds.unwrap_or(MANIFOLD_ROUNDS));
@@ -280,7 +252,7 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
             let corners = [local[0], local[1], local[2]].map(|l| used.get(l as usize).copied().unwrap_or(0));
             let all_settled = corners.iter().all(|g| self.vertices.get(g).is_some_and(|v| v.settled));
             if !all_settled {
-                self.carry(corners);
+                self.carried.carry(corners);
                 continue;
             }
             let mut out = [0u32; 3];
@@ -298,8 +270,8 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
             let uses = self.open_edges.entry(edge).or_insert(0);
             *uses += 1;
             if *uses == 1 {
-                self.open_at.entry(edge.0).or_default().push(edge);
-                self.open_at.entry(edge.1).or_default().push(edge);
+                self.open_at.entry(edge.0).or_default().push(edge.1);
+                self.open_at.entry(edge.1).or_default().push(edge.0);
             }
         }
         // Settled vertices no carried triangle uses are done; the others stay. Free vertices
@@ -309,21 +281,23 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
             // An unsettled vertex stays even if the batch collapsed every triangle it had so
             // far: later triangles will name it.
             let settled = self.vertices.get(&global).is_some_and(|v| v.settled);
-            if settled && !self.carried_at.contains_key(&global) {
-                if let Some(index) = self.vertices.remove(&global).and_then(|v| v.written) {
+            if settled && !self.carried.holds(global) {
+                if let Some(index) = self.vertices.remove(&global).and_then(|v| v.written()) {
                     spent.push(index);
                 }
             } else if let Some(vertex) = self.vertices.get_mut(&global)
                 && !locked
             {
                 vertex.simplified = true;
-                vertex.position = position_of(local as u32);
+                if let Some(moved) = positions.get(local) {
+                    vertex.position = *moved;
+                }
             }
         }
         // An output edge can get more triangles only while both its ends are buffered.
         for index in &spent {
-            for edge in self.open_at.remove(index).unwrap_or_default() {
-                if let Some(uses) = self.open_edges.remove(&edge) {
+            for other in self.open_at.remove(index).unwrap_or_default() {
+                if let Some(uses) = self.open_edges.remove(&(other.min(*index), other.max(*index))) {
                     self.count_edge(uses);
                 }
             }
@@ -339,16 +313,23 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
         let Some(vertex) = self.vertices.get_mut(&global) else {
             return Ok(0);
         };
-        if let Some(index) = vertex.written {
+        if let Some(index) = vertex.written() {
             return Ok(index);
         }
         let index = u32::try_from(self.summary.vertices)
-            .map_err(|_| std::io::Error::other("more than 2^32 vertices: the PLY indices would overflow"))?;
-        vertex.position = position;
-        let normal = if normal == DVec3::ZERO { vertex.normal } else { normal };
-        self.inner.vertex(position, normal.normalize_or_zero(), true)?;
+            .ok()
+            .filter(|&index| index != NOT_WRITTEN)
+            .ok_or_else(|| std::io::Error::other("2^32 - 1 vertices or more: the PLY indices would overflow"))?;
+        vertex.position = position.as_vec3().to_array();
+        // The batch's normal, or the vertex's own (normalized already).
+        let normal = if normal == DVec3::ZERO {
+            DVec3::from(vertex.normal.map(f64::from))
+        } else {
+            normal.normalize_or_zero()
+        };
+        self.inner.vertex(position, normal, true)?;
         self.summary.vertices += 1;
-        vertex.written = Some(index);
+        vertex.written = index;
         Ok(index)
     }
 }
@@ -440,7 +421,7 @@ impl<W: MeshWriter> SimplifyingWriter<W> {
                 _ => 0,
             };
             let carried = match (used.get(a as usize), used.get(b as usize)) {
-                (Some(&x), Some(&y)) => self.carried_uses(x, y),
+                (Some(&x), Some(&y)) => self.carried.uses(x, y),
                 _ => 0,
             };
             output + carried
@@ -587,16 +568,8 @@ fn simplify(indices: &mut [u32], positions: &mut [[f32; 3]], locks: &[bool], tar
 
 impl<W: MeshWriter> MeshWriter for SimplifyingWriter<W> {
     fn vertex(&mut self, position: DVec3, normal: DVec3, settled: bool) -> std::io::Result<()> {
-        self.vertices.insert(
-            self.incoming,
-            Buffered {
-                position,
-                normal,
-                settled,
-                written: None,
-                simplified: false,
-            },
-        );
+        self.vertices
+            .insert(self.incoming, Buffered::new(position, normal, settled));
         self.incoming = self
             .incoming
             .checked_add(1)
@@ -630,9 +603,8 @@ impl<W: MeshWriter> MeshWriter for SimplifyingWriter<W> {
     fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()> {
         for &(index, position, normal) in fixes {
             if let Some(vertex) = self.vertices.get_mut(&index) {
-                vertex.position = position;
-                vertex.normal = normal;
-                vertex.settled = true;
+                let fixed = Buffered::new(position, normal, true);
+                (vertex.position, vertex.normal, vertex.settled) = (fixed.position, fixed.normal, true);
                 self.newly_settled.push(index);
             }
         }
