@@ -378,6 +378,8 @@ pub fn commit_extract(store: &Store, memory_budget: u64) -> Result<(MeshSummary,
         &args.options,
         &args.output,
         memory_budget,
+        // The pieces come from files, read as the weld takes them: nothing waits to give way.
+        &|_| {},
     );
     let damaged: Vec<u64> = damaged.into_inner().into_iter().collect();
     if !damaged.is_empty() {

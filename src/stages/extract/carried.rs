@@ -38,6 +38,13 @@ impl CarriedStrip {
         self.len() == 0
     }
 
+    /// Bytes it takes, about (lists of more than four triangles at a vertex, on the heap, not
+    /// counted).
+    pub(super) fn heap_bytes(&self) -> u64 {
+        (self.slots.capacity() * std::mem::size_of::<Slot>() + self.free.capacity() * 4) as u64
+            + super::table_bytes::<(u32, SmallVec<[u32; 4]>)>(self.at.capacity())
+    }
+
     /// Carries `triangle` (weld indices).
     pub(super) fn carry(&mut self, triangle: [u32; 3]) {
         let slot = Slot {

@@ -1,17 +1,31 @@
 //! An in-order parallel map: workers compute pieces ahead (a bounded window) while one
 //! consumer takes them strictly in item order.
 
+use std::sync::atomic::{AtomicU64, Ordering};
+
 use crate::store::StageError;
 use crate::store::{Result, StoreError};
 
 /// How far workers may run ahead of the consumer: at most `pieces` results exist at once (the
 /// one being consumed included), and a worker claims a new item only while the finished
-/// results that wait hold less than `bytes`. So at most `bytes` plus one result per worker
-/// wait, whatever the pieces' sizes.
+/// results that wait hold less than [`Window::allowed`]: `bytes` less what the consumer asks
+/// them to give way to (`yielded`, which it may change at any time), but never less than
+/// `least`. The item the consumer waits for is always claimable. So at most `bytes` plus one
+/// result per worker wait, whatever the pieces' sizes.
 #[derive(Clone, Copy, Debug)]
-pub(super) struct Window {
+pub(super) struct Window<'a> {
     pub pieces: usize,
     pub bytes: u64,
+    pub yielded: &'a AtomicU64,
+    pub least: u64,
+}
+
+impl Window<'_> {
+    /// What the waiting results may hold now.
+    fn allowed(&self) -> u64 {
+        let yielded = self.yielded.load(Ordering::Relaxed);
+        self.bytes.saturating_sub(yielded).max(self.least.min(self.bytes))
+    }
 }
 
 /// Hands `consume` the results of `compute(item)` for every item, as an iterator in item
@@ -21,7 +35,7 @@ pub(super) struct Window {
 pub(super) fn in_order_while_computing<I: Copy + Send + Sync, T: Send, R>(
     items: &[I],
     threads: usize,
-    window: Window,
+    window: Window<'_>,
     weigh: impl Fn(&T) -> u64 + Sync,
     compute: impl Fn(I) -> Result<T> + Sync,
     consume: impl FnOnce(&mut dyn Iterator<Item = Result<T>>) -> R,
@@ -95,7 +109,7 @@ impl<T> InOrder<T> {
     /// The next item for a worker, once it is within `window` of the consumer; `None` when
     /// all are claimed or the consumer has stopped. The item the consumer waits for is always
     /// claimable (no result after it can be waiting then), so the stream cannot stall.
-    fn claim(&self, count: usize, window: Window) -> Option<usize> {
+    fn claim(&self, count: usize, window: Window<'_>) -> Option<usize> {
         let mut state = self.lock();
         loop {
             if state.stop || state.next_item >= count {
@@ -103,7 +117,7 @@ impl<T> InOrder<T> {
             }
             // Pieces taken - 1 (in use) up to next_item must number at most `window.pieces`.
             let within_count = state.next_item + 1 < state.taken + window.pieces;
-            let within_bytes = state.waiting_bytes < window.bytes || state.next_item <= state.taken;
+            let within_bytes = state.waiting_bytes < window.allowed() || state.next_item <= state.taken;
             if within_count && within_bytes {
                 state.next_item += 1;
                 return Some(state.next_item - 1);
@@ -179,7 +193,7 @@ impl<T> Drop for InOrderPieces<'_, T> {
 
 #[cfg(test)]
 mod tests {
-    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::atomic::AtomicUsize;
 
     use super::*;
 
@@ -199,9 +213,12 @@ mod tests {
     fn pieces_come_in_item_order_and_at_most_a_window_exist_at_once() {
         let items: Vec<usize> = (0..300).collect();
         let (alive, most) = (AtomicUsize::new(0), AtomicUsize::new(0));
+        let nothing = AtomicU64::new(0);
         let window = Window {
             pieces: 4,
             bytes: u64::MAX,
+            yielded: &nothing,
+            least: 0,
         };
         let compute = |item: usize| -> Result<Piece<'_>> {
             let now = alive.fetch_add(1, Ordering::SeqCst) + 1;
@@ -235,7 +252,13 @@ mod tests {
         let items: Vec<usize> = (0..400).collect();
         let weight = |item: usize| (item * 37 % 10) as u64 * 10;
         let (held, most) = (AtomicUsize::new(0), AtomicUsize::new(0));
-        let window = Window { pieces: 50, bytes: 100 };
+        let nothing = AtomicU64::new(0);
+        let window = Window {
+            pieces: 50,
+            bytes: 100,
+            yielded: &nothing,
+            least: 0,
+        };
         let threads = 3;
         let compute = |item: usize| -> Result<usize> {
             std::thread::sleep(std::time::Duration::from_micros(weight(item) * 5));
@@ -274,6 +297,59 @@ mod tests {
     }
 
     #[test]
+    fn waiting_pieces_give_way_to_what_the_consumer_yields() {
+        // A slow consumer and instant pieces of 10 bytes: the window fills whenever it may.
+        let items: Vec<usize> = (0..400).collect();
+        let yielded = AtomicU64::new(u64::MAX);
+        let window = Window {
+            pieces: 64,
+            bytes: 1000,
+            yielded: &yielded,
+            least: 20,
+        };
+        let threads = 3;
+        let held = AtomicUsize::new(0);
+        let most = [AtomicUsize::new(0), AtomicUsize::new(0)];
+        let half = AtomicUsize::new(0);
+        let compute = |item: usize| -> Result<usize> {
+            let now = held.fetch_add(10, Ordering::SeqCst) + 10;
+            if let Some(most) = most.get(half.load(Ordering::SeqCst)) {
+                most.fetch_max(now, Ordering::SeqCst);
+            }
+            Ok(item)
+        };
+        in_order_while_computing(
+            &items,
+            threads,
+            window,
+            |_| 10,
+            compute,
+            |pieces| {
+                for piece in pieces {
+                    let item = piece?;
+                    held.fetch_sub(10, Ordering::SeqCst);
+                    if item == 200 {
+                        // The consumer's own state shrank: the window opens again.
+                        yielded.store(0, Ordering::SeqCst);
+                        half.store(1, Ordering::SeqCst);
+                    }
+                    std::thread::sleep(std::time::Duration::from_micros(200));
+                }
+                Ok(())
+            },
+        )
+        .expect("no piece fails");
+        // While everything was yielded, fewer than `least` bytes waited at each claim (one
+        // piece), and then each worker finished one more.
+        let [first, second] = most.map(|m| m.load(Ordering::SeqCst));
+        assert!(
+            first <= 10 * (1 + threads),
+            "{first} bytes waited while all was yielded"
+        );
+        assert!(second > 100, "only {second} bytes waited once nothing was yielded");
+    }
+
+    #[test]
     fn a_failed_piece_ends_the_stream_with_its_error() {
         let items: Vec<usize> = (0..100).collect();
         let compute = |item: usize| -> Result<usize> {
@@ -286,7 +362,13 @@ mod tests {
             }
             Ok(item)
         };
-        let window = Window { pieces: 4, bytes: 1 };
+        let nothing = AtomicU64::new(0);
+        let window = Window {
+            pieces: 4,
+            bytes: 1,
+            yielded: &nothing,
+            least: 0,
+        };
         let (before, error) = in_order_while_computing(
             &items,
             2,

@@ -73,6 +73,7 @@ mod weld;
 
 use std::collections::HashMap;
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use glam::DVec3;
 use rayon::prelude::*;
@@ -95,6 +96,17 @@ use crate::store::{Result, Snapshot, StoreError};
 /// Hash tables keyed by surface-vertex and edge names: nothing depends on their iteration
 /// order, so a fast fixed-seed hasher replaces SipHash.
 type FastMap<K, V> = HashMap<K, V, foldhash::fast::FixedState>;
+
+/// Bytes a hash table with room for `capacity` entries of type `T` takes (hashbrown: a power
+/// of two of buckets, at most 7/8 full, each a `T` and a control byte): what the open seams'
+/// tables report of themselves.
+fn table_bytes<T>(capacity: usize) -> u64 {
+    if capacity == 0 {
+        return 0;
+    }
+    let buckets = (capacity.saturating_mul(8) / 7).max(4).next_power_of_two();
+    (buckets * (std::mem::size_of::<T>() + 1)) as u64
+}
 
 /// The second values of pairs grouped by their first (a key below a bound), each group sorted,
 /// in one list with each key's start in it: a counting sort, linear in the pairs, where a list
@@ -240,9 +252,9 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &Ext
     let welded = match options.region {
         Some(region) => {
             let cut = RegionWriter::new(MemoryMesh::default(), region);
-            finish_cut(weld_pieces(pieces, &treetop, cut, target, batch, &io), &io)
+            finish_cut(weld_pieces(pieces, &treetop, cut, target, batch, &|_| {}, &io), &io)
         }
-        None => weld_pieces(pieces, &treetop, MemoryMesh::default(), target, batch, &io),
+        None => weld_pieces(pieces, &treetop, MemoryMesh::default(), target, batch, &|_| {}, &io),
     };
     match welded {
         (Some(memory), Ok(_)) => Ok(memory.into_mesh()),
@@ -364,28 +376,36 @@ fn weld_pieces<W: MeshWriter>(
     writer: W,
     target: Option<Target>,
     batch: usize,
+    on_held: &dyn Fn(u64),
     io: &dyn Fn(std::io::Error) -> StoreError,
 ) -> (Option<W>, Result<MeshSummary>) {
     fn add_all<X: MeshWriter>(
         weld: &mut StreamingWeld<'_, X>,
         pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
+        on_held: &dyn Fn(u64),
         io: &dyn Fn(std::io::Error) -> StoreError,
     ) -> Result<()> {
+        let mut most_held = 0;
         for piece in pieces {
             let (unit, key, mesh) = piece?;
             weld.add(unit, key, &mesh).map_err(io)?;
+            let held = weld.held_bytes();
+            most_held = most_held.max(held);
+            on_held(held);
         }
         tracing::info!(
-            "extract: at most {} seam vertices and {} seam edges open at once",
+            "extract: at most {} seam vertices and {} seam edges open at once; the weld and the simplification \
+             held at most {:.0} MB along the open seams",
             weld.most_open,
-            weld.most_open_edges
+            weld.most_open_edges,
+            most_held as f64 / 1e6
         );
         Ok(())
     }
     match target {
         None => {
             let mut weld = StreamingWeld::new(writer, treetop);
-            if let Err(e) = add_all(&mut weld, pieces, io) {
+            if let Err(e) = add_all(&mut weld, pieces, on_held, io) {
                 return (Some(weld.writer), Err(e));
             }
             match weld.finish() {
@@ -395,7 +415,7 @@ fn weld_pieces<W: MeshWriter>(
         }
         Some(target) => {
             let mut weld = StreamingWeld::new(SimplifyingWriter::new(writer, target, batch), treetop);
-            if let Err(e) = add_all(&mut weld, pieces, io) {
+            if let Err(e) = add_all(&mut weld, pieces, on_held, io) {
                 return (Some(weld.writer.inner), Err(e));
             }
             let finished = weld
@@ -437,6 +457,12 @@ fn weld_pieces<W: MeshWriter>(
 /// at `path`, simplified and cut to the region as `options` say. Without a region, memory holds
 /// the pieces computed ahead, the open seams and one simplification batch
 /// ([`simplify_batch`] of `memory_budget`); a region's cut is streamed too (`region`).
+/// `on_held` hears, after each piece, how many bytes the weld and the simplification hold
+/// along the open seams.
+#[expect(
+    clippy::too_many_arguments,
+    reason = "the stream, where it goes and how, and the memory it may use: each a caller's own (extract_to_file, the cluster's commit)"
+)]
 pub fn write_pieces(
     pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
     treetop: &Treetop,
@@ -445,6 +471,7 @@ pub fn write_pieces(
     options: &ExtractOptions,
     path: &Path,
     memory_budget: u64,
+    on_held: &dyn Fn(u64),
 ) -> Result<MeshSummary> {
     let target = options.simplify.target(scene, finest);
     let batch = simplify_batch(memory_budget);
@@ -457,9 +484,9 @@ pub fn write_pieces(
     let written = match options.region {
         Some(region) => {
             let cut = RegionWriter::new(file, region);
-            finish_cut(weld_pieces(pieces, treetop, cut, target, batch, &io), &io)
+            finish_cut(weld_pieces(pieces, treetop, cut, target, batch, on_held, &io), &io)
         }
-        None => weld_pieces(pieces, treetop, file, target, batch, &io),
+        None => weld_pieces(pieces, treetop, file, target, batch, on_held, &io),
     };
     match written {
         (Some(file), Ok(summary)) => {
@@ -486,6 +513,18 @@ pub fn write_pieces(
 /// the 53 M-cube city's extraction peaked just within the budget with them (BENCHMARKS.md,
 /// "Scale"); RedKitchen's peak at 256 MiB went from 227-245 MB to 248-250 MB.
 pub const PIECES_AHEAD_SHARE: u64 = 8;
+
+/// The share of `--memory-budget` that the weld's and the simplification's state along the
+/// open seams may hold before the finished pieces waiting for the weld give way to it, byte
+/// for byte, down to [`PIECES_AHEAD_LEAST_SHARE`]. The open seams grow with the scene's
+/// cross-section (on the 415 M-sample city, 1.2 M seam vertices and 2.3 M triangles held back
+/// along them), the pieces ahead only smooth the weld's pace: at scale the weld, which runs
+/// alone, sets the pace, and a few pieces keep it fed.
+const OPEN_SEAMS_SHARE: u64 = 4;
+
+/// The share of `--memory-budget` that finished pieces may hold however much the open seams
+/// hold: a few of the city's pieces (8 MB each at 415 M samples), which keeps both workers busy.
+const PIECES_AHEAD_LEAST_SHARE: u64 = 32;
 
 /// Pieces computed ahead of the weld, at most, whatever their sizes: the weld's state per
 /// piece is a map entry.
@@ -515,14 +554,19 @@ pub fn extract_to_file(
         );
     }
     let threads = rayon::current_num_threads().max(1);
+    let yielded = AtomicU64::new(0);
     let window = Window {
         pieces: PIECES_AHEAD_MOST,
         bytes: memory_budget / PIECES_AHEAD_SHARE,
+        yielded: &yielded,
+        least: memory_budget / PIECES_AHEAD_LEAST_SHARE,
     };
+    let allowance = memory_budget / OPEN_SEAMS_SHARE;
+    let on_held = |held: u64| yielded.store(held.saturating_sub(allowance), Ordering::Relaxed);
     let weigh = |(_, _, mesh): &(usize, CubeKey, UnitMesh)| mesh.heap_bytes();
     let compute = |unit: usize| piece(snapshot, &treetop, scene, finest, unit, options.closed);
     in_order_while_computing(&units, threads, window, weigh, compute, |pieces| {
-        write_pieces(pieces, &treetop, scene, finest, options, path, memory_budget)
+        write_pieces(pieces, &treetop, scene, finest, options, path, memory_budget, &on_held)
     })
 }
 

@@ -344,6 +344,12 @@ impl<W: MeshWriter> MeshWriter for RegionWriter<W> {
         self.fix(fixes.iter().map(|&(i, p, n)| (i, Some((p, n)))))
     }
 
+    /// The writer after the cut's: the cut's own vertices, waiting for their triangles, are
+    /// those of one batch (it takes what the simplification writes), not the seams'.
+    fn held_bytes(&self) -> u64 {
+        self.inner.held_bytes()
+    }
+
     fn settle(&mut self, indices: &[u32]) -> std::io::Result<()> {
         self.fix(indices.iter().map(|&i| (i, None)))
     }

@@ -598,6 +598,14 @@ impl<W: MeshWriter> MeshWriter for SimplifyingWriter<W> {
         Ok(())
     }
 
+    fn held_bytes(&self) -> u64 {
+        let vertices = super::table_bytes::<(u32, Buffered)>(self.vertices.capacity());
+        let open = super::table_bytes::<((u32, u32), u32)>(self.open_edges.capacity())
+            + super::table_bytes::<(u32, SmallVec<[u32; 4]>)>(self.open_at.capacity());
+        let lists = (self.fresh.capacity() * 12 + self.newly_settled.capacity() * 4) as u64;
+        vertices + self.carried.heap_bytes() + open + lists + self.inner.held_bytes()
+    }
+
     /// Settles seam vertices; the weld calls it once at the end of each unit, which is when a
     /// batch may end too.
     fn fix_vertices(&mut self, fixes: &[(u32, DVec3, DVec3)]) -> std::io::Result<()> {

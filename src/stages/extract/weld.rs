@@ -260,6 +260,11 @@ pub(super) trait MeshWriter {
     fn settle(&mut self, _indices: &[u32]) -> std::io::Result<()> {
         Ok(())
     }
+    /// Bytes it holds for vertices and triangles it cannot write yet (a simplifying writer's
+    /// strip along the open seams), about.
+    fn held_bytes(&self) -> u64 {
+        0
+    }
 }
 
 impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
@@ -405,6 +410,18 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
         self.count_edges(edge_uses(&local_edges, new_vertices).iter());
         self.most_open_edges = self.most_open_edges.max(self.seam_edges.len());
         self.retire_through(unit)
+    }
+
+    /// Bytes the open seams take here and in the writer, about: the records and tables, by
+    /// their capacities.
+    pub(super) fn held_bytes(&self) -> u64 {
+        let seam = &self.seam;
+        let records = (seam.slots.capacity() * std::mem::size_of::<SeamVertex>() + seam.free.capacity() * 4) as u64;
+        let index = super::table_bytes::<u32>(seam.by_name.table.capacity());
+        let edges = super::table_bytes::<((u32, u32), u32)>(self.seam_edges.capacity());
+        // Each open vertex and edge is listed once for its retirement.
+        let retirements = (seam.len() * 4 + self.seam_edges.len() * 8) as u64;
+        records + index + edges + retirements + self.writer.held_bytes()
     }
 
     /// Retires every seam vertex and edge that no unit after `unit` can produce.
