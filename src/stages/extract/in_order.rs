@@ -335,7 +335,7 @@ mod tests {
                     }
                     std::thread::sleep(std::time::Duration::from_micros(200));
                 }
-                Ok(())
+                Ok::<(), StoreError>(())
             },
         )
         .expect("no piece fails");
