@@ -246,8 +246,8 @@ pub fn plan_extract(
     // As `octstore extract`: a solution older than the latest ingest is refused, not meshed.
     crate::query::ensure_solution_is_current(&snapshot)?;
     let finest = octree_max_depth(store)?;
-    let units = extract_units(&snapshot, &scene, finest, options.region)?;
     let treetop = Treetop::of(&snapshot)?;
+    let units = extract_units(&snapshot, &treetop, &scene, finest, options.region)?;
     let cubes = units
         .iter()
         .map(|&u| treetop.units.get(u).map_or(0, |unit| unit.record.rows))

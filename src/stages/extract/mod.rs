@@ -235,8 +235,8 @@ fn simplify_batch(memory_budget: u64) -> usize {
 /// Extracts the surface u = 0 of the latest solution in memory, optionally only what lies in a
 /// region, simplified as `options` say (batches as at a 1 GiB budget).
 pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &ExtractOptions) -> Result<Mesh> {
-    let units = extract_units(snapshot, scene, finest, options.region)?;
     let treetop = Treetop::of(snapshot)?;
+    let units = extract_units(snapshot, &treetop, scene, finest, options.region)?;
     let pieces: Vec<(usize, CubeKey, UnitMesh)> = units
         .par_iter()
         .map(|&unit| piece(snapshot, &treetop, scene, finest, unit, options.closed))
@@ -294,14 +294,15 @@ fn finish_cut<W: MeshWriter>(
     }
 }
 
-/// The treetop units whose dual cells can reach the region (all leaves without one), in order.
+/// The units of `treetop` (the snapshot's) whose dual cells can reach the region (all leaves
+/// without one), in order.
 pub fn extract_units(
     snapshot: &Snapshot<'_>,
+    treetop: &Treetop,
     scene: &Scene,
     finest: u8,
     region: Option<BoundingBox>,
 ) -> Result<Vec<usize>> {
-    let treetop = Treetop::of(snapshot)?;
     let stage = LEVEL_STAGES[usize::from(finest)];
     if snapshot.segments(stage).is_empty() {
         return Err(StoreError::Stage {
@@ -542,8 +543,8 @@ pub fn extract_to_file(
     path: &Path,
     memory_budget: u64,
 ) -> Result<MeshSummary> {
-    let units = extract_units(snapshot, scene, finest, options.region)?;
     let treetop = Treetop::of(snapshot)?;
+    let units = extract_units(snapshot, &treetop, scene, finest, options.region)?;
     let leaf_rows = treetop.units.iter().filter(|u| !u.top).map(|u| u.record.rows);
     if let Some((largest, fits)) = leaves_over_budget(leaf_rows, memory_budget) {
         tracing::warn!(
