@@ -20,9 +20,13 @@ const QUIET_VULKAN_PROBES: &[(&str, &str)] = &[("NODEVICE_SELECT", "1")];
 
 fn main() -> ExitCode {
     octstore::die_quietly_on_closed_pipe();
-    octstore::purge_freed_pages_at_once();
     octstore::set_env_defaults_at_start(QUIET_VULKAN_PROBES);
+    // Parsing starts no thread, so the allocator's option still changes before any other
+    // thread exists.
     let cli = octstore::cli::Cli::parse();
+    if cli.command.extracts() {
+        octstore::purge_freed_pages_at_once();
+    }
     // `--quiet` keeps warnings and errors; OCTSTORE_LOG, when set, decides instead.
     let level = if cli.global.quiet { "warn" } else { "info" };
     tracing_subscriber::fmt()

@@ -38,8 +38,11 @@ const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
 /// stages free and allocate buffers of a few megabytes per depth map or unit, many of them on
 /// worker threads; until the delay passes, every freed page stays resident, so the peak resident
 /// size counted about a second's worth of buffers that no stage held any more. Measured figures
-/// are in CHANGELOG.md. `MIMALLOC_PURGE_DELAY` in the environment, when set, decides instead.
-/// Only the binary calls it, first thing, where mimalloc is the global allocator.
+/// are in CHANGELOG.md. The price is kernel time spent faulting pages back in (RedKitchen's
+/// solve about a quarter slower), so the binary calls it only for the verbs that extract
+/// (`cli::Command::extracts`), whose stage runs nearest the budget at scale, right after
+/// parsing the command line and before any other thread exists, where mimalloc is the global
+/// allocator. `MIMALLOC_PURGE_DELAY` in the environment, when set, decides instead.
 pub fn purge_freed_pages_at_once() {
     if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
         // SAFETY: mi_option_set stores a value in mimalloc's option table; it takes no

@@ -174,6 +174,20 @@ pub enum Command {
     DebugSynthetic(DebugSyntheticArgs),
 }
 
+impl Command {
+    /// Whether the verb extracts a mesh (or a cluster's share of one): extraction is the stage
+    /// that runs nearest the memory budget at scale, since its open seams grow with the scene's
+    /// cross-section, so its process hands freed pages back at once
+    /// ([`crate::purge_freed_pages_at_once`]); the other verbs keep the allocator's delay, which
+    /// spares them the kernel time of faulting buffers back in.
+    pub fn extracts(&self) -> bool {
+        matches!(
+            self,
+            Command::Extract(_) | Command::Work(_) | Command::Commit(_) | Command::Demo(_)
+        )
+    }
+}
+
 /// Arguments of `octstore ingest`.
 #[derive(Args, Debug)]
 pub struct IngestArgs {
