@@ -61,7 +61,7 @@ pub use mesh::{Mesh, MeshReadError, MeshSummary};
 pub use pipeline::{PipelineError, SolveOptions, SolveUntil};
 pub use quality::synthetic_scenes::{Noise, SceneSpec, Shape};
 pub use query::{CubeInfo, HISTOGRAM_BINS, IndicatorField, LeafInfo};
-pub use stages::extract::{DEFAULT_MAX_ERROR, ExtractOptions, Simplify};
+pub use stages::extract::{DEFAULT_MAX_ERROR, ExtractOptions, Simplify, Surface, SurfaceChoice};
 pub use stages::ingest::IngestOptions;
 pub use stages::solve::{Method, SolveParams, SsdParams};
 pub use store::{RunOptions, RunReport, Snapshot, StageError, Store, StoreError};

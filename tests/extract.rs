@@ -223,7 +223,7 @@ fn many_small_leaves_give_a_seamless_mesh_and_threads_do_not_change_bytes() {
     let scene = octstore::testing::stages::ingest::read_scene(&opened).unwrap().unwrap();
     let finest = octstore::testing::stages::octree_max_depth(&opened).unwrap();
     let closed = ExtractOptions {
-        closed: true,
+        surface: octstore::SurfaceChoice::Whole,
         ..ExtractOptions::default()
     };
     let in_memory = extract(&opened.latest().unwrap(), &scene, finest, &closed).unwrap();
@@ -413,7 +413,7 @@ fn region_extraction_cuts_cleanly_at_the_box() {
         &ExtractOptions {
             region: Some(region),
             simplify: Simplify::default(),
-            closed: true,
+            surface: octstore::SurfaceChoice::Whole,
         },
     )
     .unwrap();

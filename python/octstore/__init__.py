@@ -96,15 +96,17 @@ class Snapshot:
         self,
         region: Optional[Sequence[float]] = None,
         decimate: Optional[float] = None,
-        closed: bool = False,
+        closed: Optional[bool] = None,
         path: Optional[PathLike] = None,
         max_error: Optional[float] = None,
     ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The surface as `octstore extract` makes it: vertices (V, 3) float32, faces (F, 3)
         uint32, vertex normals (V, 3) float32. `region` clips to a box; the mesh is simplified
         within `max_error` finest cube sides (default 0.25, 0 for every triangle), or to about
-        the fraction `decimate` of its triangles; `closed` meshes unobserved space too, and
-        `path` also writes the PLY (byte for byte the command line's)."""
+        the fraction `decimate` of its triangles; `closed=True` meshes the whole zero set
+        (`--closed`), `closed=False` only the observed surface (`--open`), and None lets the
+        capture decide as the command line does; `path` also writes the PLY (byte for byte the
+        command line's)."""
         box = None if region is None else _box(region, "region")
         return self._native.extract(
             box, decimate, closed, None if path is None else os.fspath(path), max_error

@@ -33,7 +33,7 @@ class Snapshot:
         self,
         region: Optional[Sequence[float]] = None,
         decimate: Optional[float] = None,
-        closed: bool = False,
+        closed: Optional[bool] = None,
         path: Optional[str] = None,
         max_error: Optional[float] = None,
     ) -> Tuple[npt.NDArray[np.float32], npt.NDArray[np.uint32], npt.NDArray[np.float32]]: ...

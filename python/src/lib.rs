@@ -21,7 +21,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use octstore::cli::{LibraryCall, library_call};
-use octstore::{BoundingBox, ExtractOptions, IndicatorField, RunReport, Simplify};
+use octstore::{BoundingBox, ExtractOptions, IndicatorField, RunReport, Simplify, SurfaceChoice};
 
 pyo3::create_exception!(
     octstore,
@@ -236,15 +236,17 @@ impl Snapshot {
     }
 
     /// The surface, as `octstore extract` writes it (to `path` too when given): vertices
-    /// (V, 3) float32, faces (F, 3) uint32 and vertex normals (V, 3) float32.
-    #[pyo3(signature = (region = None, decimate = None, closed = false, path = None, max_error = None))]
+    /// (V, 3) float32, faces (F, 3) uint32 and vertex normals (V, 3) float32. `closed`: True
+    /// for the whole zero set (`--closed`), False for only the observed surface (`--open`),
+    /// None (the default) to let the capture decide as `extract` does.
+    #[pyo3(signature = (region = None, decimate = None, closed = None, path = None, max_error = None))]
     #[expect(clippy::type_complexity, reason = "the three arrays Python receives as a tuple")]
     fn extract<'py>(
         &self,
         py: Python<'py>,
         region: Option<[f64; 6]>,
         decimate: Option<f32>,
-        closed: bool,
+        closed: Option<bool>,
         path: Option<PathBuf>,
         max_error: Option<f32>,
     ) -> PyResult<(
@@ -263,7 +265,11 @@ impl Snapshot {
                 (None, Some(error)) => Simplify::MaxError(error),
                 (None, None) => Simplify::default(),
             },
-            closed,
+            surface: match closed {
+                None => SurfaceChoice::Auto,
+                Some(true) => SurfaceChoice::Whole,
+                Some(false) => SurfaceChoice::Observed,
+            },
         };
         let (store, version) = (self.store.clone(), self.version);
         let mesh = py

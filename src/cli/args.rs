@@ -11,7 +11,7 @@ use super::parse::{
 };
 use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
-use crate::stages::extract::Simplify;
+use crate::stages::extract::{Simplify, SurfaceChoice};
 use crate::stages::octree;
 use crate::stages::solve::{Method, SolveParams, SsdParams};
 
@@ -296,8 +296,11 @@ pub struct PlanArgs {
     #[arg(long, value_parser = parse_max_error)]
     pub max_error: Option<f32>,
     /// extract: the whole zero set, closed at the root cube (see `octstore extract --help`).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "open")]
     pub closed: bool,
+    /// extract: only the observed surface (see `octstore extract --help`).
+    #[arg(long)]
+    pub open: bool,
 }
 
 /// Arguments of `octstore work`.
@@ -397,19 +400,30 @@ pub struct ExtractArgs {
     /// bounding the error.
     #[arg(long, value_parser = parse_ratio, conflicts_with = "max_error")]
     pub decimate: Option<f32>,
-    /// Mesh the whole zero set of u, closed at the root cube, instead of only the surface
-    /// between cubes that depth maps saw. Without it (the default) an indoor capture gives the
-    /// room's inside with open borders where the cameras stopped, and nothing is invented
-    /// behind walls or under furniture, while an object seen from all around against empty
-    /// background (invalid pixels) comes out closed, its background voting free space around
-    /// it. Use it when a watertight mesh matters more than honest borders (hidden parts are
-    /// then filled in).
+    /// Mesh the whole zero set of u, closed at the root cube. Without `--closed` or `--open`
+    /// the capture decides: when most of a few of its depth maps see their content against
+    /// empty background (invalid pixels all around: an object seen from all around), the mesh
+    /// is watertight, every piece of the zero set that holds observed surface closed where no
+    /// map measured it (crevices, undersides) and pieces without observed surface dropped;
+    /// otherwise (a room, a street, an aerial capture) only the observed surface, with open
+    /// borders where the cameras stopped and nothing invented behind walls or under
+    /// furniture. Use it when a watertight mesh matters more than honest borders (hidden parts
+    /// are then filled in).
     #[arg(long, conflicts_with = "open")]
     pub closed: bool,
-    /// Only the observed surface, with open borders where the cameras stopped: what the
-    /// default gives, stated explicitly.
+    /// Only the observed surface, with open borders where the cameras stopped, whatever the
+    /// capture.
     #[arg(long)]
     pub open: bool,
+}
+
+/// The surface `--closed` and `--open` ask for: neither lets the capture decide.
+pub(super) fn surface_of(closed: bool, open: bool) -> SurfaceChoice {
+    match (closed, open) {
+        (true, _) => SurfaceChoice::Whole,
+        (false, true) => SurfaceChoice::Observed,
+        (false, false) => SurfaceChoice::Auto,
+    }
 }
 
 /// Arguments of `octstore divide`.

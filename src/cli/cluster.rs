@@ -22,7 +22,7 @@ pub(super) fn plan(args: PlanArgs) -> Result<()> {
         let options = ExtractOptions {
             region: args.region,
             simplify: super::args::simplify_of(args.decimate, args.max_error),
-            closed: args.closed,
+            surface: super::args::surface_of(args.closed, args.open),
         };
         let (plan, cubes) = cluster::plan_extract(&store, args.chunks, options, output.clone())?;
         println!(

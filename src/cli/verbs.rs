@@ -105,7 +105,7 @@ pub(super) fn extract(global: &GlobalOptions, args: ExtractArgs) -> Result<()> {
     let options = ExtractOptions {
         region: args.region,
         simplify: super::args::simplify_of(args.decimate, args.max_error),
-        closed: args.closed,
+        surface: super::args::surface_of(args.closed, args.open),
     };
     let summary = pipeline::extract(&store, &args.output, &options, args.version, global.memory_budget)?;
     print_extract_summary(&summary, &args.output, started);

@@ -238,7 +238,7 @@ fn extract_fingerprint(snapshot: &crate::Snapshot<'_>, finest: u8, args: &Extrac
 pub fn plan_extract(
     store: &Store,
     chunks: u32,
-    options: ExtractOptions,
+    mut options: ExtractOptions,
     output: PathBuf,
 ) -> Result<(ClusterPlan, Vec<u64>)> {
     let scene = required_scene(store, EXTRACT)?;
@@ -248,6 +248,8 @@ pub fn plan_extract(
     let finest = octree_max_depth(store)?;
     let treetop = Treetop::of(&snapshot)?;
     let units = extract_units(&snapshot, &treetop, &scene, finest, options.region)?;
+    // Decided once, here: every worker meshes what the plan records.
+    options.surface = options.surface.resolve(&snapshot)?.into();
     let cubes = units
         .iter()
         .map(|&u| treetop.units.get(u).map_or(0, |unit| unit.record.rows))
@@ -302,6 +304,8 @@ pub fn work_extract(store: &Store, chunk: u32) -> Result<WorkReport> {
     let dir = store.chunk_dir(&plan);
     std::fs::create_dir_all(&dir).map_err(io_error("create directory", &dir))?;
     let units = plan.chunk_units(chunk);
+    // The plan holds the decided surface, so this reads no depth map.
+    let surface = args.options.surface.resolve(&snapshot)?;
     let mut skipped = 0;
     for &unit in units {
         let name = unit_mesh_name(unit);
@@ -313,7 +317,7 @@ pub fn work_extract(store: &Store, chunk: u32) -> Result<WorkReport> {
             skipped += 1;
             continue;
         }
-        let mesh = unit_mesh(&snapshot, &treetop, &scene, finest, unit as usize, args.options.closed)?;
+        let mesh = unit_mesh(&snapshot, &treetop, &scene, finest, unit as usize, surface)?;
         store.write_chunk_file(&dir, &name, &encode_chunk_file(UNIT_MESH_MAGIC, &mesh))?;
     }
     Ok(WorkReport {

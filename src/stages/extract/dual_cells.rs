@@ -5,6 +5,7 @@
 use arrayvec::ArrayVec;
 use glam::DVec3;
 
+use super::surface::Surface;
 use super::weld::NameIndex;
 use crate::format::key::{KeyBlocks, add_axis_bits, axis_bits, corner_axis_bits, sub_axis_bits};
 use crate::format::{CubeKey, MAX_DEPTH, Scene};
@@ -13,6 +14,9 @@ use crate::stages::solve::{CutValue, LevelCut};
 use crate::store::Result;
 
 mod pinholes;
+mod watertight;
+
+pub(super) use watertight::drop_unobserved_pieces;
 
 /// Corner ids with this bit set are virtual exterior cells (see [`CornerId`]).
 const VIRTUAL: u128 = 1 << 127;
@@ -312,6 +316,9 @@ pub(super) struct VertexGuides {
     /// The offset planes of the cells around the vertex that have one ([`OffsetPlane`]), and
     /// how far they may move it: half its edge's length (smoothing may move it another half).
     pub moves: Vec<VertexMove>,
+    /// For the watertight surface, vertices of the surface the observed one keeps (with
+    /// repeats), which anchor the pieces they belong to ([`drop_unobserved_pieces`]).
+    pub anchors: Vec<u32>,
 }
 
 /// The surface offsets of a dual cell's corners fitted by a linear function, `value` at
@@ -410,14 +417,14 @@ struct Piece {
     held: Vec<pinholes::HeldTetrahedron>,
 }
 
-/// The surface pieces of a unit's dual cells; unless `closed`, only the observed surface
-/// ([`mesh_cell`]); and what the cells say about each vertex ([`VertexGuides`]).
+/// The surface pieces of a unit's dual cells, as much of them as `surface` says ([`mesh_cell`]);
+/// and what the cells say about each vertex ([`VertexGuides`]).
 pub(super) fn dual_cells_of_unit(
     scene: &Scene,
     level: &mut LevelCut<'_, '_>,
     keys: &[CubeKey],
     values: &[CutValue],
-    closed: bool,
+    surface: Surface,
 ) -> Result<(UnitMesh, VertexGuides)> {
     // RedKitchen's pieces have about 0.4 vertices a cube: room for half as many as cubes
     // saves most of the index's growth. (The same room in the piece's lists as well saved
@@ -513,7 +520,7 @@ pub(super) fn dual_cells_of_unit(
             }
             let corners = incident.map(|c| c.corner(scene));
             let gradient = cell_gradient(&corners);
-            mesh_cell(&corners, gradient, closed, &mut piece);
+            mesh_cell(&corners, gradient, surface, &mut piece);
         }
     }
     pinholes::fill_pinholes(&mut piece);
@@ -576,12 +583,15 @@ fn vertex_name(a: &Corner, b: &Corner) -> VertexId {
 
 /// Cuts the dual cell's 6 Kuhn tetrahedra at u = 0 and adds the triangles, oriented towards
 /// positive u, to `mesh`; vertices are found or added by name through `vertex_index`, and each
-/// triangle's vertices accumulate the cell's `gradient` as their normal. Unless `closed`, a
-/// tetrahedron adds nothing unless depth maps saw all four of its cells and samples reached one
-/// of the dual cell's eight; one whose own corners do not support a surface
+/// triangle's vertices accumulate the cell's `gradient` as their normal. For the observed
+/// surface, a tetrahedron adds nothing unless depth maps saw all four of its cells and samples
+/// reached one of the dual cell's eight; one whose own corners do not support a surface
 /// ([`tetrahedron_supported`]) is held for [`pinholes::fill_pinholes`] (module docs of
-/// `stages::extract`, "Observed surface only").
-fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut Piece) {
+/// `stages::extract`, "Observed surface only"). The watertight and the whole surface mesh every
+/// cut tetrahedron; for the watertight one, the vertices of those the observed surface keeps
+/// are its anchors ([`VertexGuides::anchors`]).
+fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, surface: Surface, piece: &mut Piece) {
+    let every = surface != Surface::Observed;
     let plane = OffsetPlane::fit(corners);
     // Each of the 6 tetrahedra adds at most 4 vertices.
     let mut cell_vertices = ArrayVec::<u32, 24>::new();
@@ -593,14 +603,15 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut P
         // six times a cell.
         let t = tet.map(|i| &corners[i]);
         let observed = cell_observed && t.iter().all(|c| c.votes > 0.0);
-        if !(closed || observed) {
+        if !(every || observed) {
             continue;
         }
         let positive = t.iter().filter(|c| c.u > 0.0).count();
         if positive == 0 || positive == 4 {
             continue;
         }
-        if !(closed || tetrahedron_supported(&t)) {
+        let supported = observed && tetrahedron_supported(&t);
+        if !(every || supported) {
             piece.held.push(pinholes::HeldTetrahedron {
                 corners: t.map(|c| *c),
                 gradient,
@@ -608,6 +619,9 @@ fn mesh_cell(corners: &[Corner; 8], gradient: DVec3, closed: bool, piece: &mut P
             continue;
         }
         let polygon = mesh_tetrahedron(&t, gradient, piece);
+        if surface == Surface::Watertight && supported {
+            piece.guides.anchors.extend_from_slice(&polygon);
+        }
         // 6 tetrahedra of at most 4 vertices each fit.
         let _ = cell_vertices.try_extend_from_slice(&polygon);
     }

@@ -34,8 +34,14 @@
 //! side, stays out (`dual_cells::pinholes`). Each tetrahedron is meshed only by the unit
 //! that generates its dual cell, and the fill reads only the surface that unit meshes, so the
 //! pieces stay seamless and the result does not depend on the order units run in (a pinhole
-//! whose rim lies partly in another unit stays open). `closed` keeps the whole zero set (a
-//! watertight mesh, hidden parts filled in).
+//! whose rim lies partly in another unit stays open). That is what a capture from inside a
+//! scene gets. A capture that looks at objects against empty background gets the watertight
+//! surface instead, by default (`surface`: most of a few depth maps have their border mostly
+//! invalid): every cut tetrahedron is meshed, and each connected part of a unit's piece is kept
+//! if it holds a vertex of what the observed surface would keep or reaches another unit
+//! (`dual_cells::watertight`), so an object comes out closed where no map measured it while
+//! bubbles of the zero set in free space go. `--closed` keeps the whole zero set (hidden parts
+//! filled in, closed at the root cube).
 //!
 //! Vertices inside cubes. u's L1 data term snaps it to histogram bin centres, and linear
 //! interpolation of u between cell centres then leaves terraces about one bin (near one finest
@@ -55,7 +61,9 @@
 //! the vertices only their unit produces (Taubin's steps, each vertex within half its edge of
 //! where it was; seam vertices stay).
 //!
-//! Files: `dual_cells` (a unit's piece; `dual_cells/pinholes` fills its pinholes), `relax`
+//! Files: `surface` (what to mesh, and the default's decision from the capture), `dual_cells`
+//! (a unit's piece; `dual_cells/pinholes` fills its pinholes, `dual_cells/watertight` drops
+//! the watertight piece's parts without observed surface), `relax`
 //! (smoothing a piece's private vertices), `weld` (streaming weld in unit order), `simplify`
 //! (streaming simplification of the welded mesh; `carried` holds its triangles waiting at open
 //! seams), `region` (the cut at `--region`), `mesh_file` (the temporary vertex and face files
@@ -69,6 +77,7 @@ mod mesh_file;
 mod region;
 mod relax;
 mod simplify;
+mod surface;
 mod weld;
 
 use std::collections::HashMap;
@@ -78,12 +87,13 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use glam::DVec3;
 use rayon::prelude::*;
 
-use self::dual_cells::dual_cells_of_unit;
+use self::dual_cells::{drop_unobserved_pieces, dual_cells_of_unit};
 use self::in_order::{Window, in_order_while_computing};
 use self::mesh_file::{MemoryMesh, MeshFile};
 use self::region::RegionWriter;
 use self::relax::smooth_private_vertices;
 use self::simplify::{SimplifyingWriter, Target};
+pub use self::surface::{Surface, SurfaceChoice};
 use self::weld::{MeshWriter, StreamingWeld, private_to};
 use super::solve::{LEVEL_STAGES, LevelCut};
 use super::treetop::Treetop;
@@ -173,8 +183,8 @@ pub struct ExtractOptions {
     pub region: Option<BoundingBox>,
     /// How far to simplify the mesh (`simplify` module).
     pub simplify: Simplify,
-    /// Mesh the whole zero set, closed at the root cube, instead of only what depth maps saw.
-    pub closed: bool,
+    /// How much of the zero set to mesh; by default decided from the capture.
+    pub surface: SurfaceChoice,
 }
 
 /// How far extraction simplifies the welded mesh: quadric edge collapses, streamed in batches
@@ -237,9 +247,10 @@ fn simplify_batch(memory_budget: u64) -> usize {
 pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &ExtractOptions) -> Result<Mesh> {
     let treetop = Treetop::of(snapshot)?;
     let units = extract_units(snapshot, &treetop, scene, finest, options.region)?;
+    let surface = options.surface.resolve(snapshot)?;
     let pieces: Vec<(usize, CubeKey, UnitMesh)> = units
         .par_iter()
-        .map(|&unit| piece(snapshot, &treetop, scene, finest, unit, options.closed))
+        .map(|&unit| piece(snapshot, &treetop, scene, finest, unit, surface))
         .collect::<Result<_>>()?;
     let target = options.simplify.target(scene, finest);
     let pieces = pieces.into_iter().map(Ok);
@@ -333,15 +344,14 @@ pub fn extract_units(
         .collect())
 }
 
-/// The surface pieces that treetop unit `unit` generates: only between cells depth maps saw,
-/// unless `closed`.
+/// The surface pieces that treetop unit `unit` generates, as much of them as `surface` says.
 pub fn unit_mesh(
     snapshot: &Snapshot<'_>,
     treetop: &Treetop,
     scene: &Scene,
     finest: u8,
     unit: usize,
-    closed: bool,
+    surface: Surface,
 ) -> Result<UnitMesh> {
     let Some(key) = treetop.units.get(unit).map(|u| u.key) else {
         return Ok(UnitMesh::default());
@@ -351,8 +361,11 @@ pub fn unit_mesh(
     let Some(values) = level.unit(unit)? else {
         return Ok(UnitMesh::default());
     };
-    let (mut mesh, guides) = dual_cells_of_unit(scene, &mut level, &values.0, &values.1, closed)?;
+    let (mut mesh, mut guides) = dual_cells_of_unit(scene, &mut level, &values.0, &values.1, surface)?;
     let private = private_to(key);
+    if surface == Surface::Watertight {
+        drop_unobserved_pieces(&mut mesh, &mut guides, &private);
+    }
     let movable: Vec<bool> = mesh.vertices.iter().map(|v| private(&v.0)).collect();
     // A private vertex has all its cells here, so its planes are all there are; other units add
     // theirs to a seam vertex's in the weld.
@@ -565,7 +578,8 @@ pub fn extract_to_file(
     let allowance = memory_budget / OPEN_SEAMS_SHARE;
     let on_held = |held: u64| yielded.store(held.saturating_sub(allowance), Ordering::Relaxed);
     let weigh = |(_, _, mesh): &(usize, CubeKey, UnitMesh)| mesh.heap_bytes();
-    let compute = |unit: usize| piece(snapshot, &treetop, scene, finest, unit, options.closed);
+    let surface = options.surface.resolve(snapshot)?;
+    let compute = |unit: usize| piece(snapshot, &treetop, scene, finest, unit, surface);
     in_order_while_computing(&units, threads, window, weigh, compute, |pieces| {
         write_pieces(pieces, &treetop, scene, finest, options, path, memory_budget, &on_held)
     })
@@ -590,7 +604,7 @@ fn piece(
     scene: &Scene,
     finest: u8,
     unit: usize,
-    closed: bool,
+    surface: Surface,
 ) -> Result<(usize, CubeKey, UnitMesh)> {
     let key = treetop
         .units
@@ -601,7 +615,7 @@ fn piece(
             unit: unit.to_string(),
             error: Box::new(StageError::internal("no such treetop unit")),
         })?;
-    Ok((unit, key, unit_mesh(snapshot, treetop, scene, finest, unit, closed)?))
+    Ok((unit, key, unit_mesh(snapshot, treetop, scene, finest, unit, surface)?))
 }
 
 #[cfg(test)]

@@ -95,7 +95,7 @@ pub(super) fn fill_pinholes(piece: &mut Piece) {
 
 #[cfg(test)]
 mod tests {
-    use super::super::{cell_gradient, mesh_cell};
+    use super::super::{Surface, cell_gradient, mesh_cell};
     use super::*;
 
     /// Meshes the dual cells with lower corners `cells` of a lattice of finest cubes, two
@@ -124,7 +124,8 @@ mod tests {
                 let b = b as u32;
                 corner([i + (b & 1), j + ((b >> 1) & 1), (b >> 2) & 1])
             });
-            mesh_cell(&corners, cell_gradient(&corners), closed, &mut piece);
+            let surface = if closed { Surface::Whole } else { Surface::Observed };
+            mesh_cell(&corners, cell_gradient(&corners), surface, &mut piece);
         }
         let (before, held_count) = (piece.mesh.triangles.len(), piece.held.len());
         fill_pinholes(&mut piece);
