@@ -63,10 +63,9 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
         .collect();
     let scene = stages::ingest::read_scene(store)?;
     let finest_level = snapshot.finest_level();
-    let maps: Vec<_> = stages::ingest::registered_depth_maps(store)?
+    let maps: Vec<_> = stages::ingest::depth_maps_at(&snapshot)?
         .into_iter()
         .map(|(_, record)| record)
-        .filter(|record| record.added_in <= snapshot.version())
         .collect();
     Ok(InfoJson {
         root_min: scene.map(|s| s.root_min),

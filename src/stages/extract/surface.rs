@@ -13,7 +13,7 @@
 
 use crate::inputs::Projection;
 use crate::kernels::background::{BACKGROUND_BORDER_SHARE, invalid_border_share};
-use crate::stages::ingest::{DepthMapRecord, registered_depth_maps};
+use crate::stages::ingest::{DepthMapRecord, depth_maps_at};
 use crate::store::{Result, Snapshot};
 
 /// What to mesh, as asked for (`extract --open`, `--closed`, or neither).
@@ -70,11 +70,7 @@ impl SurfaceChoice {
             SurfaceChoice::Watertight => Surface::Watertight,
             SurfaceChoice::Whole => Surface::Whole,
             SurfaceChoice::Auto => {
-                let maps: Vec<(u64, DepthMapRecord)> = registered_depth_maps(snapshot.store())?
-                    .into_iter()
-                    .filter(|(_, record)| record.added_in <= snapshot.version())
-                    .collect();
-                let (against_background, read) = maps_against_background(&maps);
+                let (against_background, read) = maps_against_background(&depth_maps_at(snapshot)?);
                 let surface = if 2 * against_background > read {
                     Surface::Watertight
                 } else {

@@ -250,6 +250,14 @@ pub fn read_scene(store: &Store) -> Result<Option<Scene>> {
     }
 }
 
+/// The depth maps of `snapshot`: those registered in its store by its version or an earlier
+/// one, in id order.
+pub fn depth_maps_at(snapshot: &crate::store::Snapshot<'_>) -> Result<Vec<(u64, DepthMapRecord)>> {
+    let mut maps = registered_depth_maps(snapshot.store())?;
+    maps.retain(|(_, record)| record.added_in <= snapshot.version());
+    Ok(maps)
+}
+
 /// All registered depth maps, by id.
 pub fn registered_depth_maps(store: &Store) -> Result<Vec<(u64, DepthMapRecord)>> {
     let version = store.catalog_format_version()?;
