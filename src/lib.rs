@@ -63,7 +63,7 @@ pub use quality::synthetic_scenes::{Noise, SceneSpec, Shape};
 pub use query::{CubeInfo, HISTOGRAM_BINS, IndicatorField, LeafInfo};
 pub use stages::extract::{DEFAULT_MAX_ERROR, ExtractOptions, Simplify, Surface, SurfaceChoice};
 pub use stages::ingest::IngestOptions;
-pub use stages::solve::{Method, SolveParams, SsdParams};
+pub use stages::solve::{Method, MethodChoice, SolveParams, SsdParams};
 pub use store::{RunOptions, RunReport, Snapshot, StageError, Store, StoreError};
 pub use sys::{die_quietly_on_closed_pipe, purge_freed_pages_at_once, set_env_defaults_at_start};
 

@@ -107,7 +107,8 @@ fn measure(mesh: &Mesh, truth: &Mesh, fraction: f64) -> Report {
 
 /// A clean capture written as a 7-Scenes folder (16-bit PNG depths in thousandths of a unit,
 /// background 0), the layout that used to be taken for a Kinect at room scale: one closed
-/// component, within 1 % of the diagonal everywhere, and a measured noise model recorded.
+/// component, within 1 % of the diagonal everywhere, a measured noise model recorded, and the
+/// object's solver chosen.
 #[test]
 fn a_clean_object_in_a_seven_scenes_folder_comes_out_closed_and_whole() {
     let Some((truth_mesh, dir, frames)) = bunny_in_seven_scenes_folder(&noise(0.0, 0.0)) else {
@@ -118,6 +119,13 @@ fn a_clean_object_in_a_seven_scenes_folder_comes_out_closed_and_whole() {
     eprintln!("{report:?}, {} components", connected_components(&mesh));
     assert!(info.contains("depth noise"), "{info}");
     assert!(!info.contains("0.0012 + 0.0019"), "a Kinect table was assumed: {info}");
+    // An object against empty background: the default solver is SSD (a room's is TGV,
+    // tests/observed.rs).
+    assert!(
+        info.lines()
+            .any(|line| line.trim_start().starts_with("solver") && line.contains("ssd")),
+        "{info}"
+    );
     assert_eq!(report.boundary_edges, 0, "{report:?}");
     assert_eq!(report.non_manifold_edges, 0, "{report:?}");
     assert_eq!(connected_components(&mesh), 1);

@@ -96,6 +96,8 @@ fn an_interior_capture_gives_the_room_not_a_box_around_it() {
     };
     let value = seen_at("2.0,0,1.2");
     assert_eq!(value["seen"], serde_json::json!(true), "{value}");
+    // A scene: the default solver is TGV (an object's is SSD, tests/objects.rs).
+    assert_eq!(value["method"], serde_json::json!("tgv"), "{value}");
     assert!(value["u"].as_f64().unwrap() > 0.0, "{value}");
     let value = seen_at("0,0,1.5");
     assert_eq!(value["seen"], serde_json::json!(false), "{value}");

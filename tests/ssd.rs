@@ -65,7 +65,7 @@ fn ingested_sphere_with(dir: &std::path::Path, max_depth: u8, sample_sums: bool)
 
 fn ssd_options() -> SolveOptions {
     SolveOptions {
-        method: Method::Ssd(SsdParams::default()),
+        method: Method::Ssd(SsdParams::default()).into(),
         run: run(2),
         device: octstore::testing::gpu::DeviceChoice::Cpu,
         ..SolveOptions::default()
@@ -147,7 +147,7 @@ fn solve_with(store: &Store, method: Method, threads: usize) {
 
 fn solve_in_leaves(store: &Store, method: Method, threads: usize, leaf_cubes: u64) {
     let options = SolveOptions {
-        method,
+        method: method.into(),
         leaf_cubes,
         run: run(threads),
         device: octstore::testing::gpu::DeviceChoice::Cpu,

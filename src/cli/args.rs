@@ -13,7 +13,7 @@ use crate::format::BoundingBox;
 use crate::inputs::InputFormat;
 use crate::stages::extract::{Simplify, SurfaceChoice};
 use crate::stages::octree;
-use crate::stages::solve::{Method, SolveParams, SsdParams};
+use crate::stages::solve::{Method, MethodChoice, SolveParams, SsdParams};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -67,11 +67,12 @@ pub struct SolverArgs {
     /// by at most this fraction; 0 runs all --iterations.
     #[arg(long, default_value_t = SolveParams::default().tolerance, value_parser = parse_tolerance)]
     tolerance: f32,
-    /// The energy minimised on each level: tgv (robust to outliers: the paper's method), ssd
-    /// (smooth signed distance from the samples' positions and normals: sub-cube accuracy on
-    /// clean data) or hybrid (ssd from the samples the histograms confirm). docs/parameters.md, "Solvers".
-    #[arg(long, value_enum, default_value = "tgv")]
-    method: MethodChoice,
+    /// The energy minimised on each level: auto (ssd for an object seen against empty
+    /// background, tgv for a scene), tgv (robust to outliers: the paper's method), ssd (smooth
+    /// signed distance from the samples' positions and normals: sub-cube accuracy on clean
+    /// data) or hybrid (ssd from the samples the histograms confirm). docs/parameters.md, "Solvers".
+    #[arg(long, value_enum, default_value = "auto")]
+    method: MethodName,
     /// ssd and hybrid: weight of the normal term, relative to the position term (> 0), where
     /// the samples' normals agree; units whose normals disagree (noisy depth maps) take up to
     /// 10 times it (docs/parameters.md, "Solvers").
@@ -99,7 +100,7 @@ impl SolverArgs {
         }
     }
 
-    pub(super) fn method(self) -> Method {
+    pub(super) fn method(self) -> MethodChoice {
         let ssd = SsdParams {
             normal_weight: self.ssd_normal_weight,
             smoothness: self.ssd_smoothness,
@@ -107,16 +108,19 @@ impl SolverArgs {
             ..SsdParams::default()
         };
         match self.method {
-            MethodChoice::Tgv => Method::Tgv,
-            MethodChoice::Ssd => Method::Ssd(ssd),
-            MethodChoice::Hybrid => Method::Hybrid(ssd),
+            MethodName::Auto => MethodChoice::Auto(ssd),
+            MethodName::Tgv => Method::Tgv.into(),
+            MethodName::Ssd => Method::Ssd(ssd).into(),
+            MethodName::Hybrid => Method::Hybrid(ssd).into(),
         }
     }
 }
 
 /// `solve --method`.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum MethodChoice {
+pub enum MethodName {
+    /// ssd for an object seen against empty background, tgv for a scene.
+    Auto,
     /// Total generalized variation with the histogram data term.
     Tgv,
     /// Smooth signed distance.

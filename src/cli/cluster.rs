@@ -35,7 +35,8 @@ pub(super) fn plan(args: PlanArgs) -> Result<()> {
         print_chunks(&plan, &cubes);
         return Ok(());
     }
-    let (params, method) = (args.solver.params(), args.solver.method());
+    // The plan records the decided method, never `auto`: every worker runs the same one.
+    let (params, method) = (args.solver.params(), args.solver.method().resolve(&store.latest()?)?);
     let runnable = cluster::cluster_stage(&store, &args.stage, params, method, None)?;
     let (plan, cubes) = store.plan_cluster_run(
         runnable.as_ref(),
@@ -134,6 +135,8 @@ pub(super) fn slurm(global: &GlobalOptions, args: SlurmArgs) -> Result<()> {
     let store = args.store;
     let opened = Store::open_read_only(&store)?;
     let scene = required_scene(&opened, "slurm")?;
+    // The jobs name the decided method: `auto` decided once, here, from the ingested maps.
+    let method = args.solver.method().resolve(&opened.latest()?)?;
     drop(opened);
     let options = SlurmOptions {
         chunks: args.chunks,
@@ -141,7 +144,7 @@ pub(super) fn slurm(global: &GlobalOptions, args: SlurmArgs) -> Result<()> {
         sbatch_args: args.sbatch_args,
         binary: std::env::current_exe().map_err(io_error("locate octstore", &store))?,
         params: args.solver.params(),
-        method: args.solver.method(),
+        method,
         memory_budget: global.memory_budget,
         leaf_cubes: args.leaf_cubes,
         device: args.device,

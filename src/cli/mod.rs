@@ -19,7 +19,7 @@ use std::process::ExitCode;
 pub use self::args::DebugSyntheticArgs;
 pub use self::args::{
     Cli, Command, CommitArgs, DemoArgs, DivideArgs, ExtractArgs, GcArgs, GlobalOptions, InfoArgs, IngestArgs, LogArgs,
-    MergeArgs, MethodChoice, PlanArgs, QueryArgs, RenderArgs, SlurmArgs, SolveArgs, SolverArgs, VerifyArgs, WorkArgs,
+    MergeArgs, MethodName, PlanArgs, QueryArgs, RenderArgs, SlurmArgs, SolveArgs, SolverArgs, VerifyArgs, WorkArgs,
 };
 pub use self::error::CliError;
 pub use self::evaluate::evaluate_main;

@@ -105,7 +105,7 @@ pub fn demo(options: &DemoOptions, mut on_report: impl FnMut(&RunReport)) -> Res
             iterations: options.iterations,
             ..SolveParams::default()
         },
-        method: crate::stages::solve::Method::Tgv,
+        method: crate::stages::solve::Method::Tgv.into(),
         run: options.run.clone(),
         device: options.device,
     };

@@ -51,7 +51,7 @@ use crate::stages::histograms::HistogramsStage;
 use crate::stages::ingest::{IngestOptions, IngestStage, read_scene, registered_depth_maps, scene_at};
 use crate::stages::octree::{OctreeStage, effective_leaf_cubes, leaves_in_flight};
 use crate::stages::samples::SamplesStage;
-use crate::stages::solve::{CoarseSamplesCache, LevelStage, Method, PendingCoarseSamples, SolveParams};
+use crate::stages::solve::{CoarseSamplesCache, LevelStage, Method, MethodChoice, PendingCoarseSamples, SolveParams};
 use crate::stages::{INGEST, OCTREE, octree_max_depth};
 use crate::store::{RunOptions, RunReport, Store};
 
@@ -77,8 +77,9 @@ pub struct SolveOptions {
     pub memory_budget: u64,
     /// The TGV weights and iterations.
     pub params: SolveParams,
-    /// The energy minimised on each level: TGV (the default) or SSD.
-    pub method: Method,
+    /// The energy minimised on each level: by default SSD for an object against empty
+    /// background and TGV for a scene ([`MethodChoice::resolve`]).
+    pub method: MethodChoice,
     /// Threads, resumption, progress bars.
     pub run: RunOptions,
     /// Where the histogram votes and the solver's iterations run.
@@ -92,7 +93,7 @@ impl Default for SolveOptions {
             leaf_cubes: 1 << 24,
             memory_budget: 1 << 30,
             params: SolveParams::default(),
-            method: Method::Tgv,
+            method: MethodChoice::default(),
             run: RunOptions::default(),
             device: DeviceChoice::Auto,
         }
@@ -165,8 +166,14 @@ pub(crate) fn solve_with_gpu(
         threads: leaves_in_flight(leaf_cubes, options.memory_budget, options.run.threads),
         ..options.run.clone()
     };
+    // The method matters only to the samples and the levels; deciding it reads a few maps.
+    let method = if options.until >= SolveUntil::Solution {
+        options.method.resolve(&store.latest()?)?
+    } else {
+        Method::Tgv
+    };
     if options.until >= SolveUntil::Solution
-        && options.method.ssd().is_some()
+        && method.ssd().is_some()
         && !crate::stages::ingest::records_sample_sums(store)?
     {
         // SSD reads the samples' sums, which a plain ingest leaves out (they cost it about
@@ -191,7 +198,7 @@ pub(crate) fn solve_with_gpu(
         on_report(&report?);
     }
     let coarse_samples = CoarseSamplesCache::default();
-    if options.until >= SolveUntil::Solution && options.method.ssd().is_some() {
+    if options.until >= SolveUntil::Solution && method.ssd().is_some() {
         // Before the histograms: a store ingested without sample moments fails in seconds. An
         // eighth of the budget for run blocks that several units read, as the histograms give
         // their decoded depth maps, and another eighth for the blocks the units in flight hold
@@ -225,7 +232,7 @@ pub(crate) fn solve_with_gpu(
         for level in 0..=octree_max_depth(store)? {
             let stage = LevelStage::new(level, scene, options.params)
                 .with_gpu(gpu.clone())
-                .with_method(options.method)
+                .with_method(method)
                 .with_coarse_samples(coarse_samples.clone())
                 .with_coarse_rows(Some(coarse_rows.clone()));
             on_report(&store.run_stage(&stage, &run)?);

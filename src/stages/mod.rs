@@ -10,6 +10,7 @@
 // `octstore::testing` is not the documented public surface: its items need no docs there.
 #![cfg_attr(feature = "testing", allow(missing_docs))]
 
+pub mod capture;
 #[cfg(any(test, feature = "testing"))]
 pub mod exercise;
 pub mod extract;

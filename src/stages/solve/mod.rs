@@ -41,7 +41,7 @@ pub use ssd::{CoarseSamplesCache, METHOD_COLUMN, PendingCoarseSamples, method_of
 use cut::WindowTest;
 pub use cut::{CutValue, LeafValues, LevelCut, read_level_u};
 
-pub use params::{DEFAULT_SSD_TOLERANCE, DEFAULT_TOLERANCE, Method, SolveParams, SsdParams};
+pub use params::{DEFAULT_SSD_TOLERANCE, DEFAULT_TOLERANCE, Method, MethodChoice, SolveParams, SsdParams};
 
 /// Stage names of the levels.
 pub const LEVEL_STAGES: [&str; MAX_DEPTH as usize + 1] = [

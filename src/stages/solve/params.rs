@@ -86,6 +86,67 @@ impl Method {
     }
 }
 
+/// Which solver `solve` runs, as asked for: `--method`, or the default's decision from the
+/// capture.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum MethodChoice {
+    /// SSD with these parameters for an object seen against empty background, TGV for a scene
+    /// ([`MethodChoice::resolve`]).
+    Auto(SsdParams),
+    /// This method, whatever the capture.
+    Exactly(Method),
+}
+
+impl Default for MethodChoice {
+    fn default() -> Self {
+        MethodChoice::Auto(SsdParams::default())
+    }
+}
+
+impl From<Method> for MethodChoice {
+    fn from(method: Method) -> MethodChoice {
+        MethodChoice::Exactly(method)
+    }
+}
+
+impl MethodChoice {
+    /// The method to run at `snapshot`: the one asked for, or for `Auto` SSD when the capture
+    /// is an object against empty background (`stages::capture`), else TGV.
+    ///
+    /// Why: such an object is closed, and every part of it that no map measured (its crevices,
+    /// its underside) lies inside the background's free space. SSD fits one smooth implicit
+    /// surface to the samples' positions and normals and closes those parts as the surface
+    /// around them continues; TGV's histograms there hold only the votes from the occluded
+    /// band behind nearby surfaces (eta, 18 sample radii deep, the paper's choice), which in
+    /// narrow gaps outvote the few rays that pass through and leave webs and shards. A scene
+    /// has space behind its walls that no map saw, where SSD would extrapolate surface and
+    /// TGV's robust data term keeps it honest. docs/parameters.md, "Solvers", has the figures.
+    pub fn resolve(self, snapshot: &crate::store::Snapshot<'_>) -> crate::store::Result<Method> {
+        Ok(match self {
+            MethodChoice::Exactly(method) => method,
+            MethodChoice::Auto(ssd) => {
+                let capture = crate::stages::capture::Capture::of(snapshot, "solve")?;
+                let method = if capture.is_object() {
+                    Method::Ssd(ssd)
+                } else {
+                    Method::Tgv
+                };
+                tracing::info!(
+                    "solve: {}: the {} solver{}",
+                    capture.describe(),
+                    method.name(),
+                    if capture.is_object() {
+                        " (an object: --method tgv for the paper's)"
+                    } else {
+                        " (a scene: --method ssd for smooth signed distance)"
+                    }
+                );
+                method
+            }
+        })
+    }
+}
+
 /// The SSD solver's default residual target. 1e-3 rather than 1e-4: each level starts from
 /// the coarser level's f, so the finest levels need far fewer iterations to place the surface
 /// (RedKitchen's finest level 22 per cube instead of 36, `solve` about 8 % faster), and on the
