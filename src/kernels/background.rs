@@ -39,29 +39,51 @@ fn is_valid(depth: f32) -> bool {
 
 /// The share of `image`'s border pixels (each counted once) that are invalid.
 pub fn invalid_border_share(image: &DepthImage) -> f64 {
-    let (width, height) = (image.width, image.height);
-    if width == 0 || height == 0 {
-        return 0.0;
-    }
-    let mut border = 0u64;
-    let mut invalid = 0u64;
-    let mut count = |i: u32, j: u32| {
-        border += 1;
-        invalid += u64::from(!is_valid(image.get(i, j)));
-    };
-    for i in 0..width {
-        count(i, 0);
-        if height > 1 {
-            count(i, height - 1);
+    let mut border = BorderCount::default();
+    if image.width > 0 {
+        for (j, row) in image.depth.chunks(image.width as usize).enumerate() {
+            border.add_row(row, j as u32, image.height);
         }
     }
-    for j in 1..height.saturating_sub(1) {
-        count(0, j);
-        if width > 1 {
-            count(width - 1, j);
+    border.invalid_share()
+}
+
+/// The border pixels of a map read row by row, and how many of them are invalid: what
+/// [`invalid_border_share`] counts, for a reader that holds one row at a time.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct BorderCount {
+    /// Border pixels seen, each counted once.
+    pub pixels: u64,
+    /// Those that are invalid.
+    pub invalid: u64,
+}
+
+impl BorderCount {
+    /// Counts row `j` of a map `height` rows tall: all of it on the first and last row, its
+    /// two ends (one if it is a single pixel wide) on the others.
+    pub fn add_row(&mut self, row: &[f32], j: u32, height: u32) {
+        let mut count = |depth: f32| {
+            self.pixels += 1;
+            self.invalid += u64::from(!is_valid(depth));
+        };
+        if j == 0 || j + 1 == height {
+            row.iter().copied().for_each(count);
+        } else if let Some((first, rest)) = row.split_first() {
+            count(*first);
+            if let Some(last) = rest.last() {
+                count(*last);
+            }
         }
     }
-    invalid as f64 / border as f64
+
+    /// The invalid share, 0 for a map without pixels.
+    pub fn invalid_share(&self) -> f64 {
+        if self.pixels == 0 {
+            0.0
+        } else {
+            self.invalid as f64 / self.pixels as f64
+        }
+    }
 }
 
 /// Marks `image`'s empty background as [`BACKGROUND_DEPTH`] when the map sees its content

@@ -8,8 +8,8 @@
 //! `solve` fits an object by smooth signed distance and a scene by TGV
 //! (`stages::solve::MethodChoice`).
 
-use crate::inputs::Projection;
-use crate::kernels::background::{BACKGROUND_BORDER_SHARE, invalid_border_share};
+use crate::inputs::{DepthMapSource, DepthRows, InputError, Projection};
+use crate::kernels::background::{BACKGROUND_BORDER_SHARE, BorderCount};
 use crate::stages::ingest::{DepthMapRecord, depth_maps_at};
 use crate::store::{Result, Snapshot};
 
@@ -62,8 +62,8 @@ fn maps_against_background(maps: &[(u64, DepthMapRecord)], verb: &str) -> Captur
         if !matches!(record.source.projection, Projection::Pinhole { .. }) {
             continue;
         }
-        match record.source.load() {
-            Ok(image) => against += usize::from(invalid_border_share(&image) >= BACKGROUND_BORDER_SHARE),
+        match border_of(&record.source) {
+            Ok(border) => against += usize::from(border.invalid_share() >= BACKGROUND_BORDER_SHARE),
             Err(e) => tracing::warn!(
                 "{verb}: cannot read depth map {id:016x} ({}) to see whether it shows background, \
                  counted as not: {e}",
@@ -75,6 +75,20 @@ fn maps_against_background(maps: &[(u64, DepthMapRecord)], verb: &str) -> Captur
         against_background: against,
         read: take,
     }
+}
+
+/// `source`'s border pixels, read row by row: one row in memory, whatever the map's size
+/// (a whole 8000 x 6000 map would take 192 MB).
+fn border_of(source: &DepthMapSource) -> Result<BorderCount, InputError> {
+    let mut rows = DepthRows::open_streaming(source)?;
+    let mut row = vec![f32::NAN; source.width as usize];
+    let mut border = BorderCount::default();
+    let mut j = 0;
+    while rows.next_row(&mut row)? {
+        border.add_row(&row, j, source.height);
+        j += 1;
+    }
+    Ok(border)
 }
 
 #[cfg(test)]
@@ -165,5 +179,22 @@ mod tests {
                 read: 0
             }
         );
+    }
+
+    #[test]
+    fn the_border_read_row_by_row_is_the_border_of_the_whole_map() {
+        let dir = tempfile::tempdir().unwrap();
+        for object in [true, false] {
+            let (_, record) = map(dir.path(), &format!("{object}.pfm"), object);
+            let streamed = border_of(&record.source).unwrap();
+            let whole = record.source.load().unwrap();
+            // 16 x 12: two rows of 16 and the two ends of the 10 rows between.
+            assert_eq!(streamed.pixels, 2 * 16 + 2 * 10);
+            assert_eq!(
+                streamed.invalid_share(),
+                crate::kernels::background::invalid_border_share(&whole)
+            );
+            assert_eq!(streamed.invalid_share() >= BACKGROUND_BORDER_SHARE, object);
+        }
     }
 }
