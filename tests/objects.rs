@@ -126,6 +126,10 @@ fn a_clean_object_in_a_seven_scenes_folder_comes_out_closed_and_whole() {
             .any(|line| line.trim_start().starts_with("solver") && line.contains("ssd")),
         "{info}"
     );
+    assert!(
+        info.contains("capture        an object (defaults: solve by ssd"),
+        "{info}"
+    );
     assert_eq!(report.boundary_edges, 0, "{report:?}");
     assert_eq!(report.non_manifold_edges, 0, "{report:?}");
     assert_eq!(connected_components(&mesh), 1);

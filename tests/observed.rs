@@ -96,8 +96,12 @@ fn an_interior_capture_gives_the_room_not_a_box_around_it() {
     };
     let value = seen_at("2.0,0,1.2");
     assert_eq!(value["seen"], serde_json::json!(true), "{value}");
-    // A scene: the default solver is TGV (an object's is SSD, tests/objects.rs).
+    // A scene: the default solver is TGV (an object's is SSD, tests/objects.rs), as `info`
+    // says before the solve.
     assert_eq!(value["method"], serde_json::json!("tgv"), "{value}");
+    let info: serde_json::Value = serde_json::from_str(&stdout(&octstore(&["info", s, "--json"], &[]))).unwrap();
+    assert_eq!(info["capture"]["object"], serde_json::json!(false), "{info}");
+    assert_eq!(info["capture"]["read"], serde_json::json!(9), "{info}");
     assert!(value["u"].as_f64().unwrap() > 0.0, "{value}");
     let value = seen_at("0,0,1.5");
     assert_eq!(value["seen"], serde_json::json!(false), "{value}");

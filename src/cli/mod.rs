@@ -24,7 +24,7 @@ pub use self::args::{
 pub use self::error::CliError;
 pub use self::evaluate::evaluate_main;
 pub use self::gt_render::gt_render_main;
-pub use self::report::{InfoJson, info, peak_rss_bytes};
+pub use self::report::{CaptureJson, InfoJson, info, peak_rss_bytes};
 use crate::store::{RunOptions, Store, StoreError};
 
 fn run_options(global: &GlobalOptions, resume: bool) -> RunOptions {

@@ -48,6 +48,21 @@ pub struct InfoJson {
     /// Whether the store's ingests gather the sample sums `--method ssd|hybrid` needs (`ingest
     /// --sample-sums` at its first ingest; absent before the first ingest).
     pub sample_sums: Option<bool>,
+    /// What the defaults of `solve` and `extract` take the capture for (absent without depth
+    /// maps).
+    pub capture: Option<CaptureJson>,
+}
+
+/// The capture as the defaults see it (`stages::capture`).
+#[derive(serde::Serialize, Debug, Clone, PartialEq, Eq)]
+pub struct CaptureJson {
+    /// An object seen against empty background (`ssd`, watertight mesh), else a scene (`tgv`,
+    /// the observed surface).
+    pub object: bool,
+    /// Depth maps read that see their content against empty background.
+    pub against_background: usize,
+    /// Depth maps read: up to 9, evenly spread.
+    pub read: usize,
 }
 
 /// The `info` report of the latest version, or of `version`.
@@ -78,6 +93,16 @@ pub fn info(store: &Store, version: Option<u64>) -> Result<InfoJson, StoreError>
             Some(stages::octree_max_depth(store)?)
         },
         solver: snapshot.method()?.map(str::to_string),
+        capture: if maps.is_empty() {
+            None
+        } else {
+            let capture = stages::capture::Capture::of(&snapshot, "info")?;
+            Some(CaptureJson {
+                object: capture.is_object(),
+                against_background: capture.against_background,
+                read: capture.read,
+            })
+        },
         sample_sums: scene.map(|_| stages::ingest::records_sample_sums(store)).transpose()?,
         store: store.root().display().to_string(),
         version: snapshot.version(),

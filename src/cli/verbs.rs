@@ -261,6 +261,18 @@ pub(super) fn info_verb(args: InfoArgs) -> Result<()> {
     for (noise, maps) in &info.depth_noise {
         println!("  depth noise  {noise}: {maps}");
     }
+    if let Some(capture) = &info.capture {
+        println!(
+            "capture        {} ({} of {} depth map(s) read see their content against empty background)",
+            if capture.object {
+                "an object (defaults: solve by ssd, a watertight mesh)"
+            } else {
+                "a scene (defaults: solve by tgv, the observed surface)"
+            },
+            capture.against_background,
+            capture.read
+        );
+    }
     println!("cubes          {}", info.cubes);
     println!("treetop leaves {}", info.treetop_leaves);
     println!("segments       {} ({} bytes)", info.segments, info.bytes);
