@@ -284,6 +284,16 @@ fn cluster_errors_are_clear() {
         "{out}"
     );
     assert!(out.contains("commit") && out.contains("solution-05-plan"), "{out}");
+    // Every plan job names the method decided now: a plan left to its default would decide
+    // again from the capture, whatever `slurm --method` said.
+    let plans: Vec<&str> = out.lines().filter(|line| line.contains(" plan ")).collect();
+    assert!(
+        !plans.is_empty()
+            && plans
+                .iter()
+                .all(|line| line.contains("--method tgv") || line.contains("--method ssd")),
+        "{out}"
+    );
 }
 
 /// `--method ssd` on a cluster: the samples stage and the SSD levels through plan, work and

@@ -129,17 +129,19 @@ pub fn slurm_jobs(store: &Path, levels: u8, options: &SlurmOptions) -> Vec<Slurm
     let store = shell_quote(&store.display().to_string());
     let bin = shell_quote(&options.binary.display().to_string());
     let p = options.params;
+    // The method by name, always: `plan`'s default would decide it again from the capture.
     let mut solver = format!(
-        "--alpha1 {} --alpha0 {} --lambda {} --iterations {}",
-        p.alpha1, p.alpha0, p.lambda, p.iterations
+        "--alpha1 {} --alpha0 {} --lambda {} --iterations {} --method {}",
+        p.alpha1,
+        p.alpha0,
+        p.lambda,
+        p.iterations,
+        options.method.name()
     );
     if let Some(ssd) = options.method.ssd() {
         solver.push_str(&format!(
-            " --method {} --ssd-normal-weight {} --ssd-smoothness {} --ssd-tolerance {}",
-            options.method.name(),
-            ssd.normal_weight,
-            ssd.smoothness,
-            ssd.tolerance
+            " --ssd-normal-weight {} --ssd-smoothness {} --ssd-tolerance {}",
+            ssd.normal_weight, ssd.smoothness, ssd.tolerance
         ));
     }
     let budget = format!("--memory-budget {} --quiet", options.memory_budget);
