@@ -156,7 +156,8 @@ pub enum Command {
     Query(QueryArgs),
     /// Render a mesh (PLY, OFF or OBJ, optionally .gz) as a shaded PNG.
     Render(RenderArgs),
-    /// Summary of a store: version, inputs, cubes, leaves, segments, bytes, content digests.
+    /// Summary of a store: version, inputs, the capture the defaults see (object or scene), cubes,
+    /// leaves, segments, bytes, content digests.
     Info(InfoArgs),
     /// Check every segment byte and every catalog invariant; exits non-zero on any problem.
     Verify(VerifyArgs),
