@@ -297,6 +297,29 @@ OBJECT_TSDF_VOXELS = [0.0025, 0.005, 0.01]
 OBJECT_TSDF_TRUNCATIONS = [4.0, 8.0]
 
 
+def read_object_mesh(work, name, source):
+    """The ground-truth mesh `name` (`GT_MESHES`) as an Open3D mesh, gunzipped into `work` first
+    when stored compressed."""
+    import open3d as o3d
+
+    if str(source).endswith(".gz"):
+        import gzip
+
+        plain = work / f"{name}.ply"
+        plain.write_bytes(gzip.decompress(Path(source).read_bytes()))
+        source = plain
+    return o3d.io.read_triangle_mesh(str(source))
+
+
+def write_scaled(original, factor, path):
+    """`original` scaled by `factor` about the origin, written to `path`."""
+    import open3d as o3d
+
+    scaled = o3d.geometry.TriangleMesh(original)
+    scaled.scale(factor, center=(0.0, 0.0, 0.0))
+    o3d.io.write_triangle_mesh(str(path), scaled)
+
+
 # The same capture in other units (issue's scale test): the 0.3 m object at 0.6 m, its depths
 # and poses multiplied by each factor (PFM files keep every digit).
 OBJECT_UNIT_FACTORS = [(1.0, "metres"), (10.0, "decimetres (x 10)"), (1000.0, "millimetres (x 1000)")]
@@ -313,21 +336,12 @@ def object_units(work):
     rows = []
     spec = OBJECT_SCALES["0.3 m at 0.6 m"]
     for name, source in GT_MESHES.items():
-        if str(source).endswith(".gz"):
-            import gzip
-
-            plain = work / f"{name}.ply"
-            plain.write_bytes(gzip.decompress(Path(source).read_bytes()))
-            original = o3d.io.read_triangle_mesh(str(plain))
-        else:
-            original = o3d.io.read_triangle_mesh(str(source))
+        original = read_object_mesh(work, name, source)
         extent = np.asarray(original.get_max_bound()) - np.asarray(original.get_min_bound())
         metres = spec["size"] / extent.max()
         diagonal = float(np.linalg.norm(extent)) * metres
         truth = work / f"units-{name}-truth.ply"
-        scaled = o3d.geometry.TriangleMesh(original)
-        scaled.scale(metres, center=(0.0, 0.0, 0.0))
-        o3d.io.write_triangle_mesh(str(truth), scaled)
+        write_scaled(original, metres, truth)
         for noise, outliers in OBJECT_NOISES:
             reference = None
             for factor, units in OBJECT_UNIT_FACTORS:
@@ -384,21 +398,13 @@ def objects(work, out_dir):
 
     rows = []
     for name, source in GT_MESHES.items():
-        original = o3d.io.read_triangle_mesh(str(source)) if not str(source).endswith(".gz") else None
-        if original is None:
-            import gzip
-
-            plain = work / f"{name}.ply"
-            plain.write_bytes(gzip.decompress(Path(source).read_bytes()))
-            original = o3d.io.read_triangle_mesh(str(plain))
+        original = read_object_mesh(work, name, source)
         extent = np.asarray(original.get_max_bound()) - np.asarray(original.get_min_bound())
         for scale_name, spec in OBJECT_SCALES.items():
             factor = spec["size"] / extent.max()
             diagonal = float(np.linalg.norm(extent)) * factor
             truth = work / f"{name}-{spec['size']}.ply"
-            scaled = o3d.geometry.TriangleMesh(original)
-            scaled.scale(factor, center=(0.0, 0.0, 0.0))
-            o3d.io.write_triangle_mesh(str(truth), scaled)
+            write_scaled(original, factor, truth)
             for noise, outliers in OBJECT_NOISES:
                 case = work / f"object-{name}-{spec['size']}-{noise}"
                 views = case / "views"
