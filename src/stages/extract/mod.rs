@@ -40,8 +40,11 @@
 //! invalid): every cut tetrahedron is meshed, and each connected part of a unit's piece is kept
 //! if it holds a vertex of what the observed surface would keep or reaches another unit
 //! (`dual_cells::watertight`), so an object comes out closed where no map measured it while
-//! bubbles of the zero set in free space go. `--closed` keeps the whole zero set (hidden parts
-//! filled in, closed at the root cube).
+//! bubbles of the zero set in free space go, and so do noise blobs (closed parts at most 8
+//! cells across within 4 cells of a larger part: folds of the zero set in the depth noise).
+//! Its simplification keeps the topology, so a bump on a thin neck is not pinched off
+//! (`simplify`). `--closed` keeps the whole zero set (hidden parts filled in, closed at the
+//! root cube).
 //!
 //! Vertices inside cubes. u's L1 data term snaps it to histogram bin centres, and linear
 //! interpolation of u between cell centres then leaves terraces about one bin (near one finest
@@ -252,9 +255,12 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &Ext
         .par_iter()
         .map(|&unit| piece(snapshot, &treetop, scene, finest, unit, surface))
         .collect::<Result<_>>()?;
-    let target = options.simplify.target(scene, finest);
+    let simplification = Simplification {
+        target: options.simplify.target(scene, finest),
+        batch: simplify_batch(1 << 30),
+        keep_topology: surface == Surface::Watertight,
+    };
     let pieces = pieces.into_iter().map(Ok);
-    let batch = simplify_batch(1 << 30);
     let io = |source: std::io::Error| StoreError::Io {
         action: "weld mesh",
         path: std::path::PathBuf::new(),
@@ -263,9 +269,9 @@ pub fn extract(snapshot: &Snapshot<'_>, scene: &Scene, finest: u8, options: &Ext
     let welded = match options.region {
         Some(region) => {
             let cut = RegionWriter::new(MemoryMesh::default(), region);
-            finish_cut(weld_pieces(pieces, &treetop, cut, target, batch, &|_| {}, &io), &io)
+            finish_cut(weld_pieces(pieces, &treetop, cut, simplification, &|_| {}, &io), &io)
         }
-        None => weld_pieces(pieces, &treetop, MemoryMesh::default(), target, batch, &|_| {}, &io),
+        None => weld_pieces(pieces, &treetop, MemoryMesh::default(), simplification, &|_| {}, &io),
     };
     match welded {
         (Some(memory), Ok(_)) => Ok(memory.into_mesh()),
@@ -380,16 +386,26 @@ pub fn unit_mesh(
     Ok(mesh)
 }
 
+/// How the welded mesh is simplified.
+#[derive(Clone, Copy)]
+struct Simplification {
+    /// Towards what; none for the full mesh.
+    target: Option<Target>,
+    /// Triangles a batch gathers.
+    batch: usize,
+    /// Whether a batch keeps the mesh's topology (`SimplifyingWriter::keeping_topology`): for
+    /// the watertight surface, which promises each object one closed piece.
+    keep_topology: bool,
+}
+
 /// Welds pieces (unit index, treetop cube, mesh), in increasing unit order, into `writer`,
-/// simplified towards `target` if there is one, in batches of `batch` triangles: the writer
-/// (also after an error while adding pieces, to be abandoned) and the counts of what it was
-/// given.
+/// simplified as `simplification` says: the writer (also after an error while adding pieces,
+/// to be abandoned) and the counts of what it was given.
 fn weld_pieces<W: MeshWriter>(
     pieces: impl Iterator<Item = Result<(usize, CubeKey, UnitMesh)>>,
     treetop: &Treetop,
     writer: W,
-    target: Option<Target>,
-    batch: usize,
+    simplification: Simplification,
     on_held: &dyn Fn(u64),
     io: &dyn Fn(std::io::Error) -> StoreError,
 ) -> (Option<W>, Result<MeshSummary>) {
@@ -416,6 +432,11 @@ fn weld_pieces<W: MeshWriter>(
         );
         Ok(())
     }
+    let Simplification {
+        target,
+        batch,
+        keep_topology,
+    } = simplification;
     match target {
         None => {
             let mut weld = StreamingWeld::new(writer, treetop);
@@ -428,7 +449,8 @@ fn weld_pieces<W: MeshWriter>(
             }
         }
         Some(target) => {
-            let mut weld = StreamingWeld::new(SimplifyingWriter::new(writer, target, batch), treetop);
+            let simplifying = SimplifyingWriter::new(writer, target, batch).keeping_topology(keep_topology);
+            let mut weld = StreamingWeld::new(simplifying, treetop);
             if let Err(e) = add_all(&mut weld, pieces, on_held, io) {
                 return (Some(weld.writer.inner), Err(e));
             }
@@ -487,8 +509,12 @@ pub fn write_pieces(
     memory_budget: u64,
     on_held: &dyn Fn(u64),
 ) -> Result<MeshSummary> {
-    let target = options.simplify.target(scene, finest);
-    let batch = simplify_batch(memory_budget);
+    // The caller resolved the surface (`extract_to_file`, the cluster's plan).
+    let simplification = Simplification {
+        target: options.simplify.target(scene, finest),
+        batch: simplify_batch(memory_budget),
+        keep_topology: options.surface == SurfaceChoice::Watertight,
+    };
     let io = |source: std::io::Error| StoreError::Io {
         action: "write mesh",
         path: path.to_path_buf(),
@@ -498,9 +524,9 @@ pub fn write_pieces(
     let written = match options.region {
         Some(region) => {
             let cut = RegionWriter::new(file, region);
-            finish_cut(weld_pieces(pieces, treetop, cut, target, batch, on_held, &io), &io)
+            finish_cut(weld_pieces(pieces, treetop, cut, simplification, on_held, &io), &io)
         }
-        None => weld_pieces(pieces, treetop, file, target, batch, on_held, &io),
+        None => weld_pieces(pieces, treetop, file, simplification, on_held, &io),
     };
     match written {
         (Some(file), Ok(summary)) => {
@@ -580,8 +606,12 @@ pub fn extract_to_file(
     let weigh = |(_, _, mesh): &(usize, CubeKey, UnitMesh)| mesh.heap_bytes();
     let surface = options.surface.resolve(snapshot)?;
     let compute = |unit: usize| piece(snapshot, &treetop, scene, finest, unit, surface);
+    let options = ExtractOptions {
+        surface: surface.into(),
+        ..*options
+    };
     in_order_while_computing(&units, threads, window, weigh, compute, |pieces| {
-        write_pieces(pieces, &treetop, scene, finest, options, path, memory_budget, &on_held)
+        write_pieces(pieces, &treetop, scene, finest, &options, path, memory_budget, &on_held)
     })
 }
 
