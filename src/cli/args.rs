@@ -80,7 +80,7 @@ pub struct SolverArgs {
     ssd_normal_weight: f64,
     /// ssd and hybrid: weight of the smoothness term, relative to the position term (> 0), where
     /// the samples lie on a smooth surface; units whose sample centroids scatter (noisy depth
-    /// maps) take up to 100 times it (docs/parameters.md, "Solvers").
+    /// maps) take up to 10 times it (docs/parameters.md, "Solvers").
     #[arg(long, default_value_t = SsdParams::default().smoothness, value_parser = parse_ssd_weight)]
     ssd_smoothness: f64,
     /// ssd and hybrid: a unit's conjugate gradients stop when the residual is at most this

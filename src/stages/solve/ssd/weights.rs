@@ -111,8 +111,17 @@ const QUIET_SCATTER: f64 = 0.13;
 const NOISY_SCATTER: f64 = 0.22;
 /// The scatter in whose ratio the full factor is squared ([`noisy_factor`]).
 const SCATTER_UNIT: f64 = 0.06;
-/// The most [`noise_smoothness`] multiplies `--ssd-smoothness` by.
-const MOST_SMOOTHNESS_FACTOR: f64 = 100.0;
+/// The most [`noise_smoothness`] multiplies `--ssd-smoothness` by. The finest levels of a
+/// noisy object read a scatter of 0.36 to 0.44 (cubes finer than the noise), where the square
+/// asks 36 to 54 times the base: enough smoothness to close openings that few views look
+/// through (the hole through the dragon's coiled body, its mouth; F at 1 % 0.984 on the noisy
+/// dragon at 100). Measured with no flags on the noisy objects (0.5 % depth noise, 10 %
+/// outlier pixels; docs/parameters.md, "Solvers"): 20 gave the dragon F at 1 % 0.9898 at
+/// 0.3 m and 0.9900 at 3 units; 10 gives 0.9922 and 0.9909, one part each once extraction
+/// drops the noise blobs beside the surface and simplification keeps the topology (before
+/// that, 33 parts on the 3-unit dragon and 170 on the bunny); 5 gave 0.9934 and 0.9895 with 68
+/// and 463 parts on the 3-unit objects.
+const MOST_SMOOTHNESS_FACTOR: f64 = 10.0;
 
 /// The full factor on `--ssd-smoothness` of a noisy unit: (scatter / [`SCATTER_UNIT`])^2.
 fn noisy_factor(scatter: f64) -> f64 {
