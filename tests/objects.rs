@@ -163,10 +163,11 @@ fn a_noisy_object_with_outliers_stays_closed_and_close() {
 /// cubes are small against the noise: its smoothness follows how far the sample centroids
 /// scatter, so it leaves no bubbles or shards around the object (with the smoothness fixed,
 /// `hybrid` left hundreds of components here, `ssd` 103). One closed component: the maps see
-/// the object against empty background, so the default mesh is watertight. `--open` gives the
-/// observed surface, where at 160 x 120 pixels `ssd`'s trim leaves a pinhole of 4 or 5 edges
-/// in some noise draws (this scene: 4; the same capture rendered by `octstore-gt-render` with
-/// seeds 1 to 4: 0, 0, 0 and 10), where an opened or torn object has hundreds.
+/// the object against empty background, so the default mesh is watertight, and its noise blobs
+/// go. `--open` gives the observed surface, which keeps them: at 160 x 120 pixels, with the
+/// noise smoothness at most 10 times the base, `ssd` leaves 59 boundary edges in 7 parts
+/// (pinholes at the trim and specks of noise beside the surface; 4 edges when the smoothness
+/// went up to 100 times), `hybrid` 4 in 5, where an opened or torn object has hundreds.
 #[test]
 fn ssd_and_hybrid_keep_a_noisy_object_in_one_closed_piece() {
     let Some((truth_mesh, dir, frames)) = bunny_in_seven_scenes_folder(&noise(0.005, 0.1)) else {
@@ -190,7 +191,7 @@ fn ssd_and_hybrid_keep_a_noisy_object_in_one_closed_piece() {
         ]);
         let open = measure(&read_mesh(&open).unwrap(), &truth_mesh, 0.01);
         eprintln!("{method} --open: {open:?}");
-        assert!(open.boundary_edges <= 16, "{method} --open: {open:?}");
+        assert!(open.boundary_edges <= 64, "{method} --open: {open:?}");
         assert!(open.f_score >= 0.99, "{method} --open: {open:?}");
     }
 }
