@@ -209,6 +209,29 @@ impl DisjointSets {
     }
 }
 
+/// Each triangle's part in `indices` (three vertex indices per triangle), triangles joined by
+/// shared edges (two that share only a vertex are in different parts): the least triangle of
+/// the part.
+pub(crate) fn edge_parts(indices: &[u32]) -> Vec<u32> {
+    let triangles = indices.len() / 3;
+    let mut sets = DisjointSets::new(triangles);
+    // Each triangle's edges by their lesser and greater end; equal edges sort together.
+    let mut edges: Vec<(u32, u32, u32)> = indices
+        .chunks_exact(3)
+        .enumerate()
+        .flat_map(|(i, t)| [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])].map(|(a, b)| (a.min(b), a.max(b), i as u32)))
+        .collect();
+    edges.sort_unstable();
+    for pair in edges.windows(2) {
+        if let [x, y] = pair
+            && (x.0, x.1) == (y.0, y.1)
+        {
+            sets.union(x.2, y.2);
+        }
+    }
+    (0..triangles as u32).map(|i| sets.find(i)).collect()
+}
+
 /// Counts of a written mesh.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct MeshSummary {

@@ -6,7 +6,7 @@ use std::collections::{HashMap, HashSet};
 use glam::DVec3;
 
 use super::VertexGuides;
-use crate::mesh::{DisjointSets, UnitMesh, VertexId};
+use crate::mesh::{UnitMesh, VertexId, edge_parts};
 
 /// Drops from a unit's watertight piece the connected parts (triangles joined by shared
 /// edges, so two parts that touch at one vertex are two) that lie wholly in the unit (no vertex
@@ -24,7 +24,7 @@ pub(in crate::stages::extract) fn drop_unobserved_pieces(
     guides: &mut VertexGuides,
     private: &dyn Fn(&VertexId) -> bool,
 ) {
-    let parts = Parts::of(mesh);
+    let parts = edge_parts(mesh.triangles.as_flattened());
     let t = mesh.triangles.len();
     // Per part (by its root triangle): anchored, reaching another unit, and six times the
     // signed volume, summed about a vertex of the root triangle (a closed part's volume does
@@ -37,7 +37,7 @@ pub(in crate::stages::extract) fn drop_unobserved_pieces(
     }
     let position = |i: u32| mesh.vertices.get(i as usize).map_or(DVec3::ZERO, |v| v.1);
     let (mut anchored, mut reaches_seam, mut volume) = (vec![false; t], vec![false; t], vec![0.0f64; t]);
-    for (&[a, b, c], &root) in mesh.triangles.iter().zip(&parts.root) {
+    for (&[a, b, c], &root) in mesh.triangles.iter().zip(&parts) {
         let r = root as usize;
         let corners = [a, b, c];
         if corners
@@ -68,7 +68,6 @@ pub(in crate::stages::extract) fn drop_unobserved_pieces(
         kept_so_far(root) && !reaches_seam.get(root).copied().unwrap_or(true)
     });
     let kept_triangle: Vec<bool> = parts
-        .root
         .iter()
         .map(|&root| kept_so_far(root as usize) && blobs.binary_search(&root).is_err())
         .collect();
@@ -115,44 +114,15 @@ pub(in crate::stages::extract) fn drop_unobserved_pieces(
     guides.anchors = Vec::new();
 }
 
-/// The connected parts of a unit's triangles, joined by shared edges.
-struct Parts {
-    /// Each triangle's part: the least triangle of it.
-    root: Vec<u32>,
-}
-
-impl Parts {
-    fn of(mesh: &UnitMesh) -> Parts {
-        let mut sets = DisjointSets::new(mesh.triangles.len());
-        // Each triangle's edges, by their lesser and greater vertex; equal edges sort together.
-        let mut edges: Vec<(u32, u32, u32)> = Vec::with_capacity(3 * mesh.triangles.len());
-        for (i, &[a, b, c]) in mesh.triangles.iter().enumerate() {
-            for (x, y) in [(a, b), (b, c), (c, a)] {
-                edges.push((x.min(y), x.max(y), i as u32));
-            }
-        }
-        edges.sort_unstable();
-        for pair in edges.windows(2) {
-            if let [x, y] = pair
-                && (x.0, x.1) == (y.0, y.1)
-            {
-                sets.union(x.2, y.2);
-            }
-        }
-        Parts {
-            root: (0..mesh.triangles.len() as u32).map(|i| sets.find(i)).collect(),
-        }
-    }
-}
-
 /// How close to a larger part, and how small, a part of a watertight piece is a noise blob
 /// ([`noise_blobs`]), in sides of the largest dual cell it crosses.
 const NOISE_BLOB_SIDES: f64 = 4.0;
 
-/// The parts (by root, sorted) that are noise blobs: parts that `candidate` allows (kept so
-/// far and wholly in the unit), at most twice [`NOISE_BLOB_SIDES`] cells across, each of whose
-/// vertices lies within [`NOISE_BLOB_SIDES`] cells of a vertex of a larger part (more
-/// triangles; of two as large, the one with the lesser root).
+/// The parts (by root, sorted; `parts` gives each triangle's, [`edge_parts`]) that are noise
+/// blobs: parts that `candidate` allows (kept so far and wholly in the unit), at most twice
+/// [`NOISE_BLOB_SIDES`] cells across, each of whose vertices lies within [`NOISE_BLOB_SIDES`]
+/// cells of a vertex of a larger part (more triangles; of two as large, the one with the
+/// lesser root).
 ///
 /// Why. Where the depths are noisy the zero set folds: SSD's position term follows each
 /// cube's sample centroid, and a fold that closes on itself beside the surface is a blob a
@@ -162,10 +132,10 @@ const NOISE_BLOB_SIDES: f64 = 4.0;
 /// touching it at one vertex). A real part of the object that small and that close is below
 /// what the cubes resolve, so it cannot be told from the noise either. A part as large as the
 /// object is never one: its vertices are not all near another's.
-fn noise_blobs(mesh: &UnitMesh, guides: &VertexGuides, parts: &Parts, candidate: &dyn Fn(usize) -> bool) -> Vec<u32> {
+fn noise_blobs(mesh: &UnitMesh, guides: &VertexGuides, parts: &[u32], candidate: &dyn Fn(usize) -> bool) -> Vec<u32> {
     let position = |i: u32| mesh.vertices.get(i as usize).map_or(DVec3::ZERO, |v| v.1);
-    let mut size = vec![0u32; parts.root.len()];
-    for &root in &parts.root {
+    let mut size = vec![0u32; parts.len()];
+    for &root in parts {
         if let Some(c) = size.get_mut(root as usize) {
             *c += 1;
         }
@@ -173,7 +143,7 @@ fn noise_blobs(mesh: &UnitMesh, guides: &VertexGuides, parts: &Parts, candidate:
     // Per candidate part: the bounds of its vertices, the largest cell side they cross (the
     // distance between the centres of their edge's cells), and its vertices.
     let mut bounds: HashMap<u32, (DVec3, DVec3, f64, Vec<u32>)> = HashMap::new();
-    for (triangle, &root) in mesh.triangles.iter().zip(&parts.root) {
+    for (triangle, &root) in mesh.triangles.iter().zip(parts) {
         if !candidate(root as usize) {
             continue;
         }
@@ -202,7 +172,7 @@ fn noise_blobs(mesh: &UnitMesh, guides: &VertexGuides, parts: &Parts, candidate:
         .flat_map(|b| b.3.iter().flat_map(|&v| around(cell(position(v)))))
         .collect();
     let mut grid: HashMap<[i64; 3], Vec<(u32, u32)>> = HashMap::new();
-    for (triangle, &root) in mesh.triangles.iter().zip(&parts.root) {
+    for (triangle, &root) in mesh.triangles.iter().zip(parts) {
         for &v in triangle {
             let c = cell(position(v));
             if near_candidates.contains(&c) {

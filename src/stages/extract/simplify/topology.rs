@@ -2,27 +2,7 @@
 //! joined by shared edges (`SimplifyingWriter::simplify_manifold`).
 
 use super::FastMap;
-
-/// Each triangle's part in `indices` (triangles joined by shared edges): the least triangle
-/// of it.
-pub(super) fn edge_parts(indices: &[u32]) -> Vec<u32> {
-    let triangles = indices.len() / 3;
-    let mut sets = crate::mesh::DisjointSets::new(triangles);
-    let mut edges: Vec<(u32, u32, u32)> = indices
-        .chunks_exact(3)
-        .enumerate()
-        .flat_map(|(i, t)| [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])].map(|(a, b)| (a.min(b), a.max(b), i as u32)))
-        .collect();
-    edges.sort_unstable();
-    for pair in edges.windows(2) {
-        if let [x, y] = pair
-            && (x.0, x.1) == (y.0, y.1)
-        {
-            sets.union(x.2, y.2);
-        }
-    }
-    (0..triangles as u32).map(|i| sets.find(i)).collect()
-}
+use crate::mesh::{DisjointSets, edge_parts};
 
 /// Each vertex's part in `indices` ([`edge_parts`]; of a vertex in several, the part of its
 /// last triangle), u32::MAX for a vertex no triangle uses.
@@ -94,31 +74,14 @@ pub(super) fn fans(indices: &[u32], vertices: usize) -> Vec<u8> {
         nodes.extend(star.iter().flat_map(|&(_, b, c)| [b, c]));
         nodes.sort_unstable();
         nodes.dedup();
-        // Union-find over the link's nodes, by their place in `nodes`.
-        let mut parent: Vec<usize> = (0..nodes.len()).collect();
-        let find = |parent: &mut Vec<usize>, mut x: usize| {
-            while let Some(&p) = parent.get(x) {
-                if p == x {
-                    break;
-                }
-                let grand = parent.get(p).copied().unwrap_or(p);
-                if let Some(slot) = parent.get_mut(x) {
-                    *slot = grand;
-                }
-                x = grand;
-            }
-            x
-        };
+        // The link's nodes joined by its edges, by their place in `nodes`.
+        let mut sets = DisjointSets::new(nodes.len());
         for &(_, b, c) in star {
-            let (Ok(i), Ok(j)) = (nodes.binary_search(&b), nodes.binary_search(&c)) else {
-                continue;
-            };
-            let (ri, rj) = (find(&mut parent, i), find(&mut parent, j));
-            if let Some(slot) = parent.get_mut(ri.max(rj)) {
-                *slot = ri.min(rj);
+            if let (Ok(i), Ok(j)) = (nodes.binary_search(&b), nodes.binary_search(&c)) {
+                sets.union(i as u32, j as u32);
             }
         }
-        let parts = (0..nodes.len()).filter(|&i| find(&mut parent, i) == i).count();
+        let parts = (0..nodes.len() as u32).filter(|&i| sets.find(i) == i).count();
         if let Some(slot) = count.get_mut(vertex as usize) {
             *slot = parts.min(255) as u8;
         }
