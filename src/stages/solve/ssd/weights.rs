@@ -229,16 +229,21 @@ mod tests {
     }
 
     #[test]
-    fn the_smoothness_keeps_the_base_for_low_noise_and_grows_with_the_square_of_high_noise() {
+    fn the_smoothness_keeps_the_base_for_low_noise_and_rises_with_the_square_to_the_cap() {
         assert_eq!(noise_smoothness(0.1, None), 0.1);
         assert_eq!(noise_smoothness(0.1, Some(0.0)), 0.1);
         // Clean captures and 0.2 % depth noise keep the base.
         assert_eq!(noise_smoothness(0.1, Some(0.03)), 0.1);
         assert_eq!(noise_smoothness(0.1, Some(QUIET_SCATTER)), 0.1);
-        // Noisy units: the square of the scatter over 0.06 (0.36 reads 36 times).
-        assert!((noise_smoothness(0.1, Some(0.36)) - 3.6).abs() < 1e-12);
-        assert!((noise_smoothness(0.1, Some(NOISY_SCATTER)) - 0.1 * noisy_factor(NOISY_SCATTER)).abs() < 1e-12);
+        // Noisy units: the square of the scatter over 0.06, at most the cap (0.36 would read
+        // 36 times; 0.18, inside the blend, 9 times its share of the way).
+        assert!((noise_smoothness(0.1, Some(0.36)) - 0.1 * MOST_SMOOTHNESS_FACTOR).abs() < 1e-12);
+        let full = noisy_factor(NOISY_SCATTER).min(MOST_SMOOTHNESS_FACTOR);
+        assert!((noise_smoothness(0.1, Some(NOISY_SCATTER)) - 0.1 * full).abs() < 1e-12);
         assert!((noise_smoothness(0.1, Some(f64::INFINITY)) - 0.1 * MOST_SMOOTHNESS_FACTOR).abs() < 1e-12);
+        let t: f64 = (0.18 - QUIET_SCATTER) / (NOISY_SCATTER - QUIET_SCATTER);
+        let blend = t * t * (3.0 - 2.0 * t);
+        assert!((noise_smoothness(0.1, Some(0.18)) - 0.1 * (1.0 + blend * 8.0)).abs() < 1e-9);
         // In between it rises, never falls.
         let mut last = 0.1;
         for i in 0..=100 {
