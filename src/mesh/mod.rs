@@ -42,6 +42,12 @@ pub struct UnitMesh {
 }
 
 impl UnitMesh {
+    /// The position of vertex `index`; the origin for an index past the end (no triangle of
+    /// a well-formed piece has one).
+    pub fn position(&self, index: u32) -> DVec3 {
+        self.vertices.get(index as usize).map_or(DVec3::ZERO, |v| v.1)
+    }
+
     /// Bytes the piece's lists hold on the heap (their capacities).
     pub fn heap_bytes(&self) -> u64 {
         let bytes = |capacity: usize, each: usize| (capacity * each) as u64;

@@ -693,7 +693,7 @@ fn mesh_tetrahedron(t: &[&Corner; 4], gradient: DVec3, piece: &mut Piece) -> Arr
         if tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2] {
             continue;
         }
-        let p = tri.map(|i| mesh.vertices.get(i as usize).map_or(DVec3::ZERO, |v| v.1));
+        let p = tri.map(|i| mesh.position(i));
         let normal = (p[1] - p[0]).cross(p[2] - p[0]);
         if normal.dot(to_outside) < 0.0 {
             tri.swap(1, 2);

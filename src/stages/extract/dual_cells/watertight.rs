@@ -35,7 +35,6 @@ pub(in crate::stages::extract) fn drop_unobserved_pieces(
             *slot = true;
         }
     }
-    let position = |i: u32| mesh.vertices.get(i as usize).map_or(DVec3::ZERO, |v| v.1);
     let (mut anchored, mut reaches_seam, mut volume) = (vec![false; t], vec![false; t], vec![0.0f64; t]);
     for (&[a, b, c], &root) in mesh.triangles.iter().zip(&parts) {
         let r = root as usize;
@@ -54,8 +53,12 @@ pub(in crate::stages::extract) fn drop_unobserved_pieces(
         {
             *slot = true;
         }
-        let origin = mesh.triangles.get(r).map_or(DVec3::ZERO, |t| position(t[0]));
-        let (pa, pb, pc) = (position(a) - origin, position(b) - origin, position(c) - origin);
+        let origin = mesh.triangles.get(r).map_or(DVec3::ZERO, |t| mesh.position(t[0]));
+        let (pa, pb, pc) = (
+            mesh.position(a) - origin,
+            mesh.position(b) - origin,
+            mesh.position(c) - origin,
+        );
         if let Some(slot) = volume.get_mut(r) {
             *slot += pa.dot(pb.cross(pc));
         }
@@ -133,7 +136,6 @@ const NOISE_BLOB_SIDES: f64 = 4.0;
 /// what the cubes resolve, so it cannot be told from the noise either. A part as large as the
 /// object is never one: its vertices are not all near another's.
 fn noise_blobs(mesh: &UnitMesh, guides: &VertexGuides, parts: &[u32], candidate: &dyn Fn(usize) -> bool) -> Vec<u32> {
-    let position = |i: u32| mesh.vertices.get(i as usize).map_or(DVec3::ZERO, |v| v.1);
     let mut size = vec![0u32; parts.len()];
     for &root in parts {
         if let Some(c) = size.get_mut(root as usize) {
@@ -148,7 +150,7 @@ fn noise_blobs(mesh: &UnitMesh, guides: &VertexGuides, parts: &[u32], candidate:
             continue;
         }
         for &v in triangle {
-            let p = position(v);
+            let p = mesh.position(v);
             let side = guides.ends.get(v as usize).map_or(0.0, |(a, b)| a.distance(*b));
             let entry = bounds.entry(root).or_insert((p, p, side, Vec::new()));
             (entry.0, entry.1, entry.2) = (entry.0.min(p), entry.1.max(p), entry.2.max(side));
@@ -169,12 +171,12 @@ fn noise_blobs(mesh: &UnitMesh, guides: &VertexGuides, parts: &[u32], candidate:
     };
     let near_candidates: HashSet<[i64; 3]> = bounds
         .values()
-        .flat_map(|b| b.3.iter().flat_map(|&v| around(cell(position(v)))))
+        .flat_map(|b| b.3.iter().flat_map(|&v| around(cell(mesh.position(v)))))
         .collect();
     let mut grid: HashMap<[i64; 3], Vec<(u32, u32)>> = HashMap::new();
     for (triangle, &root) in mesh.triangles.iter().zip(parts) {
         for &v in triangle {
-            let c = cell(position(v));
+            let c = cell(mesh.position(v));
             if near_candidates.contains(&c) {
                 grid.entry(c).or_default().push((v, root));
             }
@@ -192,11 +194,11 @@ fn noise_blobs(mesh: &UnitMesh, guides: &VertexGuides, parts: &[u32], candidate:
         };
         let within = NOISE_BLOB_SIDES * side;
         members.iter().all(|&v| {
-            let p = position(v);
+            let p = mesh.position(v);
             around(cell(p)).any(|c| {
                 grid.get(&c).is_some_and(|near| {
                     near.iter()
-                        .any(|&(w, root)| larger(root, *blob) && position(w).distance(p) <= within)
+                        .any(|&(w, root)| larger(root, *blob) && mesh.position(w).distance(p) <= within)
                 })
             })
         })
