@@ -50,6 +50,51 @@ def run_measured(args, **kwargs):
     return out.stdout, out.stderr, wall, cpu, after.ru_maxrss / 1024.0
 
 
+class DiskPeak:
+    """The most bytes the file system holding `path` gained over its use at entry, polled every
+    `period` seconds while the `with` block runs: a store and its scratch files (which ingest
+    unlinks as it creates them, so no listing of the store finds them)."""
+
+    def __init__(self, path, period=1.0):
+        self.path, self.period = path, period
+        self.peak_bytes = 0
+
+    def _poll(self):
+        while not self._stop.wait(self.period):
+            self.peak_bytes = max(self.peak_bytes, shutil.disk_usage(self.path).used - self._base)
+
+    def __enter__(self):
+        import threading
+
+        self._base = shutil.disk_usage(self.path).used
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.peak_bytes = max(self.peak_bytes, shutil.disk_usage(self.path).used - self._base)
+        return False
+
+
+def tree_bytes(path):
+    """Bytes the files under `path` take on disk."""
+    return sum(os.stat(Path(root) / name).st_blocks * 512 for root, _, names in os.walk(path) for name in names)
+
+
+def mesh_triangles(path):
+    """Faces of a PLY file, from its header."""
+    with open(path, "rb") as f:
+        for line in f:
+            if line.startswith(b"element face"):
+                return int(line.split()[2])
+            if line.strip() == b"end_header":
+                break
+    raise ValueError(f"{path}: no face element in the PLY header")
+
+
 # ---------------------------------------------------------------------------------------------
 # Depth maps as every method sees them
 
@@ -947,7 +992,8 @@ def scale(work, sizes, budget):
         case = work / f"city-{n}"
         manifest, maps = write_city(n, case / "views")
         mesh = case / "city.ply"
-        wall, cpu, peak, stages = octstore(case / "store", manifest, ["--max-depth", "20"], [], mesh, budget=budget)
+        with DiskPeak(case) as disk:
+            wall, cpu, peak, stages = octstore(case / "store", manifest, ["--max-depth", "20"], [], mesh, budget=budget)
         info = json.loads(subprocess.run(
             [str(BIN / "octstore"), "info", str(case / "store"), "--json"], check=True, capture_output=True, text=True
         ).stdout)
@@ -959,7 +1005,9 @@ def scale(work, sizes, budget):
                      "cubes": info["cubes"], "cube_data_mb": info["cubes"] * CUBE_BYTES / 1e6, "budget": budget,
                      "wall_s": wall, "cpu_s": cpu, "peak_mb": peak, "stages": stages,
                      "solve_peak_mb": max(v["peak_mb"] for k, v in stages.items() if k not in ("extract", "octree-parts")),
-                     "extract_peak_mb": stages.get("extract", {}).get("peak_mb", 0.0)})
+                     "extract_peak_mb": stages.get("extract", {}).get("peak_mb", 0.0),
+                     "disk_peak_gb": disk.peak_bytes / 1e9, "store_gb": tree_bytes(case / "store") / 1e9,
+                     "views_gb": tree_bytes(case / "views") / 1e9, "triangles": mesh_triangles(mesh)})
         print(json.dumps(rows[-1]), flush=True)
         shutil.rmtree(case)
     return rows
@@ -1295,18 +1343,27 @@ def write_markdown(results, out_dir, path):
                   "and the root grows with the city, so cubes per sample vary a little between sizes). Cube data is "
                   f"cubes x {CUBE_BYTES} bytes (key, radius sums, 8 histogram bins, u, v, p, q). octstore commit "
                   f"{commits(rows)}.", "",
-                  "| blocks | depth maps | samples | cubes | cube data MB | x budget | wall s | CPU s | peak MB, ingest + solve | peak MB, extract |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+                  "Disk: the most the file system gained during the run (the store and ingest's scratch files), "
+                  "and the store at the end; the depth maps (PFM) apart. A dash: not measured by that run.", "",
+                  "| blocks | depth maps | samples | cubes | cube data MB | x budget | wall s | CPU s | peak MB, ingest + solve "
+                  "| peak MB, extract | triangles | disk GB, peak | store GB | depth maps GB |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+
+        def optional(row, key, form):
+            return format(row[key], form) if key in row else "-"
+
         for r in rows:
             ratio = r["cube_data_mb"] * 1e6 / parse_budget(r["budget"])
             lines.append(f"| {r['blocks']} | {r['depth_maps']} | {r['samples']:,} | {r['cubes']:,} | {r['cube_data_mb']:.0f} | "
-                         f"{ratio:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['solve_peak_mb']:.0f} | {r['extract_peak_mb']:.0f} |")
+                         f"{ratio:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['solve_peak_mb']:.0f} | {r['extract_peak_mb']:.0f} | "
+                         f"{optional(r, 'triangles', ',')} | {optional(r, 'disk_peak_gb', '.1f')} | "
+                         f"{optional(r, 'store_gb', '.1f')} | {optional(r, 'views_gb', '.1f')} |")
         solve_peaks = [r["solve_peak_mb"] for r in rows]
         lines += ["", f"Peak RSS of ingest and solve ranges from {min(solve_peaks):.0f} to {max(solve_peaks):.0f} MB across "
                   f"sizes; with extract, from {min(peaks):.0f} to {max(peaks):.0f} MB (the budget is "
-                  f"{parse_budget(budget) / 1e6:.0f} MB). Wall time per million samples ranges "
-                  f"from {min(per_sample):.1f} to {max(per_sample):.1f} s (largest size: {per_sample[-1]:.1f} s); per "
-                  f"million cubes, {', '.join(f'{x:.1f}' for x in per_cube)} s."]
+                  f"{parse_budget(budget) / 1e6:.0f} MB). Wall time per million samples, smallest size to largest: "
+                  f"{', '.join(f'{x:.1f}' for x in per_sample)} s ({per_sample[-1] / per_sample[0]:.2f} times the "
+                  f"smallest's at the largest); per million cubes, {', '.join(f'{x:.1f}' for x in per_cube)} s."]
         worked = [r for r in rows if r.get("cube_iterations")]
         if worked:
             lines += ["", "The solve's work is the sum over levels of the cut's cubes times the iterations; "
@@ -1353,8 +1410,9 @@ def main():
     parser.add_argument("--redkitchen-budget", default="512MiB", help="--memory-budget of the redkitchen section")
     parser.add_argument("--tsdf-voxel", type=float, default=None,
                         help="TSDF voxel (m) of the redkitchen section (default: octstore's finest cube side)")
-    parser.add_argument("--scale-sizes", nargs="+", type=int, default=[4, 8, 16, 22],
-                        help="city sizes (blocks per side, squared) of the scale section")
+    parser.add_argument("--scale-sizes", nargs="+", type=int, default=[4, 13, 26, 45],
+                        help="city sizes (blocks per side, squared) of the scale section: 10 M, 104 M, 415 M and "
+                             "1,244 M samples; the rows of other sizes stay")
     parser.add_argument("--divide-points", type=int, default=1_000_000_000,
                         help="points of the generated cloud of the divide section")
     parser.add_argument("--divide-budgets", nargs="+", default=["256MiB", "1GiB"],
@@ -1416,8 +1474,11 @@ def main():
                 rows = [r for r in json.loads(path.read_text()) if r["case"] not in made] + rows
                 rows.sort(key=lambda r: r["case"] != "synthetic")
             if section == "scale" and path.exists():
-                # Sweeps at other budgets stay.
-                rows = [r for r in json.loads(path.read_text()) if r["budget"] != args.scale_budget] + rows
+                # Sweeps at other budgets and sizes this run did not make stay, so the largest
+                # size can run on its own.
+                made = {(r["budget"], r["blocks"]) for r in rows}
+                rows = [r for r in json.loads(path.read_text()) if (r["budget"], r["blocks"]) not in made] + rows
+                rows.sort(key=lambda r: (r["budget"], r["blocks"]))
             if section == "groundtruth" and path.exists():
                 # Cases and methods this run did not make stay.
                 made = {(r["mesh"], r["noise"], r["outliers"], r["method"]) for r in rows}
