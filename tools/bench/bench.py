@@ -1364,6 +1364,10 @@ def write_markdown(results, out_dir, path):
                   f"{parse_budget(budget) / 1e6:.0f} MB). Wall time per million samples, smallest size to largest: "
                   f"{', '.join(f'{x:.1f}' for x in per_sample)} s ({per_sample[-1] / per_sample[0]:.2f} times the "
                   f"smallest's at the largest); per million cubes, {', '.join(f'{x:.1f}' for x in per_cube)} s."]
+        runs = {r.get("commit", "unknown") for r in rows}
+        if len(runs) > 1:
+            lines[-1] += (f" The rows come from {len(runs)} runs (commits {commits(rows)}), on days when this machine's "
+                          "speed may differ: compare times within one run.")
         worked = [r for r in rows if r.get("cube_iterations")]
         if worked:
             lines += ["", "The solve's work is the sum over levels of the cut's cubes times the iterations; "
