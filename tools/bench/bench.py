@@ -1140,9 +1140,10 @@ def commits(rows):
     return ", ".join(sorted({r.get("commit", "unknown") for r in rows}))
 
 
-def fmt(row, key, digits=3):
-    """A figure older runs did not record shows as a dash."""
-    return f"{row[key]:.{digits}f}" if key in row else "-"
+def fmt(row, key, digits=3, spec=None):
+    """A figure older runs did not record shows as a dash; `spec` replaces the fixed-point
+    format of `digits` (`","` for a count)."""
+    return format(row[key], spec or f".{digits}f") if key in row else "-"
 
 
 def write_markdown(results, out_dir, path):
@@ -1349,15 +1350,12 @@ def write_markdown(results, out_dir, path):
                   "| peak MB, extract | triangles | disk GB, peak | store GB | depth maps GB |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
-        def optional(row, key, form):
-            return format(row[key], form) if key in row else "-"
-
         for r in rows:
             ratio = r["cube_data_mb"] * 1e6 / parse_budget(r["budget"])
             lines.append(f"| {r['blocks']} | {r['depth_maps']} | {r['samples']:,} | {r['cubes']:,} | {r['cube_data_mb']:.0f} | "
                          f"{ratio:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['solve_peak_mb']:.0f} | {r['extract_peak_mb']:.0f} | "
-                         f"{optional(r, 'triangles', ',')} | {optional(r, 'disk_peak_gb', '.1f')} | "
-                         f"{optional(r, 'store_gb', '.1f')} | {optional(r, 'views_gb', '.1f')} |")
+                         f"{fmt(r, 'triangles', spec=',')} | {fmt(r, 'disk_peak_gb', 1)} | "
+                         f"{fmt(r, 'store_gb', 1)} | {fmt(r, 'views_gb', 1)} |")
         solve_peaks = [r["solve_peak_mb"] for r in rows]
         lines += ["", f"Peak RSS of ingest and solve ranges from {min(solve_peaks):.0f} to {max(solve_peaks):.0f} MB across "
                   f"sizes; with extract, from {min(peaks):.0f} to {max(peaks):.0f} MB (the budget is "
