@@ -380,7 +380,7 @@ fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
     };
     use octstore::testing::stages::ingest::read_scene;
     use octstore::testing::stages::octree_max_depth;
-    use octstore::testing::stages::solve::{LEVEL_STAGES, SolveParams, read_level_values};
+    use octstore::testing::stages::solve::{LEVEL_STAGES, SolveParams, read_level_u};
 
     let dir = tempfile::tempdir().unwrap();
     let center = glam::DVec3::new(0.2, -0.1, 0.3);
@@ -424,8 +424,8 @@ fn gpu_and_cpu_solves_give_the_same_field_and_mesh() {
         let snap = store.latest().unwrap();
         let mut field = Vec::new();
         for (name, _) in snap.segments(LEVEL_STAGES[usize::from(finest)]) {
-            let values = read_level_values(&snap, name).unwrap();
-            field.extend(values.keys.iter().copied().zip(values.u.iter().copied()));
+            let (keys, values) = read_level_u(&snap, name).unwrap();
+            field.extend(keys.iter().copied().zip(values.iter().map(|value| value.u)));
         }
         field.sort_by_key(|(key, _)| *key);
         let mesh = extract(&snap, &scene, finest, &full_mesh()).unwrap();

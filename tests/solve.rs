@@ -153,6 +153,53 @@ fn the_coarse_rows_cache_changes_no_byte_of_any_level() {
     );
 }
 
+/// The levels below the finest keep the duals p and q, which the next level starts from; the
+/// finest level, which no level reads from, keeps u and v only, and the indicator field reads
+/// from it.
+#[test]
+fn only_the_levels_below_the_finest_keep_the_duals() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, scene) = pipeline(dir.path(), &sphere_scene(1.0, DVec3::ZERO, None), 7, 300, 5);
+    let snapshot = store.latest().unwrap();
+    let finest = octree_max_depth(&store).unwrap();
+    assert_eq!(finest, 7);
+    let names_at = |level: u8| {
+        let segments = snapshot.segments(LEVEL_STAGES[usize::from(level)]);
+        assert!(!segments.is_empty(), "level {level} has segments");
+        segments
+            .iter()
+            .map(|(name, _)| {
+                let file = snapshot.open_segment(name).unwrap();
+                let reader = file.reader().unwrap();
+                reader.columns().iter().map(|c| c.name.clone()).collect::<Vec<_>>()
+            })
+            .collect::<std::collections::BTreeSet<_>>()
+    };
+    let with = [
+        "key",
+        "u",
+        "v",
+        "p",
+        "q",
+        "seen",
+        "sampled",
+        "surface_offset",
+        "measured",
+    ];
+    let without = ["key", "u", "v", "seen", "sampled", "surface_offset", "measured"];
+    for level in 0..finest {
+        assert_eq!(
+            names_at(level).into_iter().collect::<Vec<_>>(),
+            [with.map(String::from).to_vec()]
+        );
+    }
+    assert_eq!(
+        names_at(finest).into_iter().collect::<Vec<_>>(),
+        [without.map(String::from).to_vec()]
+    );
+    assert!(field(&store, &scene).iter().any(|(_, _, _, u)| *u < 0.0));
+}
+
 #[test]
 fn operator_and_adjoint_agree_on_real_balanced_octrees() {
     let dir = tempfile::tempdir().unwrap();

@@ -262,6 +262,9 @@ def run_worker(*args):
 STAGE_LINE = re.compile(r"^(\S+)\s.*\| ([0-9.]+)s \| peak memory ([0-9]+) MB")
 LEVEL_CUBES = re.compile(r"level [0-9]+: ([0-9]+) cubes, .*\(([0-9]+) iterations per cube")
 OCTREE_PARTS = re.compile(r"octree: merge ([0-9.]+)s, balance ([0-9.]+)s, nodes ([0-9.]+)s, treetop ([0-9.]+)s")
+# Extraction's log of its open seams: what grows with the scene's cross-section.
+SEAM_LINE = re.compile(r"extract: at most ([0-9]+) seam vertices and ([0-9]+) seam edges open at once; .* held at most "
+                       r"([0-9]+) MB along the open seams(?: \(the weld ([0-9]+) MB of it\))?")
 
 
 def octstore(store, source, args_ingest, args_solve, mesh, budget=None, args_extract=()):
@@ -295,6 +298,10 @@ def octstore(store, source, args_ingest, args_solve, mesh, budget=None, args_ext
             match = OCTREE_PARTS.search(line)
             if match:
                 stages["octree-parts"] = dict(zip(("merge", "balance", "nodes", "treetop"), map(float, match.groups())))
+            match = SEAM_LINE.search(line)
+            if match:
+                stages["extract-seams"] = {k: int(v) for k, v in zip(("vertices", "edges", "held_mb", "weld_mb"),
+                                                                     match.groups()) if v is not None}
     return total_wall, total_cpu, peak, stages
 
 
@@ -1004,7 +1011,7 @@ def scale(work, sizes, budget):
                      "solve_s": sum(v["seconds"] for v in levels),
                      "cubes": info["cubes"], "cube_data_mb": info["cubes"] * CUBE_BYTES / 1e6, "budget": budget,
                      "wall_s": wall, "cpu_s": cpu, "peak_mb": peak, "stages": stages,
-                     "solve_peak_mb": max(v["peak_mb"] for k, v in stages.items() if k not in ("extract", "octree-parts")),
+                     "solve_peak_mb": max(v["peak_mb"] for k, v in stages.items() if "peak_mb" in v and k != "extract"),
                      "extract_peak_mb": stages.get("extract", {}).get("peak_mb", 0.0),
                      "disk_peak_gb": disk.peak_bytes / 1e9, "store_gb": tree_bytes(case / "store") / 1e9,
                      "views_gb": tree_bytes(case / "views") / 1e9, "triangles": mesh_triangles(mesh)})
@@ -1085,36 +1092,43 @@ def scale_plot(rows, out_dir, name="scale.png"):
 
 
 def stage_breakdown(stages):
-    """Table-1 rows (name, seconds) from octstore's per-stage summary lines."""
+    """Table-1 rows (name, seconds, peak RSS in MB or None) from octstore's per-stage summary
+    lines. The octree's parts share the octree stage's peak; the levels' peak is the largest."""
     parts = stages.get("octree-parts", {})
-    solve = sum(v["seconds"] for k, v in stages.items() if k.startswith("solution-"))
-    rows = [("Depth maps to sorted runs (ingest)", stages.get("ingest", {}).get("seconds", 0.0))]
+    levels = [v for k, v in stages.items() if k.startswith("solution-")]
+    solve = sum(v["seconds"] for v in levels)
+    peak = lambda name: stages.get(name, {}).get("peak_mb")
+    rows = [("Depth maps to sorted runs (ingest)", stages.get("ingest", {}).get("seconds", 0.0), peak("ingest"))]
     if parts:
         rows += [
-            ("Linear octree: k-way merge of the runs", parts["merge"]),
-            ("Balance octree", parts["balance"]),
-            ("Complete octree (nodes)", parts["nodes"]),
-            ("Index treetop", parts["treetop"]),
+            ("Linear octree: k-way merge of the runs", parts["merge"], peak("octree")),
+            ("Balance octree", parts["balance"], peak("octree")),
+            ("Complete octree (nodes)", parts["nodes"], peak("octree")),
+            ("Index treetop", parts["treetop"], peak("octree")),
         ]
     else:
-        rows.append(("Octree + treetop", stages.get("octree", {}).get("seconds", 0.0)))
+        rows.append(("Octree + treetop", stages.get("octree", {}).get("seconds", 0.0), peak("octree")))
     rows += [
-        ("Histograms (CPU)", stages.get("histograms", {}).get("seconds", 0.0)),
-        ("Primal-dual method, all levels (CPU)", solve),
-        ("Marching cubes (extract)", stages.get("extract", {}).get("seconds", 0.0)),
+        ("Histograms (CPU)", stages.get("histograms", {}).get("seconds", 0.0), peak("histograms")),
+        ("Primal-dual method, all levels (CPU)", solve, max((v["peak_mb"] for v in levels), default=None)),
+        ("Marching cubes (extract)", stages.get("extract", {}).get("seconds", 0.0), peak("extract")),
     ]
     return rows
 
 
 def table_one(stages, run, row, heading):
-    """Markdown lines: the stage breakdown of one run in the paper's Table 1 format."""
+    """Markdown lines: the stage breakdown of one run in the paper's Table 1 format, with each
+    stage's peak RSS (a process's high-water mark: ingest, solve and extract are one process
+    each, so a stage's peak is the most its process held by the time it ended)."""
     breakdown = stage_breakdown(stages)
-    total = sum(seconds for _, seconds in breakdown) or 1.0
+    total = sum(seconds for _, seconds, _ in breakdown) or 1.0
     lines = ["", f"{heading} Stage breakdown of the largest run, {run} (the paper's Table 1 format)", "",
              f"{row['cubes']:,} cubes; {row['wall_s'] / 60:.1f} min in all on this machine, peak RSS "
-             f"{row['peak_mb']:.0f} MB.", "", "| processing stage | time | time in % |", "|---|---|---|"]
-    for name, seconds in breakdown:
-        lines.append(f"| {name} | {seconds:.1f} s | {100 * seconds / total:.0f} % |")
+             f"{row['peak_mb']:.0f} MB. A stage's peak RSS is its process's high-water mark when it ended (ingest, "
+             "solve and extract run as one process each, so a solve stage's figure includes the stages before it).",
+             "", "| processing stage | time | time in % | peak RSS MB |", "|---|---|---|---|"]
+    for name, seconds, peak in breakdown:
+        lines.append(f"| {name} | {seconds:.1f} s | {100 * seconds / total:.0f} % | {'-' if peak is None else f'{peak:.0f}'} |")
     return lines + [""]
 
 
@@ -1377,6 +1391,17 @@ def write_markdown(results, out_dir, path):
                 lines.append(f"| {r['blocks']} | {r['cubes']:,} | {levels} | {r['cut_cubes']:,} | "
                              f"{r['cut_cubes'] / r['cubes']:.2f} | {r['solve_s']:.0f} | "
                              f"{r['cube_iterations'] / max(r['solve_s'], 1e-9) / 1e6:.1f} |")
+        seams = [r for r in rows if "extract-seams" in r.get("stages", {})]
+        if seams:
+            lines += ["", "Extraction streams the leaves in key order and holds the vertices and triangles along the "
+                      "seams between leaves meshed and leaves still to come: they grow with the scene's cross-section, "
+                      "not its area. The most it held (its log's own estimate of its tables):", "",
+                      "| blocks | seam vertices open | seam edges open | held MB | of which the weld | peak MB, extract |",
+                      "|---|---|---|---|---|---|"]
+            for r in seams:
+                seam = r["stages"]["extract-seams"]
+                lines.append(f"| {r['blocks']} | {seam['vertices']:,} | {seam['edges']:,} | {seam['held_mb']} | "
+                             f"{fmt(seam, 'weld_mb', 0)} | {r['extract_peak_mb']:.0f} |")
         name = "scale.png" if budget == budgets[0] else f"scale-{budget}.png"
         lines += ["", f"![scale]({scale_plot(rows, out_dir, name).relative_to(path.parent)})", ""]
         largest = max((r for r in rows if r.get("stages")), key=lambda r: r["cubes"], default=None)

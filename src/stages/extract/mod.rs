@@ -415,20 +415,24 @@ fn weld_pieces<W: MeshWriter>(
         on_held: &dyn Fn(u64),
         io: &dyn Fn(std::io::Error) -> StoreError,
     ) -> Result<()> {
-        let mut most_held = 0;
+        // The most held, and the weld's own share of it then.
+        let (mut most_held, mut weld_share) = (0, 0);
         for piece in pieces {
             let (unit, key, mesh) = piece?;
             weld.add(unit, key, &mesh).map_err(io)?;
             let held = weld.held_bytes();
-            most_held = most_held.max(held);
+            if held > most_held {
+                (most_held, weld_share) = (held, weld.own_held_bytes());
+            }
             on_held(held);
         }
         tracing::info!(
             "extract: at most {} seam vertices and {} seam edges open at once; the weld and the simplification \
-             held at most {:.0} MB along the open seams",
+             held at most {:.0} MB along the open seams (the weld {:.0} MB of it)",
             weld.most_open,
             weld.most_open_edges,
-            most_held as f64 / 1e6
+            most_held as f64 / 1e6,
+            weld_share as f64 / 1e6
         );
         Ok(())
     }

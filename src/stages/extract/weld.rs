@@ -415,13 +415,18 @@ impl<'t, W: MeshWriter> StreamingWeld<'t, W> {
     /// Bytes the open seams take here and in the writer, about: the records and tables, by
     /// their capacities.
     pub(super) fn held_bytes(&self) -> u64 {
+        self.own_held_bytes() + self.writer.held_bytes()
+    }
+
+    /// [`StreamingWeld::held_bytes`] of the weld alone, without the writer's.
+    pub(super) fn own_held_bytes(&self) -> u64 {
         let seam = &self.seam;
         let records = (seam.slots.capacity() * std::mem::size_of::<SeamVertex>() + seam.free.capacity() * 4) as u64;
         let index = super::table_bytes::<u32>(seam.by_name.table.capacity());
         let edges = super::table_bytes::<((u32, u32), u32)>(self.seam_edges.capacity());
         // Each open vertex and edge is listed once for its retirement.
         let retirements = (seam.len() * 4 + self.seam_edges.len() * 8) as u64;
-        records + index + edges + retirements + self.writer.held_bytes()
+        records + index + edges + retirements
     }
 
     /// Retires every seam vertex and edge that no unit after `unit` can produce.

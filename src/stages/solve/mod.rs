@@ -6,7 +6,8 @@
 //! cube starts from the same previous-level values.
 //!
 //! Every level is a version, so `solve --resume` continues at the level and unit where it
-//! stopped, and each level's segments (key, u, v, p, q) remain readable.
+//! stopped, and each level's segments (key, u, v, p, q; the finest without p and q: `level_segment`) remain
+//! readable.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -19,7 +20,7 @@ use super::observed::{measured_weight, sampled_of, seen_weight, surface_offset};
 use super::treetop::{Treetop, TreetopUnit, UnitKeys, children_on_min_face};
 use crate::format::Scene;
 use crate::format::key::{find_sorted_from, last_at_or_below_from};
-use crate::format::{Column, ColumnValues, CubeKey, MAX_DEPTH};
+use crate::format::{CubeKey, MAX_DEPTH};
 use crate::kernels::tgv::{Problem, State};
 use crate::kernels::votes::BINS;
 use crate::store::StageError;
@@ -28,6 +29,7 @@ use crate::store::{Plan, Replace, Result, Snapshot, Stage, StoreError, UnitOutpu
 
 mod coarse;
 mod cut;
+mod level_segment;
 mod params;
 mod plus_faces;
 mod ssd;
@@ -40,6 +42,8 @@ pub use ssd::{CoarseSamplesCache, METHOD_COLUMN, PendingCoarseSamples, method_of
 
 use cut::WindowTest;
 pub use cut::{CutValue, LeafValues, LevelCut, read_level_u};
+pub use level_segment::{Kept, LevelSegments, LevelValues, read_level_values};
+use level_segment::{ObservedColumns, columns_of, read_level_values_where};
 
 pub use params::{DEFAULT_SSD_TOLERANCE, DEFAULT_TOLERANCE, Method, MethodChoice, SolveParams, SsdParams};
 
@@ -79,107 +83,6 @@ pub const LEVEL_STAGES: [&str; MAX_DEPTH as usize + 1] = [
     "solution-31",
     "solution-32",
 ];
-
-/// A unit's cut values at one level.
-pub struct LevelValues {
-    pub keys: Vec<CubeKey>,
-    pub u: Vec<f32>,
-    pub v: Vec<[f32; 3]>,
-    pub p: Vec<[f32; 3]>,
-    pub q: Vec<[f32; 6]>,
-}
-
-impl LevelValues {
-    pub fn find(&self, key: CubeKey) -> Option<usize> {
-        self.keys.binary_search(&key).ok()
-    }
-}
-
-/// The level segment's columns: the solver's state, then what the data says about each cube
-/// (`stages::observed`).
-fn columns_of(values: &LevelValues, observed: ObservedColumns) -> Vec<Column> {
-    let flat = |rows: &[[f32; 3]]| rows.iter().flatten().copied().collect::<Vec<f32>>();
-    vec![
-        Column::keys(values.keys.clone()),
-        Column::new("u", 1, ColumnValues::F32(values.u.clone())),
-        Column::new("v", 3, ColumnValues::F32(flat(&values.v))).with_raw_literals(),
-        Column::new("p", 3, ColumnValues::F32(flat(&values.p))).with_raw_literals(),
-        Column::new("q", 6, ColumnValues::F32(values.q.iter().flatten().copied().collect())).with_raw_literals(),
-        Column::new("seen", 1, ColumnValues::F32(observed.seen)),
-        Column::new("sampled", 1, ColumnValues::U32(observed.sampled)),
-        Column::new("surface_offset", 1, ColumnValues::F32(observed.offset)),
-        Column::new("measured", 1, ColumnValues::F32(observed.measured)),
-    ]
-}
-
-/// A level segment's columns from `stages::observed`, one row per cube.
-struct ObservedColumns {
-    seen: Vec<f32>,
-    sampled: Vec<u32>,
-    offset: Vec<f32>,
-    measured: Vec<f32>,
-}
-
-/// Reads a level segment.
-pub fn read_level_values(snapshot: &Snapshot<'_>, segment: &str) -> Result<LevelValues> {
-    read_level_values_where(snapshot, segment, None)
-}
-
-/// [`read_level_values`] of the blocks whose cubes may meet `window` (all when `None`).
-fn read_level_values_where(snapshot: &Snapshot<'_>, segment: &str, window: Option<&WindowTest>) -> Result<LevelValues> {
-    let file = snapshot.open_segment(segment)?;
-    let whole = file.reader()?;
-    let reader = whole.with_blocks_where(|first, last| window.is_none_or(|w| w.may_meet_cut_between(first, last)));
-    let c = |e| file.corruption(e);
-    let keys = reader.read_keys().map_err(c)?;
-    let (_, u) = reader.read_f32("u").map_err(c)?;
-    let (_, v) = reader.read_f32("v").map_err(c)?;
-    let (_, p) = reader.read_f32("p").map_err(c)?;
-    let (_, q) = reader.read_f32("q").map_err(c)?;
-    let n = keys.len();
-    if u.len() != n || v.len() != 3 * n || p.len() != 3 * n || q.len() != 6 * n {
-        return Err(file.corruption(crate::format::DecodeError::MissingColumn(
-            "u, v, p, q of matching lengths".into(),
-        )));
-    }
-    let triple = |x: &[f32]| x.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-    Ok(LevelValues {
-        keys,
-        u,
-        v: triple(&v),
-        p: triple(&p),
-        q: q.chunks_exact(6)
-            .map(|c| [c[0], c[1], c[2], c[3], c[4], c[5]])
-            .collect(),
-    })
-}
-
-/// A level's segments by group. A level unit solves a group of consecutive treetop units (small
-/// leaves are batched); its id is the index of its first treetop unit, so treetop unit i's values
-/// are in the last group starting at or before i (or nowhere: then that group lacks its keys).
-pub struct LevelSegments {
-    by_first_unit: BTreeMap<u64, String>,
-}
-
-impl LevelSegments {
-    pub fn of(snapshot: &Snapshot<'_>, stage: &str) -> LevelSegments {
-        LevelSegments {
-            by_first_unit: snapshot
-                .segments(stage)
-                .iter()
-                .map(|(name, record)| (record.unit, name.clone()))
-                .collect(),
-        }
-    }
-
-    /// The group that may hold treetop unit `unit`: its id and segment.
-    pub fn group_of(&self, unit: usize) -> Option<(u64, &str)> {
-        self.by_first_unit
-            .range(..=unit as u64)
-            .next_back()
-            .map(|(id, name)| (*id, name.as_str()))
-    }
-}
 
 /// A unit is small, and batched with its neighbours, when it has at most 1 / this of the cubes
 /// a level group may hold.
@@ -326,6 +229,9 @@ pub struct LevelStage {
     treetop: std::sync::OnceLock<Treetop>,
     /// Treetop units solved together, by group id (the first member's index).
     groups: std::sync::OnceLock<BTreeMap<u64, Vec<usize>>>,
+    /// What the level's segments keep: set by planning, from the octree's maximum depth (in
+    /// the level's inputs, so a deeper octree solves this level again, with its duals).
+    kept: std::sync::OnceLock<Kept>,
     /// Where the iterations run; `None` is the CPU kernel.
     gpu: Option<std::sync::Arc<crate::gpu::Gpu>>,
     method: Method,
@@ -353,6 +259,7 @@ impl LevelStage {
             params,
             treetop: std::sync::OnceLock::new(),
             groups: std::sync::OnceLock::new(),
+            kept: std::sync::OnceLock::new(),
             gpu: None,
             method: Method::Tgv,
             coarse_samples: ssd::CoarseSamplesCache::default(),
@@ -439,6 +346,14 @@ impl LevelStage {
             .filter_map(|&i| treetop.units.get(i))
             .filter_map(|unit| cut_bound(unit, level))
             .fold(0, u64::saturating_add)
+    }
+
+    /// What the level's segments keep ([`Kept`]), once planned.
+    fn kept(&self, unit: &UnitSpec) -> Result<Kept> {
+        self.kept
+            .get()
+            .copied()
+            .ok_or_else(|| self.stage_error(unit, StageError::internal("units run before planning")))
     }
 
     fn previous_stage(&self) -> Option<&'static str> {
@@ -765,8 +680,14 @@ impl Stage for LevelStage {
             .into_iter()
             .filter_map(|members| Some((*members.first()? as u64, members)))
             .collect();
+        let finest = crate::stages::octree_max_depth(base.store())?;
         let _ = self.treetop.set(treetop);
         let _ = self.groups.set(by_id);
+        let _ = self.kept.set(if self.level >= finest {
+            Kept::Solution
+        } else {
+            Kept::WithDuals
+        });
         Ok(Plan {
             units,
             replace: Replace::All,
@@ -811,6 +732,7 @@ impl Stage for LevelStage {
                         offset,
                         measured,
                     },
+                    self.kept(unit)?,
                 )
                 .into(),
             ],

@@ -523,7 +523,7 @@ impl LevelStage {
             p: vec![[0.0; 3]; n],
             q: vec![[0.0; 6]; n],
         };
-        let mut columns = columns_of(&values, observed);
+        let mut columns = columns_of(&values, observed, self.kept(unit)?);
         let code = if let Method::Hybrid(_) = self.method { 2 } else { 1 };
         columns.push(Column::new(METHOD_COLUMN, 1, ColumnValues::U32(vec![code; n])));
         Ok(UnitOutput {
