@@ -280,7 +280,10 @@ def octstore(store, source, args_ingest, args_solve, mesh, budget=None, args_ext
         ["solve", str(store), *args_solve],
         ["extract", str(store), "-o", str(mesh), *args_extract],
     ):
-        stdout, stderr, wall, cpu, _ = run_measured([octstore_bin, *common, *args])
+        # `--quiet` keeps the log at warnings: its info lines (the octree's parts, extraction's
+        # open seams) are asked for by name.
+        env = {**os.environ, "OCTSTORE_LOG": "warn,octstore=info"}
+        stdout, stderr, wall, cpu, _ = run_measured([octstore_bin, *common, *args], env=env)
         total_wall += wall
         total_cpu += cpu
         for line in stdout.splitlines():
@@ -1393,9 +1396,11 @@ def write_markdown(results, out_dir, path):
                              f"{r['cube_iterations'] / max(r['solve_s'], 1e-9) / 1e6:.1f} |")
         seams = [r for r in rows if "extract-seams" in r.get("stages", {})]
         if seams:
-            lines += ["", "Extraction streams the leaves in key order and holds the vertices and triangles along the "
-                      "seams between leaves meshed and leaves still to come: they grow with the scene's cross-section, "
-                      "not its area. The most it held (its log's own estimate of its tables):", "",
+            lines += ["", "Extraction streams the leaves and holds the vertices and triangles along the seams between "
+                      "leaves meshed and leaves still to come, the most of them at once below (the held MB are its log's "
+                      "own estimate of its tables). In key (Morton) order they grow with the city's area, not its side: "
+                      "the root, a cube around the city, splits first across the city's height, so the lower half of "
+                      "every building is meshed before any upper half.", "",
                       "| blocks | seam vertices open | seam edges open | held MB | of which the weld | peak MB, extract |",
                       "|---|---|---|---|---|---|"]
             for r in seams:
