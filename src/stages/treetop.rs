@@ -64,6 +64,32 @@ impl Treetop {
     }
 }
 
+#[cfg(test)]
+impl TreetopUnit {
+    /// A unit of cube `key` with no segment behind it: treetops for tests of what depends on
+    /// the keys alone.
+    pub(crate) fn blank(key: CubeKey, top: bool) -> TreetopUnit {
+        TreetopUnit {
+            key,
+            segment: String::new(),
+            record: SegmentRecord {
+                stage: String::new(),
+                unit: 0,
+                part: 0,
+                rows: 0,
+                bytes: 0,
+                file_checksum: 0,
+                content_digest: 0,
+                first_key: 0,
+                last_key: 0,
+                created: 0,
+                dropped: None,
+            },
+            top,
+        }
+    }
+}
+
 /// Sorted keys of one unit, with the octree's leaf test.
 pub struct UnitKeys {
     pub keys: Vec<CubeKey>,

@@ -67,7 +67,8 @@
 //! Files: `surface` (what to mesh, and the default's decision from the capture), `dual_cells`
 //! (a unit's piece; `dual_cells/pinholes` fills its pinholes, `dual_cells/watertight` drops
 //! the watertight piece's parts without observed surface), `relax`
-//! (smoothing a piece's private vertices), `weld` (streaming weld in unit order), `simplify`
+//! (smoothing a piece's private vertices), `order` (the order units are meshed and welded in:
+//! a wide scene column by column), `weld` (streaming weld in that order), `simplify`
 //! (streaming simplification of the welded mesh; `carried` holds its triangles waiting at open
 //! seams), `region` (the cut at `--region`), `mesh_file` (the temporary vertex and face files
 //! and the final PLY), `in_order` (workers compute pieces ahead while the weld consumes them
@@ -77,6 +78,7 @@ mod carried;
 mod dual_cells;
 mod in_order;
 mod mesh_file;
+mod order;
 mod region;
 mod relax;
 mod simplify;
@@ -93,6 +95,7 @@ use rayon::prelude::*;
 use self::dual_cells::{drop_unobserved_pieces, dual_cells_of_unit};
 use self::in_order::{Window, in_order_while_computing};
 use self::mesh_file::{MemoryMesh, MeshFile};
+use self::order::UnitOrder;
 use self::region::RegionWriter;
 use self::relax::smooth_private_vertices;
 use self::simplify::{SimplifyingWriter, Target};
@@ -312,7 +315,7 @@ fn finish_cut<W: MeshWriter>(
 }
 
 /// The units of `treetop` (the snapshot's) whose dual cells can reach the region (all leaves
-/// without one), in order.
+/// without one), in extraction order (`order`: the weld takes their pieces in it).
 pub fn extract_units(
     snapshot: &Snapshot<'_>,
     treetop: &Treetop,
@@ -328,12 +331,12 @@ pub fn extract_units(
             error: Box::new(StageError::NoSolution { level: finest }),
         });
     }
-    Ok((0..treetop.units.len())
+    Ok(UnitOrder::of(treetop)
+        .leaves()
+        .iter()
+        .copied()
         .filter(|&i| {
             let Some(unit) = treetop.units.get(i) else { return false };
-            if unit.top {
-                return false;
-            }
             match region {
                 None => true,
                 Some(r) => {
